@@ -1,0 +1,17 @@
+"""Exceptions and warnings raised by kpifs."""
+from astropy.utils.exceptions import AstropyUserWarning
+
+__all__ = ["KpifsError", "KpifsWarning"]
+
+
+class KpifsError(ValueError):
+    """Bad input to kpifs: the message names the problem (and the file, if any).
+
+    It subclasses `ValueError` so that code catching ``ValueError`` keeps
+    working; the command line turns it into a one-line message and exit
+    status 2.
+    """
+
+
+class KpifsWarning(AstropyUserWarning):
+    """A warning issued by kpifs (e.g. baselines dropped at the Nyquist limit)."""

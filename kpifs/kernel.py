@@ -1,0 +1,424 @@
+"""Kernel model: uv points, redundancies, phase-transfer matrix and kernel (Martinache 2010).
+
+Every pair of sub-apertures ``(j, k)`` gives a baseline ``b = r_j - r_k``. The
+baselines are folded into the half plane ``v > 0`` (or ``v == 0, u > 0``) and
+merged into unique uv points. With pair weights ``t_j t_k`` (1 for a binary
+model) the baseline-mapping matrix is ``A[b, j] += w``, ``A[b, k] -= w`` and
+the redundancy ``R[b]`` is the summed weight; the phase-transfer matrix
+``R^-1 A`` maps pupil phases to Fourier phases,
+``Phi(b) = sum_pairs w (phi_j - phi_k) / R[b]``. The kernel ``K`` is an
+orthonormal basis of the left null space of ``R^-1 A`` obtained from its SVD,
+so that ``K R^-1 A = 0`` and ``n_kp = n_uv - rank``.
+"""
+import logging
+import warnings
+
+import numpy as np
+from astropy import units as u
+from astropy.io import fits
+from astropy.table import Table
+
+from ._utils import to_quantity, write_hdulist
+from .exceptions import KpifsError, KpifsWarning
+from .pupil import PupilModel, make_pupil
+
+__all__ = ["KernelModel", "nyquist_usable", "load_kernel_model"]
+
+log = logging.getLogger(__name__)
+
+MAS = np.pi / 180 / 3600 / 1000  # radians per milliarcsecond
+
+
+def _uv_from_pupil(xy, trans, tol):
+    """Unique half-plane uv points, redundancies and baseline-mapping matrix."""
+    n = len(xy)
+    j, k = np.triu_indices(n, 1)
+    b = xy[j] - xy[k]
+    # fold into the half plane v > 0, or v == 0 and u > 0
+    flip = (b[:, 1] < -tol) | ((np.abs(b[:, 1]) <= tol) & (b[:, 0] < 0))
+    b[flip] *= -1
+    j2 = np.where(flip, k, j)
+    k2 = np.where(flip, j, k)
+    keys = np.round(b / tol).astype(np.int64)
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    nuv = len(first)
+    w = trans[j2] * trans[k2]
+    red = np.bincount(inverse, weights=w, minlength=nuv)
+    # mean baseline of each group (exact for a grid model, robust otherwise)
+    uv = np.column_stack([np.bincount(inverse, weights=b[:, 0] * w, minlength=nuv),
+                          np.bincount(inverse, weights=b[:, 1] * w, minlength=nuv)]) / red[:, None]
+    A = np.zeros((nuv, n))
+    np.add.at(A, (inverse, j2), w)
+    np.add.at(A, (inverse, k2), -w)
+    # order by baseline length, then angle: a stable, readable ordering
+    order = np.lexsort((np.arctan2(uv[:, 1], uv[:, 0]), np.round(np.hypot(*uv.T) / tol)))
+    return uv[order], red[order], A[order]
+
+
+def _kernel_from_tfm(tfm, rtol):
+    U, s, _ = np.linalg.svd(tfm, full_matrices=True)
+    rank = int(np.sum(s > rtol * s[0])) if s.size else 0
+    return U[:, rank:].T.copy(), rank, s
+
+
+def nyquist_usable(uv, wavelengths, pixscale):
+    """Which uv points are sampled at each wavelength.
+
+    A uv point of length ``|b|`` is usable at wavelength ``lam`` for an image of
+    pixel scale ``p`` when ``|b| / lam <= 1 / (2 p)``.
+
+    Parameters
+    ----------
+    uv : `~astropy.units.Quantity`, shape (nuv, 2)
+        Baselines (m).
+    wavelengths : `~astropy.units.Quantity`, shape (nwave,)
+    pixscale : `~astropy.units.Quantity`
+        Angular size of a pixel.
+
+    Returns
+    -------
+    usable : ndarray of bool, shape (nwave, nuv)
+
+    Examples
+    --------
+    >>> import astropy.units as u
+    >>> from kpifs.kernel import nyquist_usable
+    >>> nyquist_usable([[7.9, 0]] * u.m, [1.16, 1.6] * u.um, 16.2 * u.mas)
+    array([[False],
+           [ True]])
+    """
+    uv = to_quantity(uv, u.m, name="uv").value
+    wl = np.atleast_1d(to_quantity(wavelengths, u.m, name="wavelengths").value)
+    p = to_quantity(pixscale, u.mas, name="pixel scale").value * MAS
+    blen = np.hypot(uv[:, 0], uv[:, 1])
+    return blen[None, :] / wl[:, None] <= 1 / (2 * p) * (1 + 1e-12)
+
+
+class KernelModel:
+    """Linear model of the Fourier phase of a discrete pupil and its kernel.
+
+    Build one with `KernelModel.from_pupil`, or read one with
+    `KernelModel.read` / `load_kernel_model`.
+
+    Attributes
+    ----------
+    pupil : `~kpifs.pupil.PupilModel`
+        The discrete pupil.
+    uv : `~astropy.units.Quantity`, shape (nuv, 2)
+        Unique baselines in the half plane (m).
+    redundancy : ndarray, shape (nuv,)
+        Summed pair weights per uv point (integers for a binary model).
+    blm : ndarray, shape (nuv, nsub)
+        Baseline-mapping matrix ``A``.
+    kernel : ndarray, shape (nkp, nuv)
+        Kernel matrix ``K``.
+    rank : int
+        Rank of the phase-transfer matrix.
+
+    Examples
+    --------
+    >>> from kpifs import KernelModel, make_pupil
+    >>> km = KernelModel.from_pupil(make_pupil("subaru"))
+    >>> km.n_kp == km.n_uv - km.rank
+    True
+    """
+
+    def __init__(self, pupil, uv, redundancy, blm, kernel=None, *, rank=None, rtol=1e-9,
+                 meta=None):
+        self.pupil = pupil
+        self._uv = np.asarray(u.Quantity(uv, u.m).value, float)
+        self.redundancy = np.asarray(redundancy, float)
+        self.blm = np.asarray(blm, float)
+        nuv = len(self._uv)
+        if self.redundancy.shape != (nuv,) or self.blm.shape != (nuv, pupil.n_sub):
+            raise KpifsError(f"inconsistent kernel model: {nuv} uv points, redundancy "
+                             f"{self.redundancy.shape}, BLM {self.blm.shape}, "
+                             f"{pupil.n_sub} sub-apertures")
+        if kernel is None:
+            kernel, rank, _ = _kernel_from_tfm(self.tfm, rtol)
+        elif rank is None:
+            rank = int(np.linalg.matrix_rank(self.tfm, tol=rtol * np.linalg.norm(self.tfm, 2)))
+        self.kernel = np.asarray(kernel, float)
+        if self.kernel.ndim != 2 or self.kernel.shape[1] != nuv:
+            raise KpifsError(f"kernel matrix has shape {self.kernel.shape}, expected (nkp, {nuv})")
+        self.rank = int(rank)
+        self.meta = dict(meta or {})
+        self._dft_cache = {}
+
+    @classmethod
+    def from_pupil(cls, pupil, *, rtol=1e-9, uv_tol=None):
+        """Build the kernel model of a `~kpifs.pupil.PupilModel`.
+
+        Parameters
+        ----------
+        pupil : `~kpifs.pupil.PupilModel`
+        rtol : float
+            Singular values below ``rtol`` times the largest count as zero when
+            computing the rank.
+        uv_tol : float, optional
+            Baselines closer than this (m) are merged; default a thousandth of
+            the grid step.
+        """
+        if not isinstance(pupil, PupilModel):
+            raise KpifsError(f"expected a PupilModel, got {type(pupil).__name__}")
+        xy = pupil.xy.value
+        if uv_tol is None:
+            step = pupil.step.to_value(u.m) if pupil.step is not None else None
+            if step is None:
+                d = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1))
+                step = np.min(d[d > 0])
+            uv_tol = 1e-3 * step
+        uv, red, A = _uv_from_pupil(xy, pupil.transmission, uv_tol)
+        km = cls(pupil, uv, red, A, rtol=rtol, meta={"rtol": rtol, "uv_tol_m": uv_tol})
+        log.info("kernel model: %d sub-apertures, %d uv points, rank %d, %d kernel phases",
+                 pupil.n_sub, km.n_uv, km.rank, km.n_kp)
+        return km
+
+    # --- basic properties -------------------------------------------------
+    @property
+    def uv(self):
+        """Baselines, `~astropy.units.Quantity` (nuv, 2) in m."""
+        return self._uv * u.m
+
+    @property
+    def n_uv(self):
+        return len(self._uv)
+
+    @property
+    def n_kp(self):
+        return self.kernel.shape[0]
+
+    @property
+    def tfm(self):
+        """Phase-transfer matrix ``R^-1 A`` (nuv, nsub)."""
+        return self.blm / self.redundancy[:, None]
+
+    @property
+    def baseline_length(self):
+        """Length of each uv point (m)."""
+        return np.hypot(*self._uv.T) * u.m
+
+    def __repr__(self):
+        return (f"<KernelModel {self.pupil.name!r}: {self.pupil.n_sub} sub-apertures, "
+                f"{self.n_uv} uv points, rank {self.rank}, {self.n_kp} kernel phases>")
+
+    # --- derived models ---------------------------------------------------
+    def subset(self, keep):
+        """Return the model restricted to the uv points where *keep* is True.
+
+        The kernel is recomputed for the reduced phase-transfer matrix.
+        """
+        keep = np.asarray(keep, bool)
+        if keep.shape != (self.n_uv,):
+            raise KpifsError(f"uv selection has shape {keep.shape}, expected ({self.n_uv},)")
+        if keep.all():
+            return self
+        if keep.sum() < 2:
+            raise KpifsError("fewer than two uv points are left in the kernel model")
+        km = KernelModel(self.pupil, self._uv[keep], self.redundancy[keep], self.blm[keep],
+                         rtol=self.meta.get("rtol", 1e-9), meta=self.meta)
+        km.meta["n_uv_dropped"] = int((~keep).sum()) + self.meta.get("n_uv_dropped", 0)
+        return km
+
+    def for_wavelengths(self, wavelengths, pixscale, *, on_nyquist="drop", source=None):
+        """Return a model usable at all *wavelengths* for images of *pixscale*.
+
+        uv points beyond the Nyquist limit at any channel are found; with
+        ``on_nyquist='drop'`` they are removed (one common model for every
+        channel, so that kernel phases stay comparable across wavelength) with a
+        `~kpifs.KpifsWarning` saying how many and at which channels; with
+        ``'raise'`` a `~kpifs.KpifsError` is raised.
+
+        Examples
+        --------
+        >>> import astropy.units as u
+        >>> from kpifs import KernelModel, make_pupil
+        >>> km = KernelModel.from_pupil(make_pupil("subaru"))
+        >>> km.for_wavelengths([1.6] * u.um, 16.2 * u.mas) is km
+        True
+        """
+        if on_nyquist not in ("drop", "raise"):
+            raise KpifsError(f"on_nyquist must be 'drop' or 'raise', got {on_nyquist!r}")
+        wl = np.atleast_1d(to_quantity(wavelengths, u.um, name="wavelengths"))
+        usable = nyquist_usable(self.uv, wl, pixscale)
+        bad = ~usable.all(axis=1)
+        if not bad.any():
+            return self
+        where = f"{source}: " if source else ""
+        lost = ", ".join(f"{w:.3f} ({n} of {self.n_uv})" for w, n in
+                         zip(wl.value[bad], (~usable[bad]).sum(axis=1)))
+        msg = (f"{where}uv points beyond the Nyquist limit of {u.Quantity(pixscale, u.mas):.2f} "
+               f"pixels at {bad.sum()} channel(s), wavelengths in um (uv points lost): {lost}")
+        if on_nyquist == "raise":
+            raise KpifsError(msg + "; use on_nyquist='drop' (--nyquist drop) to remove them")
+        keep = usable.all(axis=0)
+        warnings.warn(msg + f"; dropping {(~keep).sum()} uv points for all channels",
+                      KpifsWarning, stacklevel=2)
+        return self.subset(keep)
+
+    # --- Fourier matrices -------------------------------------------------
+    def dft_matrix(self, wavelength, pixscale, shape):
+        """Real-stacked DFT matrix for a window of *shape* pixels centred on the origin.
+
+        Returns an array of shape ``(2 nuv, ny*nx)`` whose first ``nuv`` rows are
+        ``cos`` and last ``nuv`` rows ``-sin`` of ``2 pi (u x + v y) / lam``, so
+        that ``M @ image.ravel()`` stacks ``Re V`` and ``Im V`` with
+        ``V(u, v) = sum I(x, y) exp(-2 pi i (u x + v y) / lam)``. Pixel ``(ny//2,
+        nx//2)`` of the window is the origin. Matrices are cached per
+        (wavelength, pixel scale, shape).
+        """
+        wl = float(to_quantity(wavelength, u.m, name="wavelength").value)
+        p = float(to_quantity(pixscale, u.mas, name="pixel scale").value) * MAS
+        ny, nx = shape
+        key = (round(wl * 1e15), round(p * 1e18), ny, nx)
+        mat = self._dft_cache.get(key)
+        if mat is None:
+            y = (np.arange(ny) - ny // 2) * p
+            x = (np.arange(nx) - nx // 2) * p
+            gx, gy = np.meshgrid(x, y)
+            arg = (2 * np.pi / wl) * (np.outer(self._uv[:, 0], gx.ravel())
+                                      + np.outer(self._uv[:, 1], gy.ravel()))
+            mat = np.concatenate([np.cos(arg), -np.sin(arg)])
+            self._dft_cache[key] = mat
+            # keep the cache bounded (about 1 GB of float64)
+            while sum(m.nbytes for m in self._dft_cache.values()) > 1 << 30 and \
+                    len(self._dft_cache) > 1:
+                self._dft_cache.pop(next(iter(self._dft_cache)))
+        return mat
+
+    def signature(self, offset, wavelengths):
+        """First-order kernel-phase signature of a companion at *offset*.
+
+        ``K sin(-2 pi (alpha u + beta v) / lam)`` per wavelength, so that a
+        companion of contrast ``c`` gives kernel phases ``~ c * signature``.
+
+        Parameters
+        ----------
+        offset : `~astropy.units.Quantity`, shape (2,)
+            ``(alpha, beta)``: companion offset from the star along image x and y.
+        wavelengths : `~astropy.units.Quantity`, shape (nwave,)
+
+        Returns
+        -------
+        ndarray, shape (nwave, nkp)
+        """
+        a, b = to_quantity(offset, u.mas, name="offset").value * MAS
+        wl = np.atleast_1d(to_quantity(wavelengths, u.m, name="wavelengths").value)
+        theta = 2 * np.pi * (a * self._uv[:, 0] + b * self._uv[:, 1])[None, :] / wl[:, None]
+        return np.sin(-theta) @ self.kernel.T
+
+    def binary_kernel_phases(self, offset, contrast, wavelengths):
+        """Exact kernel phases of a binary: ``K arg(1 + c exp(-2 pi i (alpha u + beta v)/lam))``.
+
+        *contrast* is a scalar or one value per wavelength. Returns (nwave, nkp).
+        """
+        a, b = to_quantity(offset, u.mas, name="offset").value * MAS
+        wl = np.atleast_1d(to_quantity(wavelengths, u.m, name="wavelengths").value)
+        c = np.broadcast_to(np.asarray(contrast, float), wl.shape)
+        theta = 2 * np.pi * (a * self._uv[:, 0] + b * self._uv[:, 1])[None, :] / wl[:, None]
+        phi = np.angle(1 + c[:, None] * np.exp(-1j * theta))
+        return phi @ self.kernel.T
+
+    # --- FITS -------------------------------------------------------------
+    def to_hdus(self):
+        """The KPFITS model extensions: APERTURE, UV-PLANE, KER-MAT, BLM-MAT."""
+        ap = Table([self.pupil.xy.value[:, 0], self.pupil.xy.value[:, 1],
+                    self.pupil.transmission], names=("XXC", "YYC", "TRM"))
+        ap["XXC"].unit = ap["YYC"].unit = "m"
+        hap = fits.BinTableHDU(ap, name="APERTURE")
+        hap.header["PUPNAME"] = (self.pupil.name[:60], "pupil model name")
+        if self.pupil.step is not None:
+            hap.header["STEP"] = (self.pupil.step.to_value(u.m), "[m] grid step")
+        uvt = Table([self._uv[:, 0], self._uv[:, 1], self.redundancy], names=("UUC", "VVC", "RED"))
+        uvt["UUC"].unit = uvt["VVC"].unit = "m"
+        huv = fits.BinTableHDU(uvt, name="UV-PLANE")
+        hk = fits.ImageHDU(self.kernel, name="KER-MAT")
+        hk.header["RANK"] = (self.rank, "rank of the phase-transfer matrix")
+        hb = fits.ImageHDU(self.blm, name="BLM-MAT")
+        hb.header["COMMENT"] = "baseline-mapping matrix A; phase transfer = A / RED"
+        return [hap, huv, hk, hb]
+
+    @classmethod
+    def from_hdulist(cls, hdul, *, source="<memory>"):
+        """Read the model extensions of a KPFITS file (see `to_hdus`)."""
+        try:
+            ap = hdul["APERTURE"].data
+            uvt = hdul["UV-PLANE"].data
+            kmat = np.array(hdul["KER-MAT"].data, float)
+        except KeyError as exc:
+            raise KpifsError(f"{source}: not a kernel model: missing extension {exc}") from None
+        trm = np.array(ap["TRM"], float) if "TRM" in ap.names else np.ones(len(ap))
+        step = hdul["APERTURE"].header.get("STEP")
+        pup = PupilModel(np.column_stack([ap["XXC"], ap["YYC"]]), trm,
+                         step=step, name=hdul["APERTURE"].header.get("PUPNAME", source))
+        uv = np.column_stack([uvt["UUC"], uvt["VVC"]])
+        red = np.array(uvt["RED"], float)
+        if "BLM-MAT" in hdul:
+            blm = np.array(hdul["BLM-MAT"].data, float)
+        else:  # rebuild A from the aperture (files of other tools may omit it)
+            blm = cls.from_pupil(pup).blm
+            if blm.shape[0] != len(uv):
+                raise KpifsError(f"{source}: no BLM-MAT and the aperture does not reproduce "
+                                 f"the {len(uv)} uv points")
+        if kmat.shape[1] != len(uv):
+            raise KpifsError(f"{source}: KER-MAT has {kmat.shape[1]} columns but UV-PLANE "
+                             f"has {len(uv)} rows")
+        rank = hdul["KER-MAT"].header.get("RANK")
+        return cls(pup, uv, red, blm, kmat, rank=rank, meta={"source": str(source)})
+
+    @classmethod
+    def read(cls, path):
+        """Read a kernel model from a FITS file (KPFITS model extensions)."""
+        try:
+            with fits.open(path, memmap=False) as hdul:
+                return cls.from_hdulist(hdul, source=path)
+        except (OSError, TypeError) as exc:
+            raise KpifsError(f"{path}: cannot read kernel model: {exc}") from None
+
+    def write(self, path, *, overwrite=False):
+        """Write the model to FITS (KPFITS1 layout, model extensions only)."""
+        from . import __version__
+        hdr = fits.Header()
+        hdr["CONTENT"] = ("KPFITS1", "kernel-phase FITS exchange format")
+        hdr["PROCSOFT"] = (f"kpifs {__version__}", "software that wrote this file")
+        hdr["KPIFSVER"] = (__version__, "kpifs version")
+        hdr["NSUB"] = (self.pupil.n_sub, "number of sub-apertures")
+        hdr["NUV"] = (self.n_uv, "number of uv points")
+        hdr["NKP"] = (self.n_kp, "number of kernel phases")
+        if "diameter_m" in self.pupil.meta:
+            hdr["DIAM"] = (self.pupil.meta["diameter_m"], "[m] pupil diameter")
+        hdr["HISTORY"] = f"kpifs {__version__}: kernel model of pupil {self.pupil.name}"
+        hdul = fits.HDUList([fits.PrimaryHDU(header=hdr), *self.to_hdus()])
+        return write_hdulist(hdul, path, overwrite=overwrite)
+
+
+def load_kernel_model(pupil="subaru", *, pupil_scale=None, **pupil_options):
+    """Return a `KernelModel` for a telescope name, a pupil image FITS or a model FITS.
+
+    A FITS file holding a ``KER-MAT`` extension is read as a kernel model;
+    any other FITS file as a pupil image (pixel size from ``PUPSCALE`` or
+    *pupil_scale*); anything else is passed to `~kpifs.pupil.make_pupil`.
+
+    Examples
+    --------
+    >>> from kpifs.kernel import load_kernel_model
+    >>> load_kernel_model("subaru")
+    <KernelModel 'subaru': ... kernel phases>
+    """
+    if isinstance(pupil, KernelModel):
+        return pupil
+    if isinstance(pupil, PupilModel):
+        return KernelModel.from_pupil(pupil)
+    key = str(pupil)
+    if key.lower().endswith((".fits", ".fit", ".fits.gz")):
+        try:
+            with fits.open(key) as hdul:
+                is_model = "KER-MAT" in hdul
+        except FileNotFoundError:
+            raise KpifsError(f"{key}: pupil file not found") from None
+        except OSError as exc:
+            raise KpifsError(f"{key}: cannot read: {exc}") from None
+        if is_model:
+            return KernelModel.read(key)
+    return KernelModel.from_pupil(make_pupil(pupil, pupil_scale=pupil_scale, **pupil_options))
