@@ -51,7 +51,9 @@ def _propagate(field, dx, shape, pixscale_rad, wavelength, offset_rad=(0.0, 0.0)
     ay, ax = _mft_matrices(npup, dx, shape, pixscale_rad, wavelength,
                            (offset_rad[0] + centre_rad[0], offset_rad[1] + centre_rad[1]))
     e = ay @ field @ ax.T
-    norm = (pixscale_rad * dx / wavelength) ** 2
+    # Parseval: the field's energy over a whole period of theta is
+    # (lam/dx)^2 sum|P|^2, and each pixel covers pixscale^2 of it
+    norm = (pixscale_rad * dx / wavelength) ** 2 / np.sum(np.abs(field) ** 2)
     return np.abs(e) ** 2 * norm
 
 

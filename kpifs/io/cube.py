@@ -1,0 +1,172 @@
+"""The `IFSCube` container and the generic FITS cube reader."""
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from astropy import units as u
+from astropy.io import fits
+
+from .._utils import to_quantity
+from ..exceptions import KpifsError
+
+__all__ = ["IFSCube", "read_generic", "read_wavelength_file"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class IFSCube:
+    """An IFS data set viewed as ``(nframe, nwave, ny, nx)``.
+
+    Attributes
+    ----------
+    data : ndarray
+        Images, possibly memory-mapped (read lazily, one batch at a time).
+    wavelengths : `~astropy.units.Quantity` (nwave,)
+    pixscale : `~astropy.units.Quantity`
+    header : `~astropy.io.fits.Header`
+        Header of the (first) input file, a copy.
+    mask : ndarray of bool or None
+        True for bad pixels, broadcastable to *data*.
+    angles : `~astropy.units.Quantity` or None
+        Per-frame parallactic angles.
+    instrument : str
+    source : list of str
+        Input file names.
+    """
+
+    data: np.ndarray
+    wavelengths: u.Quantity
+    pixscale: u.Quantity
+    header: fits.Header = field(default_factory=fits.Header)
+    mask: np.ndarray = None
+    angles: u.Quantity = None
+    instrument: str = "generic"
+    source: list = field(default_factory=list)
+
+    @property
+    def shape(self):
+        return self.data.shape
+
+    @property
+    def name(self):
+        return ", ".join(str(s) for s in self.source) or "<array>"
+
+    def __repr__(self):
+        return (f"<IFSCube {self.instrument}: {self.shape}, {len(self.wavelengths)} channels "
+                f"{self.wavelengths.min():.3f}-{self.wavelengths.max():.3f}, "
+                f"{self.pixscale:.2f}, from {self.name}>")
+
+
+def _open_fits(path):
+    path = Path(path)
+    if path.is_dir():
+        raise KpifsError(f"{path}: is a directory, expected a FITS file")
+    if not path.exists():
+        raise KpifsError(f"{path}: file not found")
+    try:
+        hdul = fits.open(path, memmap=True)
+        hdul.verify("silentfix")
+        for h in hdul:  # touching every HDU's data finds truncated files now
+            if h.data is not None:
+                h.data.shape
+        return hdul
+    except (OSError, ValueError, TypeError, IndexError) as exc:
+        raise KpifsError(f"{path}: not a readable FITS file ({exc})") from None
+
+
+def _header_wavelengths(hdr):
+    keys = sorted((k for k in hdr if k.startswith("KPWL") and k[4:].isdigit()),
+                  key=lambda k: int(k[4:]))
+    return [hdr[k] for k in keys] * u.um if keys else None
+
+
+def read_generic(path, *, wavelengths=None, pixscale=None):
+    """Read a plain FITS cube: 2-D ``(ny, nx)``, 3-D ``(nwave, ny, nx)`` or 4-D
+    ``(nframe, nwave, ny, nx)``.
+
+    Wavelengths come from *wavelengths* or the header cards ``KPWL1 ... KPWLn``
+    (um, as kpifs's simulator writes them); the pixel scale from *pixscale* or
+    ``PIXSCALE`` (mas). The data stay memory-mapped.
+    """
+    hdul = _open_fits(path)
+    hdu = next((h for h in hdul if h.data is not None and h.is_image and h.data.ndim >= 2),
+               None)
+    if hdu is None:
+        raise KpifsError(f"{path}: no image data in any HDU")
+    data = hdu.data
+    hdr = hdul[0].header.copy()
+    if hdu is not hdul[0]:
+        hdr.update({k: v for k, v in hdu.header.items() if k not in hdr and k not in
+                    ("XTENSION", "PCOUNT", "GCOUNT")})
+    if data.ndim == 2:
+        data = data[None, None]
+    elif data.ndim == 3:
+        data = data[None]
+    elif data.ndim != 4:
+        raise KpifsError(f"{path}: data have {data.ndim} dimensions; expected 2, 3 or 4")
+    wl = wavelengths if wavelengths is not None else _header_wavelengths(hdr)
+    if wl is None:
+        raise KpifsError(f"{path}: no wavelengths: give them (--wavelengths 1.52um,1.60um or a "
+                         f"file)")
+    wl = np.atleast_1d(to_quantity(wl, u.um, name="wavelengths"))
+    if len(wl) != data.shape[1]:
+        raise KpifsError(f"{path}: {len(wl)} wavelength(s) given but the cube has "
+                         f"{data.shape[1]} channel(s)")
+    ps = pixscale if pixscale is not None else hdr.get("PIXSCALE")
+    if ps is None:
+        raise KpifsError(f"{path}: no pixel scale: give one (--pixscale 10.42mas)")
+    ps = to_quantity(ps, u.mas, name="pixel scale")
+    return IFSCube(data=data, wavelengths=wl, pixscale=ps, header=hdr, instrument="generic",
+                   source=[str(path)])
+
+
+def read_wavelength_file(path, *, unit=None):
+    """Wavelengths from a text file (one per line) or a FITS file (first data array).
+
+    The unit comes from *unit*, from ``BUNIT``/``CUNIT1`` in a FITS header, or
+    is inferred from the values (0.3-30 means um, 300-30000 means nm) and logged.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise KpifsError(f"{path}: is a directory, expected a wavelength file")
+    hdr_unit = None
+    try:
+        if path.suffix.lower() in (".fits", ".fit") or path.name.lower().endswith(".fits.gz"):
+            with fits.open(path) as hdul:
+                hdu = next((h for h in hdul if h.data is not None), None)
+                if hdu is None:
+                    raise KpifsError(f"{path}: no data in the wavelength file")
+                values = np.array(hdu.data, float).ravel()
+                hdr_unit = hdu.header.get("BUNIT") or hdu.header.get("CUNIT1")
+        else:
+            values = np.loadtxt(path, ndmin=2, comments="#")[:, 0]
+    except (OSError, ValueError) as exc:
+        raise KpifsError(f"{path}: cannot read wavelengths: {exc}") from None
+    return _wavelength_quantity(values, unit or hdr_unit, source=path)
+
+
+def _wavelength_quantity(values, unit=None, *, source="wavelengths"):
+    values = np.atleast_1d(np.asarray(values, float))
+    if values.size == 0 or not np.all(np.isfinite(values)) or np.any(values <= 0):
+        raise KpifsError(f"{source}: wavelengths must be finite and > 0")
+    if unit:
+        try:
+            return (values * u.Unit(str(unit).replace("microns", "um").replace("micron", "um"))
+                    ).to(u.um)
+        except (ValueError, u.UnitConversionError) as exc:
+            raise KpifsError(f"{source}: wavelength unit {unit!r} not understood: {exc}") \
+                from None
+    med = float(np.median(values))
+    if 0.3 <= med <= 30:
+        unit = u.um
+    elif 300 <= med <= 30000:
+        unit = u.nm
+    elif 3e-7 <= med <= 3e-5:
+        unit = u.m
+    else:
+        raise KpifsError(f"{source}: cannot tell the unit of wavelengths around {med:g} "
+                         f"(expected um, nm or m)")
+    log.info("%s: wavelengths taken to be in %s", source, unit)
+    return (values * unit).to(u.um)

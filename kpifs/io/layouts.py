@@ -1,0 +1,149 @@
+"""Write cubes in the instruments' on-disk layouts (used for simulated data).
+
+- ``plain``: one FITS file, primary HDU a float32 cube ``(nframe, nwave, ny, nx)``
+  with the wavelengths in cards ``KPWL1 ... KPWLn`` (um) and ``PIXSCALE`` (mas);
+  what ``kpifs extract`` reads without further options.
+- ``charis``: one file per exposure, as the CHARIS data-reduction pipeline
+  writes them: HDU 0 header only, HDU 1 the cube ``(nlam, ny, nx)``, HDU 2 its
+  inverse variance; ``LAM_MIN``, ``LAM_MAX`` (nm), ``DLOGLAM``, ``NLAM``,
+  ``CAL_BAND``, ``PARANG`` and a log-wavelength third WCS axis.
+- ``sphere``: as the community SPHERE-IFS pipeline: ``science_cube.fits`` of
+  shape ``(nwave, nframe, ny, nx)``, ``wavelength.fits`` (nm) and
+  ``parallactic_angles.fits`` (deg).
+"""
+from pathlib import Path
+
+import numpy as np
+from astropy import units as u
+from astropy.io import fits
+
+from .._utils import check_output_path, write_hdulist
+from ..exceptions import KpifsError
+
+__all__ = ["write_plain_cube", "write_charis_exposures", "write_sphere_cube",
+           "write_observation", "LAYOUTS"]
+
+LAYOUTS = ("plain", "charis", "sphere")
+
+
+def _base_header(cards, *, instrument, pixscale, exptime=None, obj="SIMULATED"):
+    from .. import __version__
+    hdr = fits.Header()
+    hdr["OBJECT"] = (obj, "target name")
+    hdr["INSTRUME"] = (instrument.upper(), "instrument")
+    hdr["PIXSCALE"] = (float(pixscale.to_value(u.mas)), "[mas] pixel scale")
+    if exptime is not None:
+        hdr["EXPTIME"] = (float(exptime.to_value(u.s)), "[s] exposure time")
+    for key, val in cards.items():
+        hdr[key] = val
+    hdr["KPIFSVER"] = (__version__, "kpifs version")
+    hdr.add_history(f"simulated by kpifs {__version__}")
+    return hdr
+
+
+def write_plain_cube(path, cube, wavelengths, pixscale, *, cards=None, overwrite=False,
+                     exptime=None, obj="SIMULATED"):
+    """Write a 4-D cube ``(nframe, nwave, ny, nx)`` with its wavelengths in the header."""
+    wl = u.Quantity(wavelengths, u.um)
+    hdr = _base_header(cards or {}, instrument="generic", pixscale=pixscale, exptime=exptime,
+                       obj=obj)
+    for i, w in enumerate(wl.value, 1):
+        hdr[f"KPWL{i}"] = (float(w), f"[um] wavelength of channel {i}")
+    hdu = fits.PrimaryHDU(np.asarray(cube, np.float32), header=hdr)
+    return [write_hdulist(fits.HDUList([hdu]), path, overwrite=overwrite)]
+
+
+def write_charis_exposures(outdir, cube, ivar, wavelengths, pixscale, *, prefix="CRSA",
+                           cards=None, overwrite=False, exptime=None, obj="SIMULATED",
+                           parang=None):
+    """One CHARIS-pipeline ``*_cube.fits`` file per frame; wavelengths must be log-uniform."""
+    wl_nm = u.Quantity(wavelengths, u.um).to_value(u.nm)
+    n = len(wl_nm)
+    dlog = np.log(wl_nm[-1] / wl_nm[0]) / (n - 1) if n > 1 else 0.0
+    grid = wl_nm[0] * np.exp(np.arange(n) * dlog)
+    if not np.allclose(grid, wl_nm, rtol=1e-5):
+        raise KpifsError("the CHARIS layout needs log-uniform wavelengths "
+                         "(LAM_MIN * exp(i * DLOGLAM)); these are not")
+    cube = np.asarray(cube)
+    band = "Broadband" if n == 22 else {15: "J", 20: "H", 17: "K"}.get(n, "Broadband")
+    paths = []
+    outdir = Path(outdir)
+    targets = [outdir / f"{prefix}{i:08d}_cube.fits" for i in range(len(cube))]
+    for p in targets:  # refuse before writing anything
+        check_output_path(p, overwrite=overwrite)
+    for i, path in enumerate(targets):
+        hdr = _base_header(cards or {}, instrument="CHARIS", pixscale=pixscale,
+                           exptime=exptime, obj=obj)
+        hdr["TELESCOP"] = ("Subaru", "telescope")
+        hdr["LAM_MIN"] = (float(wl_nm[0]), "[nm] minimum wavelength")
+        hdr["LAM_MAX"] = (float(wl_nm[-1]), "[nm] maximum wavelength")
+        hdr["DLOGLAM"] = (float(dlog), "log wavelength spacing")
+        hdr["NLAM"] = (n, "number of wavelengths")
+        hdr["CAL_BAND"] = (band, "band/mode")
+        hdr["FILTNAME"] = (band, "filter")
+        hdr["MJD"] = (60000.0 + i * 1e-3, "simulated")
+        hdr["PARANG"] = (float(parang[i]) if parang is not None else 0.0, "[deg]")
+        sci = fits.ImageHDU(np.asarray(cube[i], np.float32), header=hdr.copy())
+        sci.header["CTYPE3"] = "AWAV-LOG"
+        sci.header["CUNIT3"] = "nm"
+        sci.header["CRPIX3"] = 1.0
+        sci.header["CRVAL3"] = float(wl_nm[0])
+        sci.header["CDELT3"] = float(wl_nm[0] * dlog)
+        iv = fits.ImageHDU(np.asarray(ivar[i], np.float32))
+        paths.append(write_hdulist(fits.HDUList([fits.PrimaryHDU(header=hdr), sci, iv]), path,
+                                   overwrite=overwrite))
+    return paths
+
+
+def write_sphere_cube(outdir, cube, wavelengths, pixscale, *, prefix="", cards=None,
+                      overwrite=False, exptime=None, obj="SIMULATED", angles=None):
+    """SPHERE-IFS community-pipeline layout: wave-first 4-D cube plus wavelength file (nm)."""
+    outdir = Path(outdir)
+    cube = np.asarray(cube)
+    names = [outdir / f"{prefix}science_cube.fits", outdir / f"{prefix}wavelength.fits",
+             outdir / f"{prefix}parallactic_angles.fits"]
+    for p in names:
+        check_output_path(p, overwrite=overwrite)
+    hdr = _base_header(cards or {}, instrument="SPHERE", pixscale=pixscale, exptime=exptime,
+                       obj=obj)
+    hdr["BUNIT"] = "ADU"
+    data = np.ascontiguousarray(np.swapaxes(cube, 0, 1), np.float32)
+    wl = u.Quantity(wavelengths, u.um).to_value(u.nm)
+    ang = np.zeros(len(cube)) if angles is None else np.asarray(angles, float)
+    return [write_hdulist(fits.HDUList([fits.PrimaryHDU(data, header=hdr)]), names[0],
+                          overwrite=overwrite),
+            write_hdulist(fits.HDUList([fits.PrimaryHDU(wl)]), names[1], overwrite=overwrite),
+            write_hdulist(fits.HDUList([fits.PrimaryHDU(ang)]), names[2], overwrite=overwrite)]
+
+
+def write_observation(obs, outdir, *, layout="plain", overwrite=False):
+    """Write a `~kpifs.simulate.SimulatedObservation` (target and calibrator) to *outdir*.
+
+    Returns a dict ``{"target": [paths], "calibrator": [paths]}``.
+    """
+    if layout not in LAYOUTS:
+        raise KpifsError(f"unknown layout {layout!r}: use one of {LAYOUTS}")
+    outdir = Path(outdir)
+    if outdir.exists() and not outdir.is_dir():
+        raise KpifsError(f"{outdir}: exists and is not a directory")
+    outdir.mkdir(parents=True, exist_ok=True)
+    p = obs.params
+    out = {}
+    for role, cube, var in (("target", obs.target, obs.variance_target),
+                            ("calibrator", obs.calibrator, obs.variance_calibrator)):
+        cards = dict(obs.truth) if role == "target" else {"KPSIMSEE": obs.truth["KPSIMSEE"]}
+        cards["KPSIMROL"] = (role, "simulated target or calibrator")
+        obj = "SIM-TARGET" if role == "target" else "SIM-CALIB"
+        common = dict(cards=cards, overwrite=overwrite, exptime=p.exptime, obj=obj)
+        if layout == "plain":
+            out[role] = write_plain_cube(outdir / f"{role}.fits", cube, p.wavelengths,
+                                         p.pixscale, **common)
+        elif layout == "charis":
+            (outdir / role).mkdir(exist_ok=True)
+            out[role] = write_charis_exposures(outdir / role, cube, 1 / var, p.wavelengths,
+                                               p.pixscale, **common)
+        else:
+            (outdir / role).mkdir(exist_ok=True)
+            out[role] = write_sphere_cube(outdir / role, cube, p.wavelengths, p.pixscale,
+                                          **common)
+    return out

@@ -1,0 +1,150 @@
+import numpy as np
+import pytest
+import astropy.units as u
+
+from kpifs import KernelModel, KpifsError, extract_kernel_phases, make_pupil
+from kpifs.extract import DEFAULT_WINDOW_RADIUS
+from kpifs.kernel import MAS
+from kpifs.pupil import pupil_image
+from kpifs.simulate import phase_screens, simulate_psf
+
+PIX = 10.42 * u.mas
+OFFSET = [80, 60] * u.mas   # 100 mas, off both axes
+
+
+def _binary_residual(km, wl, shape, contrast=1e-2):
+    cube = simulate_psf("subaru", wl, pixscale=PIX, shape=shape, companions=[(OFFSET, contrast)])
+    kpd = extract_kernel_phases(cube, km, wavelengths=wl, pixscale=PIX)
+    radius = DEFAULT_WINDOW_RADIUS * (min(shape) // 2)
+    w = np.exp(-((100 / PIX.value) / radius) ** 4)
+    model = km.binary_kernel_phases(OFFSET, contrast * w, wl)
+    res = kpd.kp[0] - model
+    return np.std(res, axis=1) / np.std(model, axis=1)
+
+
+@pytest.mark.parametrize("shape, tolerance", [((40, 40), 0.20), ((64, 64), 0.10)])
+def test_binary_kernel_phases_match_analytic(subaru_model, paper_wavelengths, shape, tolerance):
+    """Fixes the Fourier sign convention end to end (simulator -> extraction -> model)."""
+    rel = _binary_residual(subaru_model, paper_wavelengths, shape)
+    assert np.all(rel < tolerance), rel
+    # measured with the defaults: ~0.08 (40x40) and ~0.02 (64x64)
+    assert np.all(rel < tolerance / 2)
+
+
+def test_opposite_sign_would_fail(subaru_model, paper_wavelengths):
+    cube = simulate_psf("subaru", paper_wavelengths, pixscale=PIX, shape=(40, 40),
+                        companions=[(OFFSET, 1e-2)])
+    kpd = extract_kernel_phases(cube, subaru_model, wavelengths=paper_wavelengths, pixscale=PIX)
+    mirrored = subaru_model.binary_kernel_phases(-OFFSET, 1e-2, paper_wavelengths)
+    assert np.all(np.sum(kpd.kp[0] * mirrored, axis=1) < 0)
+
+
+def test_single_pixel_dft_sign(subaru_model):
+    """V(u, v) = sum I exp(-2 pi i (u x + v y)/lam): one bright pixel at (+3, -2) px."""
+    img = np.zeros((1, 32, 32))
+    img[0, 16, 16] = 1.0
+    img[0, 16 - 2, 16 + 3] = 0.5
+    kpd = extract_kernel_phases(img, subaru_model, wavelengths=[2.0] * u.um, pixscale=PIX,
+                                centres=(16, 16), window_radius=1e6)
+    uv = subaru_model.uv.value
+    theta = 2 * np.pi * (3 * uv[:, 0] - 2 * uv[:, 1]) * PIX.value * MAS / 2e-6
+    expected = np.angle(1 + 0.5 * np.exp(-1j * theta))
+    np.testing.assert_allclose(kpd.phases[0, 0], expected, atol=1e-10)
+
+
+def _smooth_opd(npup, dx, rms_rad, lam, seed):
+    img, _ = pupil_image("subaru", npix=npup)
+    return phase_screens(npup, dx, 1, rms=rms_rad * lam / (2 * np.pi), mask=img > 0,
+                         cutoff=1e-3, seed=seed)[0]
+
+
+def test_kernel_phases_reject_aberrations(subaru_model):
+    """0.1 rad rms of smooth aberrations: kernel phases >= 5x smaller than raw phases."""
+    lam = 1.6e-6
+    _, dx = pupil_image("subaru", npix=128)
+    rng = np.random.default_rng(3)
+    ratios = []
+    for _ in range(6):
+        cube = simulate_psf("subaru", [1.6] * u.um, pixscale=PIX, shape=(40, 40),
+                            opd=_smooth_opd(128, dx, 0.1, lam, rng))
+        kpd = extract_kernel_phases(cube, subaru_model, wavelengths=[1.6] * u.um, pixscale=PIX)
+        ratios.append(np.std(kpd.phases[0, 0]) / np.std(kpd.kp[0, 0]))
+    assert np.median(ratios) >= 5, ratios
+    assert min(ratios) >= 4, ratios
+
+
+def test_subpixel_centre_is_dft_origin(subaru_model, paper_wavelengths):
+    """A star moved by a sub-pixel amount gives the same phases once centred."""
+    base = simulate_psf("subaru", paper_wavelengths, pixscale=PIX, shape=(40, 40),
+                        companions=[(OFFSET, 1e-2)])
+    moved = simulate_psf("subaru", paper_wavelengths, pixscale=PIX, shape=(40, 40),
+                         companions=[(OFFSET, 1e-2)], centre=(0.37, -0.29))
+    k0 = extract_kernel_phases(base, subaru_model, wavelengths=paper_wavelengths, pixscale=PIX,
+                               centres=(20, 20))
+    k1 = extract_kernel_phases(moved, subaru_model, wavelengths=paper_wavelengths, pixscale=PIX,
+                               centres=(20.37, 19.71))
+    np.testing.assert_allclose(k1.phases, k0.phases, atol=2e-3)
+    assert np.std(k1.kp - k0.kp) < 0.03 * np.std(k0.kp)
+    # found centres are close to the truth
+    k2 = extract_kernel_phases(moved, subaru_model, wavelengths=paper_wavelengths, pixscale=PIX)
+    assert np.allclose(k2.centres["x"].value, 20.37, atol=0.1)
+    assert np.allclose(k2.centres["y"].value, 19.71, atol=0.1)
+
+
+def test_batches_and_nan_pixels(subaru_model, paper_wavelengths, rng):
+    cube = simulate_psf("subaru", paper_wavelengths, pixscale=PIX, shape=(40, 40))
+    frames = cube[None] * (1 + 0.01 * rng.standard_normal((5, 3, 1, 1)))
+    a = extract_kernel_phases(frames, subaru_model, wavelengths=paper_wavelengths,
+                              pixscale=PIX, batch_size=2, centres=(20, 20))
+    b = extract_kernel_phases(frames, subaru_model, wavelengths=paper_wavelengths,
+                              pixscale=PIX, batch_size=100, centres=(20, 20))
+    np.testing.assert_allclose(a.kp, b.kp, atol=1e-12)
+    bad = frames.copy()
+    bad[:, :, 2, 3] = np.nan            # far from the star: negligible effect
+    c = extract_kernel_phases(bad, subaru_model, wavelengths=paper_wavelengths, pixscale=PIX,
+                              centres=(20, 20))
+    assert np.all(np.isfinite(c.kp))
+    assert c.meta["n_bad_pixels"] == 15
+    np.testing.assert_allclose(c.kp, b.kp, atol=1e-5)
+    mask = np.zeros((40, 40), bool)
+    mask[2, 3] = True
+    d = extract_kernel_phases(frames, subaru_model, wavelengths=paper_wavelengths, pixscale=PIX,
+                              centres=(20, 20), mask=mask)
+    np.testing.assert_allclose(d.kp, c.kp, atol=1e-12)
+
+
+def test_dft_matrix_cached(paper_wavelengths):
+    km = KernelModel.from_pupil(make_pupil("subaru"))
+    m1 = km.dft_matrix(1.6 * u.um, PIX, (40, 40))
+    m2 = km.dft_matrix(1600 * u.nm, PIX, (40, 40))
+    assert m1 is m2
+    assert m1.shape == (2 * km.n_uv, 1600)
+
+
+@pytest.mark.parametrize("mutate, kwargs, match", [
+    (lambda c: c.__setitem__((0, 1), np.nan), {}, "empty"),
+    (lambda c: c.__setitem__((0, 0), 0.0), {}, "empty"),
+    (None, dict(window_size=64), "larger than"),
+    (None, dict(centres=(50.0, 20.0)), "outside"),
+    (None, dict(wavelengths=[-1.5, 1.6, 1.68] * u.um), "> 0"),
+    (None, dict(wavelengths=[] * u.um), "no wavelengths"),
+    (None, dict(wavelengths=[1.6, 1.7] * u.um), "3 channels"),
+    (None, dict(pixscale=0 * u.mas), "pixel scale"),
+    (None, dict(window_radius=-3), "radius"),
+])
+def test_bad_input(subaru_model, paper_wavelengths, mutate, kwargs, match):
+    cube = simulate_psf("subaru", paper_wavelengths, pixscale=PIX, shape=(40, 40))[None]
+    cube = np.repeat(cube, 2, axis=0)
+    if mutate:
+        mutate(cube)
+    args = dict(wavelengths=paper_wavelengths, pixscale=PIX, source="cube.fits")
+    args.update(kwargs)
+    with pytest.raises(KpifsError, match=match) as err:
+        extract_kernel_phases(cube, subaru_model, **args)
+    assert "cube.fits" in str(err.value) or match in ("pixel scale",)
+
+
+def test_unknown_pupil_name(paper_wavelengths):
+    with pytest.raises(KpifsError, match="unknown pupil 'keck'"):
+        extract_kernel_phases(np.ones((3, 8, 8)), "keck", wavelengths=paper_wavelengths,
+                              pixscale=PIX)

@@ -1,0 +1,123 @@
+import warnings
+
+import numpy as np
+import pytest
+import astropy.units as u
+from astropy.io import fits
+
+from kpifs import KernelModel, KpifsError, KpifsWarning, make_pupil
+from kpifs.kernel import load_kernel_model, nyquist_usable
+from kpifs.pupil import pupil_image
+from kpifs.simulate import simulate_psf
+
+
+def test_kernel_annihilates_phase_transfer(subaru_model):
+    km = subaru_model
+    assert np.abs(km.kernel @ km.tfm).max() < 1e-10
+    assert km.n_kp == km.n_uv - km.rank
+    np.testing.assert_allclose(km.kernel @ km.kernel.T, np.eye(km.n_kp), atol=1e-10)
+    assert km.rank == np.linalg.matrix_rank(km.tfm)
+
+
+def test_uv_points_half_plane_and_redundancy(subaru_model):
+    km = subaru_model
+    u_, v_ = km.uv.value.T
+    assert np.all((v_ > 1e-9) | ((np.abs(v_) < 1e-9) & (u_ > 0)))
+    # every pair counted once: total redundancy = n(n-1)/2 for a binary model
+    n = km.pupil.n_sub
+    assert km.redundancy.sum() == n * (n - 1) // 2
+    # rows of A sum to zero (a piston gives no phase)
+    np.testing.assert_allclose(km.blm.sum(axis=1), 0, atol=1e-12)
+    # uv points are unique
+    assert len(np.unique(np.round(km.uv.value, 6), axis=0)) == km.n_uv
+
+
+def test_grey_model_kernel():
+    km = KernelModel.from_pupil(make_pupil("vlt", grey=True, min_transmission=0.3,
+                                           step=0.6 * u.m))
+    assert not km.pupil.is_binary
+    assert np.abs(km.kernel @ km.tfm).max() < 1e-10
+    assert not np.allclose(km.redundancy, np.round(km.redundancy))
+
+
+def test_phase_transfer_sign_matches_optics():
+    """A small pupil phase phi gives Fourier phases R^-1 A phi in the simulator's images."""
+    km = KernelModel.from_pupil(make_pupil("subaru", step=0.66 * u.m))
+    npup = 132
+    img, dx = pupil_image("subaru", npix=npup)
+    lam = 1.6e-6
+    # a smooth, odd-and-even aberration: x^2 y + 0.5 x (coma-like + tilt-free part)
+    c = (np.arange(npup) - (npup - 1) / 2) * dx
+    gx, gy = np.meshgrid(c, c)
+    phi = 0.02 * (gx ** 2 * gy / 8 + 0.3 * gy ** 2)
+    opd = phi * lam / (2 * np.pi)
+    cube = simulate_psf("subaru", [1.6] * u.um, pixscale=5 * u.mas, shape=(256, 256),
+                        npup=npup, opd=opd)
+    from kpifs import extract_kernel_phases
+    kpd = extract_kernel_phases(cube, km, wavelengths=[1.6] * u.um, pixscale=5 * u.mas,
+                                centres=(128, 128), window_radius=110)
+    xy = km.pupil.xy.value
+    ix = np.clip(np.rint(xy[:, 0] / dx + (npup - 1) / 2).astype(int), 0, npup - 1)
+    iy = np.clip(np.rint(xy[:, 1] / dx + (npup - 1) / 2).astype(int), 0, npup - 1)
+    predicted = km.tfm @ phi[iy, ix]
+    measured = kpd.phases[0, 0]
+    corr = np.corrcoef(predicted, measured)[0, 1]
+    slope = np.dot(predicted, measured) / np.dot(predicted, predicted)
+    # with the opposite sign convention both would be negative
+    assert corr > 0.9
+    assert 0.8 < slope < 1.2
+
+
+def test_nyquist_guard_charis():
+    km = load_kernel_model("subaru")
+    wl = [1.16, 1.6] * u.um
+    usable = nyquist_usable(km.uv, wl, 16.2 * u.mas)
+    assert not usable[0].all()
+    assert usable[1].all()
+    with pytest.warns(KpifsWarning, match=r"1 channel.*1\.160"):
+        reduced = km.for_wavelengths(wl, 16.2 * u.mas)
+    assert reduced.n_uv == usable[0].sum()
+    assert np.abs(reduced.kernel @ reduced.tfm).max() < 1e-10
+    with pytest.raises(KpifsError, match="Nyquist"):
+        km.for_wavelengths(wl, 16.2 * u.mas, on_nyquist="raise")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert km.for_wavelengths([1.6] * u.um, 16.2 * u.mas) is km
+
+
+def test_fits_round_trip(tmp_path, subaru_model):
+    path = tmp_path / "model.fits"
+    subaru_model.write(path)
+    with fits.open(path) as h:
+        assert h[0].header["CONTENT"] == "KPFITS1"
+        assert [x.name for x in h[1:]] == ["APERTURE", "UV-PLANE", "KER-MAT", "BLM-MAT"]
+        assert h["UV-PLANE"].columns["RED"].format in ("D", "E")
+    km = KernelModel.read(path)
+    np.testing.assert_array_equal(km.kernel, subaru_model.kernel)
+    np.testing.assert_array_equal(km.uv.value, subaru_model.uv.value)
+    assert km.rank == subaru_model.rank
+    assert load_kernel_model(str(path)).n_kp == subaru_model.n_kp
+    with pytest.raises(KpifsError, match="exists"):
+        subaru_model.write(path)
+    subaru_model.write(path, overwrite=True)
+
+
+def test_read_foreign_model_without_unit_rows(tmp_path, subaru_model):
+    """Files of other tools: integer redundancies, non-normalised kernel rows, no BLM-MAT."""
+    hdus = subaru_model.to_hdus()[:3]
+    hdus[1].data["RED"] = np.round(hdus[1].data["RED"])
+    hdus[2].data = hdus[2].data * 3.0
+    del hdus[2].header["RANK"]
+    path = tmp_path / "foreign.fits"
+    fits.HDUList([fits.PrimaryHDU(), *hdus]).writeto(path)
+    km = KernelModel.read(path)
+    np.testing.assert_allclose(np.linalg.norm(km.kernel, axis=1), 3.0)
+    assert np.abs(km.kernel @ km.tfm).max() < 1e-9
+    assert km.rank == subaru_model.rank
+
+
+def test_signature_is_first_order_of_exact_model(subaru_model, paper_wavelengths):
+    sig = subaru_model.signature([80, 60] * u.mas, paper_wavelengths)
+    exact = subaru_model.binary_kernel_phases([80, 60] * u.mas, 1e-4, paper_wavelengths)
+    np.testing.assert_allclose(exact, 1e-4 * sig, atol=1e-4 * 1e-3 * np.abs(sig).max() + 1e-12,
+                               rtol=2e-3)

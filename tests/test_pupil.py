@@ -1,0 +1,89 @@
+import numpy as np
+import pytest
+import astropy.units as u
+from astropy.io import fits
+
+from kpifs import KernelModel, KpifsError, make_pupil
+from kpifs.pupil import TELESCOPES, pupil_image
+
+
+def test_subaru_default_model_size():
+    pup = make_pupil("subaru")
+    # 0.38 m grid, cells >= 90 % inside the pupil (see module docs)
+    assert pup.n_sub == 242
+    assert pup.is_binary
+    assert not pup.is_centrosymmetric()
+    # every kept cell is inside the outer rim and outside the obstruction
+    r = np.hypot(*pup.xy.value.T)
+    assert r.max() < 7.92 / 2 and r.min() > 2.3 / 2
+
+
+def test_paper_sized_model_with_partial_cells():
+    # keeping half-covered cells at a 0.365 m step gives the paper's ~320 sub-pupils
+    pup = make_pupil("subaru", step=0.365 * u.m, min_transmission=0.5)
+    assert 310 <= pup.n_sub <= 330
+
+
+def test_area_matches_geometry():
+    # a grey model with all partial cells integrates the pupil area
+    pup = make_pupil("annular", diameter=8 * u.m, obstruction=2 * u.m, step=0.2 * u.m,
+                     grey=True, min_transmission=1e-3)
+    area = np.sum(pup.transmission) * 0.2 ** 2
+    assert area == pytest.approx(np.pi / 4 * (64 - 4), rel=2e-3)
+
+
+def test_vlt_and_hexagonal():
+    pup = make_pupil("vlt", hexagonal=True, step=0.5 * u.m)
+    # hexagonal cell area is sqrt(3)/2 step^2
+    geo = TELESCOPES["vlt"]
+    area = np.pi / 4 * (geo.diameter ** 2 - geo.obstruction ** 2)
+    assert pup.n_sub == pytest.approx(area / (np.sqrt(3) / 2 * 0.25), rel=0.15)
+    d = np.hypot(*(pup.xy.value[:, None] - pup.xy.value[None]).transpose(2, 0, 1))
+    assert np.min(d[d > 0]) == pytest.approx(0.5)
+
+
+def test_centrosymmetric_model_has_half_rank():
+    pup = make_pupil("subaru", offset=(0, 0) * u.m)
+    assert pup.is_centrosymmetric()
+    km = KernelModel.from_pupil(pup)
+    # even pupil phases give no Fourier phase: rank = n_sub / 2, not n_sub - 1
+    assert km.rank == pup.n_sub // 2
+    km2 = KernelModel.from_pupil(make_pupil("subaru"))
+    assert km2.rank == km2.pupil.n_sub - 1
+
+
+def test_pupil_from_fits_image(tmp_path):
+    img, dx = pupil_image("vlt", npix=200)
+    path = tmp_path / "pupil.fits"
+    hdu = fits.PrimaryHDU(img)
+    hdu.header["PUPSCALE"] = dx
+    hdu.writeto(path)
+    from_img = make_pupil(str(path), step=0.5 * u.m, offset=(0.1, 0.05) * u.m)
+    analytic = make_pupil("vlt", step=0.5 * u.m, offset=(0.1, 0.05) * u.m)
+    assert abs(from_img.n_sub - analytic.n_sub) <= 4
+    # without PUPSCALE the pixel size must be given
+    fits.PrimaryHDU(img).writeto(tmp_path / "noscale.fits")
+    with pytest.raises(KpifsError, match="PUPSCALE"):
+        make_pupil(str(tmp_path / "noscale.fits"))
+    assert make_pupil(str(tmp_path / "noscale.fits"), pupil_scale=dx * u.m,
+                      step=0.5 * u.m, offset=(0.1, 0.05) * u.m).n_sub == from_img.n_sub
+
+
+def test_rotation_turns_the_model():
+    a = make_pupil("subaru", offset=(0, 0) * u.m, min_transmission=0.5)
+    b = make_pupil("subaru", offset=(0, 0) * u.m, min_transmission=0.5, rotation=90 * u.deg)
+    # Subaru's vanes are not symmetric under a 90 degree turn: the models differ
+    assert a.n_sub != b.n_sub or not np.allclose(np.sort(a.xy.value, 0), np.sort(b.xy.value, 0))
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(pupil="hubble"), "unknown pupil"),
+    (dict(pupil="circular"), "diameter"),
+    (dict(pupil="subaru", step=-1 * u.m), "step"),
+    (dict(pupil="subaru", step=5 * u.m), "fewer than two"),
+    (dict(pupil="subaru", min_transmission=1.5), "min_transmission"),
+    (dict(pupil="subaru", step=0.4 * u.s), "wrong unit"),
+])
+def test_bad_pupil_input(kwargs, match):
+    with pytest.raises(KpifsError, match=match):
+        make_pupil(**kwargs)

@@ -1,0 +1,88 @@
+import numpy as np
+import pytest
+import astropy.units as u
+from astropy.io import fits
+
+from kpifs import KpifsError
+from kpifs.io.layouts import write_observation
+from kpifs.simulate import SceneParameters, simulate_psf, simulate_scene
+
+
+def test_paper_preset_truth_and_photometry():
+    obs = simulate_scene("paper", n_frames=3, seed=7)
+    flat = simulate_scene("paper", n_frames=3, seed=7, wavefront_rms=0 * u.nm)
+    assert obs.target.shape == (3, 3, 40, 40)
+    t = obs.truth
+    assert t["KPSIMX"][0] == pytest.approx(80) and t["KPSIMY"][0] == pytest.approx(60)
+    c = [t[f"KPSIMC{i}"][0] for i in (1, 2, 3)]
+    assert np.mean(c) == pytest.approx(10 ** (-8 / 2.5), rel=1e-6)   # Delta H = 8
+    assert c[0] > c[1] > c[2]                                        # brighter in the blue
+    assert t["KPSIMSEE"][0] == 7
+    # photon budget: m_H = 5, 10 % throughput, Subaru area, 0.08 um channels, 0.1 s
+    expected = SceneParameters().star_photons()
+    assert np.all(expected > 1e5)
+    frac_in_field = simulate_psf("subaru", obs.wavelengths, pixscale=10.42 * u.mas,
+                                 shape=(40, 40)).sum(axis=(1, 2))
+    assert np.all((frac_in_field > 0.8) & (frac_in_field < 1))
+    measured = flat.calibrator.sum(axis=(2, 3)).mean(0)
+    np.testing.assert_allclose(measured, expected * frac_in_field, rtol=0.01)
+    # aberrations scatter light out of the small field, more in the blue
+    lost = 1 - obs.calibrator.sum(axis=(2, 3)).mean(0) / measured
+    assert np.all(lost > 0) and lost[0] > lost[2]
+
+
+def test_seeded_reproducible():
+    a = simulate_scene("paper", n_frames=2, seed=3)
+    b = simulate_scene("paper", n_frames=2, seed=3)
+    c = simulate_scene("paper", n_frames=2, seed=4)
+    np.testing.assert_array_equal(a.target, b.target)
+    assert not np.array_equal(a.target, c.target)
+
+
+def test_aberrations_new_every_frame():
+    obs = simulate_scene("paper", n_frames=2, seed=1, read_noise=0.0, star_mag=-5)
+    d = np.abs(obs.calibrator[0] - obs.calibrator[1]).sum() / obs.calibrator[0].sum()
+    assert d > 0.02
+
+
+@pytest.mark.parametrize("layout", ["plain", "charis", "sphere"])
+def test_layouts(tmp_path, layout):
+    preset = {"plain": "paper", "charis": "charis", "sphere": "sphere"}[layout]
+    obs = simulate_scene(preset, n_frames=2, seed=2, shape=(48, 48), npup=64)
+    paths = write_observation(obs, tmp_path, layout=layout)
+    tgt = paths["target"]
+    if layout == "plain":
+        with fits.open(tgt[0]) as h:
+            assert h[0].data.shape == (2, 3, 48, 48)
+            assert h[0].header["KPWL2"] == pytest.approx(1.60)
+            assert h[0].header["KPSIMX"] == pytest.approx(80)
+    elif layout == "charis":
+        assert len(tgt) == 2
+        with fits.open(tgt[0]) as h:
+            hdr = h[0].header
+            assert h[0].data is None and h[1].data.shape == (22, 48, 48)
+            wl = hdr["LAM_MIN"] * np.exp(np.arange(hdr["NLAM"]) * hdr["DLOGLAM"])
+            assert wl[-1] == pytest.approx(hdr["LAM_MAX"]) == pytest.approx(2369.34, rel=1e-5)
+            assert hdr["LAM_MIN"] == pytest.approx(1159.56)
+            assert h[2].data.shape == (22, 48, 48) and np.all(h[2].data > 0)
+            assert h[1].header["CTYPE3"] == "AWAV-LOG"
+    else:
+        with fits.open(tgt[0]) as h:
+            assert h[0].data.shape == (39, 2, 48, 48)
+        with fits.open(tgt[1]) as h:
+            assert h[0].data[0] == pytest.approx(957.0)
+    with pytest.raises(KpifsError, match="exists"):
+        write_observation(obs, tmp_path, layout=layout)
+
+
+def test_charis_layout_needs_log_grid(tmp_path):
+    obs = simulate_scene("paper", n_frames=1, seed=2, npup=64)
+    with pytest.raises(KpifsError, match="log-uniform"):
+        write_observation(obs, tmp_path, layout="charis")
+
+
+def test_bad_preset():
+    with pytest.raises(KpifsError, match="unknown preset"):
+        simulate_scene("keck")
+    with pytest.raises(KpifsError, match="bad simulation parameter"):
+        simulate_scene("paper", colour="blue")
