@@ -94,12 +94,12 @@ def cmd_extract(args):
     km = _kernel_model(args)
     results = []
     for path in args.cubes:
-        cube = read_generic(path, wavelengths=wl, pixscale=ps)
-        results.append(extract_kernel_phases(
-            cube.data, km, wavelengths=cube.wavelengths, pixscale=cube.pixscale,
-            mask=cube.mask, window_size=args.window, window_radius=args.window_radius,
-            centroid=args.centroid, on_nyquist=args.nyquist, header=cube.header,
-            source=path))
+        with read_generic(path, wavelengths=wl, pixscale=ps) as cube:
+            results.append(extract_kernel_phases(
+                cube.data, km, wavelengths=cube.wavelengths, pixscale=cube.pixscale,
+                mask=cube.mask, window_size=args.window, window_radius=args.window_radius,
+                centroid=args.centroid, on_nyquist=args.nyquist, header=cube.header,
+                source=path))
     kpd = results[0]
     if len(results) > 1:
         from .extract import KernelPhaseData

@@ -8,7 +8,6 @@ is cut at the integer pixel nearest the star centre; the sub-pixel remainder
 so the star centre is the DFT origin without interpolating the image.
 """
 import logging
-import warnings
 
 import numpy as np
 from astropy import units as u
@@ -16,7 +15,7 @@ from astropy.io import fits
 from astropy.table import QTable
 
 from ._utils import to_quantity
-from .exceptions import KpifsError, KpifsWarning
+from .exceptions import KpifsError
 from .kernel import MAS, KernelModel, load_kernel_model
 from .prepare import find_centres, super_gaussian
 
@@ -143,6 +142,38 @@ def _as_frames(data, nwave, source):
     return data
 
 
+def _cutouts(sl, centres, ws):
+    """``ws x ws`` cut-outs around the integer pixel nearest each centre.
+
+    Returns the cut-outs (a new array) and the sub-pixel remainders ``delta``
+    (centre minus the cut-out's origin pixel). Pixels outside the image are 0.
+    """
+    nb, ny, nx = sl.shape
+    h = ws // 2
+    ic = np.rint(centres).astype(int)
+    delta = centres - ic
+    lo_x, lo_y = ic[:, 0] - h, ic[:, 1] - h
+    inside = (lo_x >= 0) & (lo_y >= 0) & (lo_x + ws <= nx) & (lo_y + ws <= ny)
+    if inside.all() and np.all(ic == ic[0]):
+        # the usual case: one window for the whole batch, a plain slice
+        return sl[:, lo_y[0]:lo_y[0] + ws, lo_x[0]:lo_x[0] + ws].copy(), delta
+    padded = np.zeros((nb, ny + 2 * h, nx + 2 * h))
+    padded[:, h:h + ny, h:h + nx] = sl
+    off = np.arange(ws)
+    yy = (lo_y + h)[:, None, None] + off[None, :, None]
+    xx = (lo_x + h)[:, None, None] + off[None, None, :]
+    return padded[np.arange(nb)[:, None, None], yy, xx], delta
+
+
+def _windows(delta, off, radius, order):
+    """Super-Gaussian windows centred on the sub-pixel star positions."""
+    if np.all(delta == delta[0]):
+        delta = delta[:1]          # one window serves every frame
+    dy = off[None, :, None] - delta[:, 1][:, None, None]
+    dx = off[None, None, :] - delta[:, 0][:, None, None]
+    return super_gaussian(np.hypot(dx, dy), radius, order)
+
+
 def _centres_array(centres, nframe, nwave):
     c = np.asarray(centres, float)
     try:
@@ -256,46 +287,45 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, centres=None, m
     amps = np.empty((nframe, nwave, km.n_uv)) if keep_phases else None
     used_centres = np.empty((nframe, nwave, 2))
     n_bad_total = 0
-    for f0 in range(0, nframe, batch_size):
-        f1 = min(nframe, f0 + batch_size)
-        batch = np.asarray(cube[f0:f1], dtype=float)
-        if mask is not None:
-            bmask = np.broadcast_to(mask, cube.shape)[f0:f1]
-            batch = np.where(bmask, np.nan, batch)
-        finite = np.isfinite(batch)
-        empty = ~finite.any(axis=(2, 3)) | (np.nansum(np.abs(batch), axis=(2, 3)) == 0)
-        if empty.any():
-            fr, ch = np.argwhere(empty)[0]
-            raise KpifsError(f"{source}: frame {f0 + fr}, channel {ch} "
-                             f"({wl[ch]:.3f}) is empty (all zero or non-finite): "
-                             f"{empty.sum()} such slice(s)")
-        n_bad_total += int((~finite).sum())
-        bc = find_centres(batch, method=centroid) if centres is None else centres[f0:f1]
-        if np.any((bc[..., 0] < -0.5) | (bc[..., 0] > nx - 0.5) | (bc[..., 1] < -0.5)
-                  | (bc[..., 1] > ny - 0.5)) or not np.all(np.isfinite(bc)):
-            raise KpifsError(f"{source}: a star centre lies outside the {ny}x{nx} image")
-        used_centres[f0:f1] = bc
-        nb = f1 - f0
-        ic = np.rint(bc).astype(int)
-        delta = bc - ic  # (nb, nwave, 2), sub-pixel remainder in pixels
-        padded = np.zeros((nb, nwave, ny + 2 * h, nx + 2 * h))
-        padded[:, :, h:h + ny, h:h + nx] = np.where(finite, batch, 0.0)
-        fi = np.arange(nb)[:, None, None]
-        for iw in range(nwave):
-            yy = ic[:, iw, 1][:, None, None] + off[None, :, None] + h
-            xx = ic[:, iw, 0][:, None, None] + off[None, None, :] + h
-            cut = padded[fi, iw, yy, xx]
-            dy = off[None, :, None] - delta[:, iw, 1][:, None, None]
-            dx = off[None, None, :] - delta[:, iw, 0][:, None, None]
-            win = super_gaussian(np.hypot(dx, dy), window_radius, window_order)
-            cut = (cut * win).reshape(nb, ws * ws)
-            mat = km.dft_matrix(wl[iw], ps, (ws, ws))
+    bmask = None if mask is None else np.broadcast_to(mask, cube.shape)
+    # wavelength outermost: each DFT matrix is built (or fetched) once per call
+    for iw in range(nwave):
+        mat = km.dft_matrix(wl[iw], ps, (ws, ws))
+        lam = wl[iw].to_value(u.m)
+        for f0 in range(0, nframe, batch_size):
+            f1 = min(nframe, f0 + batch_size)
+            sl = np.array(cube[f0:f1, iw], dtype=float)
+            if bmask is not None:
+                sl[bmask[f0:f1, iw]] = np.nan
+            finite = np.isfinite(sl)
+            if not finite.all():
+                n_bad_total += int(sl.size - finite.sum())
+                sl[~finite] = 0.0
+            empty = ~np.any(sl != 0, axis=(1, 2))
+            if empty.any():
+                fr = int(np.argmax(empty))
+                raise KpifsError(f"{source}: frame {f0 + fr}, channel {iw} "
+                                 f"({wl[iw]:.3f}) is empty (all zero or non-finite): "
+                                 f"{empty.sum()} such frame(s) at this channel")
+            if centres is None:
+                bc = find_centres(np.where(finite, sl, np.nan), method=centroid)
+            else:
+                bc = centres[f0:f1, iw]
+            if (np.any((bc[:, 0] < -0.5) | (bc[:, 0] > nx - 0.5) | (bc[:, 1] < -0.5)
+                       | (bc[:, 1] > ny - 0.5)) or not np.all(np.isfinite(bc))):
+                raise KpifsError(f"{source}: a star centre lies outside the {ny}x{nx} image "
+                                 f"(channel {iw})")
+            used_centres[f0:f1, iw] = bc
+            cut, delta = _cutouts(sl, bc, ws)
+            win = _windows(delta, off, window_radius, window_order)
+            cut *= win
+            cut = cut.reshape(len(cut), ws * ws)
             ri = cut @ mat.T
             re, im = ri[:, :km.n_uv], ri[:, km.n_uv:]
-            lam = wl[iw].to_value(u.m)
-            ramp = (2 * np.pi * ps.value * MAS / lam) * (np.outer(delta[:, iw, 0], uvx)
-                                                       + np.outer(delta[:, iw, 1], uvy))
-            ph = np.arctan2(im, re) + ramp
+            ph = np.arctan2(im, re)
+            # the sub-pixel remainder of the centre, as an exact phase ramp
+            ramp = np.outer(delta[:, 0], uvx) + np.outer(delta[:, 1], uvy)
+            ph += (2 * np.pi * ps.value * MAS / lam) * ramp
             ph = (ph + np.pi) % (2 * np.pi) - np.pi
             kp[f0:f1, iw] = ph @ km.kernel.T
             if keep_phases:

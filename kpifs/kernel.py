@@ -124,6 +124,9 @@ class KernelModel:
     True
     """
 
+    #: Memory budget of the cache of DFT matrices (bytes).
+    dft_cache_bytes = 2 * 2 ** 30
+
     def __init__(self, pupil, uv, redundancy, blm, kernel=None, *, rank=None, rtol=1e-9,
                  meta=None):
         self.pupil = pupil
@@ -274,16 +277,30 @@ class KernelModel:
         key = (round(wl * 1e15), round(p * 1e18), ny, nx)
         mat = self._dft_cache.get(key)
         if mat is None:
-            y = (np.arange(ny) - ny // 2) * p
-            x = (np.arange(nx) - nx // 2) * p
-            gx, gy = np.meshgrid(x, y)
-            arg = (2 * np.pi / wl) * (np.outer(self._uv[:, 0], gx.ravel())
-                                      + np.outer(self._uv[:, 1], gy.ravel()))
-            mat = np.concatenate([np.cos(arg), -np.sin(arg)])
+            # separable: cos/sin of (u x + v y) from small per-axis tables by the
+            # angle-addition formulas (much cheaper than cos/sin on every element)
+            ax = (2 * np.pi * p / wl) * np.outer(self._uv[:, 0], np.arange(nx) - nx // 2)
+            ay = (2 * np.pi * p / wl) * np.outer(self._uv[:, 1], np.arange(ny) - ny // 2)
+            cx, sx = np.cos(ax)[:, None, :], np.sin(ax)[:, None, :]
+            cy, sy = np.cos(ay)[:, :, None], np.sin(ay)[:, :, None]
+            nuv = self.n_uv
+            mat = np.empty((2 * nuv, ny, nx))
+            tmp = np.empty((min(nuv, 32), ny, nx))
+            for a in range(0, nuv, 32):  # chunks: no large temporaries
+                b = min(nuv, a + 32)
+                t = tmp[:b - a]
+                np.multiply(cy[a:b], cx[a:b], out=mat[a:b])
+                np.multiply(sy[a:b], sx[a:b], out=t)
+                mat[a:b] -= t
+                np.multiply(sy[a:b], cx[a:b], out=mat[nuv + a:nuv + b])
+                np.multiply(cy[a:b], sx[a:b], out=t)
+                mat[nuv + a:nuv + b] += t
+                np.negative(mat[nuv + a:nuv + b], out=mat[nuv + a:nuv + b])
+            mat = mat.reshape(2 * nuv, ny * nx)
             self._dft_cache[key] = mat
-            # keep the cache bounded (about 1 GB of float64)
-            while sum(m.nbytes for m in self._dft_cache.values()) > 1 << 30 and \
-                    len(self._dft_cache) > 1:
+            # bounded cache: extraction builds each matrix once per call anyway
+            while sum(m.nbytes for m in self._dft_cache.values()) > self.dft_cache_bytes \
+                    and len(self._dft_cache) > 1:
                 self._dft_cache.pop(next(iter(self._dft_cache)))
         return mat
 

@@ -44,6 +44,19 @@ class IFSCube:
     angles: u.Quantity = None
     instrument: str = "generic"
     source: list = field(default_factory=list)
+    _files: list = field(default_factory=list, repr=False)
+
+    def close(self):
+        """Close the memory-mapped files behind `data`."""
+        for f in self._files:
+            f.close()
+        self._files = []
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
 
     @property
     def shape(self):
@@ -67,13 +80,17 @@ def _open_fits(path):
         raise KpifsError(f"{path}: file not found")
     try:
         hdul = fits.open(path, memmap=True)
+    except (OSError, ValueError, TypeError, IndexError) as exc:
+        raise KpifsError(f"{path}: not a readable FITS file ({exc})") from None
+    try:
         hdul.verify("silentfix")
         for h in hdul:  # touching every HDU's data finds truncated files now
             if h.data is not None:
                 h.data.shape
-        return hdul
     except (OSError, ValueError, TypeError, IndexError) as exc:
+        hdul.close()
         raise KpifsError(f"{path}: not a readable FITS file ({exc})") from None
+    return hdul
 
 
 def _header_wavelengths(hdr):
@@ -91,6 +108,16 @@ def read_generic(path, *, wavelengths=None, pixscale=None):
     ``PIXSCALE`` (mas). The data stay memory-mapped.
     """
     hdul = _open_fits(path)
+    try:
+        cube = _generic_from_hdul(hdul, path, wavelengths, pixscale)
+    except BaseException:
+        hdul.close()
+        raise
+    cube._files.append(hdul)
+    return cube
+
+
+def _generic_from_hdul(hdul, path, wavelengths, pixscale):
     hdu = next((h for h in hdul if h.data is not None and h.is_image and h.data.ndim >= 2),
                None)
     if hdu is None:
