@@ -73,6 +73,10 @@ def write_hdulist(hdul, path, *, overwrite=False, inputs=()):
     os.close(fd)
     try:
         hdul.writeto(tmp, overwrite=True, checksum=True)
+        # mkstemp makes the file private; give it the permissions of any new file
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

@@ -173,3 +173,23 @@ def test_entry_point_subprocess():
     assert res.returncode == 2
     assert "nonexistent.fits: file not found" in res.stderr
     assert "Traceback" not in res.stderr
+
+
+def test_outputs_have_normal_permissions(tmp_path):
+    import os
+    out = tmp_path / "model.fits"
+    assert main(["kernel", "-o", str(out)]) == 0
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (out.stat().st_mode & 0o777) == (0o666 & ~umask)
+
+
+def test_example_data_extracts(tmp_path):
+    from pathlib import Path
+    example = Path(__file__).resolve().parents[1] / "data_examples" / "paper" / "target.fits"
+    if not example.exists():
+        pytest.skip("data_examples/ not present (installed without the sdist)")
+    out = tmp_path / "kp.fits"
+    assert main(["extract", str(example), "-o", str(out)]) == 0
+    with fits.open(out) as h:
+        assert h["KP-DATA"].data.shape == (10, 3, 369)
