@@ -26,7 +26,7 @@ from .kernel import MAS
 from .pupil import TELESCOPES, pupil_image
 
 __all__ = ["simulate_psf", "phase_screens", "SceneParameters", "PRESETS", "simulate_scene",
-           "SimulatedObservation"]
+           "SimulatedObservation", "charis_field"]
 
 log = logging.getLogger(__name__)
 
@@ -164,6 +164,8 @@ class SceneParameters:
     jitter: float = 0.2
     npup: int = 128
     instrument: str = "generic"
+    field: str = None          # 'charis': the lenslet array's tilted square field
+    n_dead: int = 0            # dead spaxels (garbage values, zero inverse variance)
 
     def bandwidths(self):
         wl = self.wavelengths.to_value(u.um)
@@ -179,6 +181,39 @@ class SceneParameters:
                 * self.bandwidths().to_value(u.um) * self.exptime.to_value(u.s))
 
 
+def charis_field(shape=(201, 201), *, side=133.0, angle=27.0):
+    """The CHARIS lenslet array's illuminated field: a square tilted by *angle* deg.
+
+    Approximates the real pipeline's Broadband lenslet flat (a ~133-spaxel
+    square turned by ~27 degrees in the 201x201 cube).
+    """
+    ny, nx = shape
+    y, x = np.mgrid[:ny, :nx]
+    x = x - (nx - 1) / 2
+    y = y - (ny - 1) / 2
+    c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
+    xr, yr = c * x + s * y, -s * x + c * y
+    return (np.abs(xr) <= side / 2) & (np.abs(yr) <= side / 2)
+
+
+def _apply_field(out, params, rng):
+    """Blank spaxels outside the field (0, zero inverse variance) and add dead ones."""
+    shape = tuple(params.shape)
+    bad = np.zeros(shape, bool)
+    if params.field == "charis":
+        bad |= ~charis_field(shape)
+    elif params.field is not None:
+        raise KpifsError(f"unknown field {params.field!r}")
+    dead = np.zeros(shape, bool)
+    if params.n_dead:
+        good = np.flatnonzero(~bad)
+        dead.flat[rng.choice(good, params.n_dead, replace=False)] = True
+    for k in ("target", "calibrator"):
+        out[k][..., bad] = 0.0
+        out[k][..., dead] = rng.uniform(-1e4, 1e4, out[k][..., dead].shape)
+        out["var_" + k][..., bad | dead] = np.inf
+
+
 def _log_grid(lmin, lmax, n):
     return lmin * np.exp(np.arange(n) * np.log(lmax / lmin) / (n - 1))
 
@@ -192,7 +227,8 @@ def _log_grid(lmin, lmax, n):
 PRESETS = {
     "paper": dict(),
     "charis": dict(wavelengths=_log_grid(1.15956, 2.36934, 22) * u.um, pixscale=16.2 * u.mas,
-                   shape=(201, 201), n_frames=20, instrument="charis",
+                   shape=(201, 201), n_frames=20, instrument="charis", field="charis",
+                   n_dead=12,
                    contrasts=10 ** (-8 / 2.5) * np.linspace(1.4, 0.6, 22),
                    companion_offset=[120.0, 90.0] * u.mas),
     "sphere": dict(telescope="vlt", wavelengths=np.linspace(0.957, 1.329, 39) * u.um,
@@ -311,6 +347,7 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
     for k in cubes:
         out[k] = cubes[k]
         out["var_" + k] = np.clip(cubes[k], 0, None) + params.read_noise ** 2
+    _apply_field(out, params, rng)
     log.info("simulated %d target and %d calibrator frames, %d channels", nf, nf, nw)
     return SimulatedObservation(out["target"], out["calibrator"], out["var_target"],
                                 out["var_calibrator"], params, seed if isinstance(seed, int)

@@ -64,7 +64,9 @@ def test_layouts(tmp_path, layout):
             wl = hdr["LAM_MIN"] * np.exp(np.arange(hdr["NLAM"]) * hdr["DLOGLAM"])
             assert wl[-1] == pytest.approx(hdr["LAM_MAX"]) == pytest.approx(2369.34, rel=1e-5)
             assert hdr["LAM_MIN"] == pytest.approx(1159.56)
-            assert h[2].data.shape == (22, 48, 48) and np.all(h[2].data > 0)
+            assert h[2].data.shape == (22, 48, 48)
+            # a 48x48 cut lies inside the tilted field: only the 12 dead spaxels are bad
+            assert np.all((h[2].data == 0).sum(axis=(1, 2)) == 12)
             assert h[1].header["CTYPE3"] == "AWAV-LOG"
     else:
         with fits.open(tgt[0]) as h:
@@ -86,3 +88,20 @@ def test_bad_preset():
         simulate_scene("keck")
     with pytest.raises(KpifsError, match="bad simulation parameter"):
         simulate_scene("paper", colour="blue")
+
+
+def test_charis_field_matches_real_lenslet_flat(real_data):
+    from astropy.io import fits
+    from kpifs.simulate import charis_field
+    flat = fits.getdata(real_data / "charis_lensletflat_Broadband.fits") > 0
+    model = charis_field(flat.shape)
+    overlap = (flat & model).sum() / (flat | model).sum()
+    assert overlap > 0.95
+
+
+def test_charis_preset_blanks_outside_field():
+    obs = simulate_scene("charis", n_frames=1, seed=1, npup=64)
+    assert obs.target.shape == (1, 22, 201, 201)
+    assert obs.target[0, 0, 0, 0] == 0 and np.isinf(obs.variance_target[0, 0, 0, 0])
+    assert 17000 < np.isfinite(obs.variance_target[0, 0]).sum() < 18000
+    assert np.isinf(obs.variance_target[0, 0, 100, 100]) is np.False_
