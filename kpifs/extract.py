@@ -17,7 +17,7 @@ from astropy.table import QTable
 from ._utils import to_quantity
 from .exceptions import KpifsError
 from .kernel import MAS, KernelModel, load_kernel_model
-from .prepare import find_centres, super_gaussian
+from .prepare import fill_bad_pixels, find_centres, super_gaussian
 
 __all__ = ["KernelPhaseData", "extract_kernel_phases", "DEFAULT_WINDOW_RADIUS"]
 
@@ -185,7 +185,8 @@ def _centres_array(centres, nframe, nwave):
 
 def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, centres=None, mask=None,
                           window_size=None, window_radius=None, window_order=4,
-                          centroid="com", on_nyquist="drop", batch_size=256, header=None,
+                          centroid="com", bad_pixels="fill", on_nyquist="drop",
+                          batch_size=256, header=None,
                           source="<array>", keep_phases=True):
     """Kernel phases of every frame and channel of an IFS cube.
 
@@ -203,8 +204,11 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, centres=None, m
         Star centres ``(x, y)`` in pixels, broadcastable to (nframe, nwave, 2);
         found with `~kpifs.prepare.find_centres` (method *centroid*) if omitted.
     mask : array-like of bool, optional
-        True for bad pixels, broadcastable to the data. Bad and NaN pixels are
-        excluded from the Fourier sums (set to zero after windowing).
+        True for bad pixels, broadcastable to the data; NaN pixels are bad too.
+    bad_pixels : {'fill', 'exclude'}
+        ``'fill'``: interpolate bad pixels from their neighbours
+        (`~kpifs.prepare.fill_bad_pixels`); ``'exclude'``: leave them out of the
+        Fourier sums (set to zero).
     window_size : int, optional
         Side of the square cut-out around the star (pixels); default the
         image's smaller side (even). Pixels of the cut-out outside the image
@@ -267,6 +271,8 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, centres=None, m
         window_radius = DEFAULT_WINDOW_RADIUS * window_size / 2
     if not window_radius > 0:
         raise KpifsError(f"{source}: window radius must be > 0, got {window_radius}")
+    if bad_pixels not in ("fill", "exclude"):
+        raise KpifsError(f"bad_pixels must be 'fill' or 'exclude', got {bad_pixels!r}")
     if mask is not None:
         mask = np.asarray(mask, bool)
         try:
@@ -298,19 +304,25 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, centres=None, m
             if bmask is not None:
                 sl[bmask[f0:f1, iw]] = np.nan
             finite = np.isfinite(sl)
-            if not finite.all():
+            all_finite = finite.all()
+            if not all_finite:
                 n_bad_total += int(sl.size - finite.sum())
-                sl[~finite] = 0.0
-            empty = ~np.any(sl != 0, axis=(1, 2))
+                sl[~finite] = np.nan
+            empty = ~np.any(np.nan_to_num(sl) != 0, axis=(1, 2))
             if empty.any():
                 fr = int(np.argmax(empty))
                 raise KpifsError(f"{source}: frame {f0 + fr}, channel {iw} "
                                  f"({wl[iw]:.3f}) is empty (all zero or non-finite): "
                                  f"{empty.sum()} such frame(s) at this channel")
             if centres is None:
-                bc = find_centres(np.where(finite, sl, np.nan), method=centroid)
+                bc = find_centres(sl, method=centroid)
             else:
                 bc = centres[f0:f1, iw]
+            if not all_finite:
+                if bad_pixels == "fill":
+                    fill_bad_pixels(sl)
+                else:
+                    sl[~finite] = 0.0
             if (np.any((bc[:, 0] < -0.5) | (bc[:, 0] > nx - 0.5) | (bc[:, 1] < -0.5)
                        | (bc[:, 1] > ny - 0.5)) or not np.all(np.isfinite(bc))):
                 raise KpifsError(f"{source}: a star centre lies outside the {ny}x{nx} image "
@@ -340,6 +352,6 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, centres=None, m
     ctab["x"].unit = ctab["y"].unit = u.pix
     meta = {"source": str(source), "window_size": ws, "window_radius": float(window_radius),
             "window_order": float(window_order), "centroid": centroid if centres is None
-            else "given", "n_bad_pixels": n_bad_total}
+            else "given", "n_bad_pixels": n_bad_total, "bad_pixels": bad_pixels}
     return KernelPhaseData(kp, wl, ps, km, phases=phases, amplitudes=amps, centres=ctab,
                            header=header, meta=meta)

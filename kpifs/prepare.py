@@ -12,7 +12,7 @@ import numpy as np
 
 from .exceptions import KpifsError, KpifsWarning
 
-__all__ = ["super_gaussian", "find_centres", "CENTROID_METHODS"]
+__all__ = ["super_gaussian", "find_centres", "fill_bad_pixels", "CENTROID_METHODS"]
 
 log = logging.getLogger(__name__)
 
@@ -134,3 +134,37 @@ def _photutils_centres(data, xy, box, method, fallback):
         warnings.warn(f"{method} centroid failed on {nfail} of {len(data)} image(s); "
                       f"used the centre of mass instead", KpifsWarning, stacklevel=3)
     return out
+
+
+def fill_bad_pixels(images, *, sigma=1.0):
+    """Replace NaN pixels by a Gaussian-weighted interpolation of their neighbours.
+
+    Uses `astropy.convolution.interpolate_replace_nans` image by image (only
+    images that have NaN are touched); pixels still NaN afterwards (holes much
+    larger than *sigma*) become 0, i.e. they are excluded from Fourier sums.
+
+    Parameters
+    ----------
+    images : ndarray, shape (..., ny, nx)
+        Modified in place and returned.
+    sigma : float
+        Width of the Gaussian kernel in pixels.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.prepare import fill_bad_pixels
+    >>> img = np.ones((1, 9, 9)); img[0, 4, 4] = np.nan
+    >>> float(fill_bad_pixels(img)[0, 4, 4])
+    1.0
+    """
+    from astropy.convolution import Gaussian2DKernel, interpolate_replace_nans
+    kernel = Gaussian2DKernel(sigma)
+    flat = images.reshape((-1,) + images.shape[-2:])
+    todo = np.flatnonzero(np.isnan(flat).any(axis=(1, 2)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # astropy warns about NaN it is asked to fill
+        for i in todo:
+            flat[i] = interpolate_replace_nans(flat[i], kernel, boundary="extend")
+    np.nan_to_num(flat, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+    return images

@@ -10,7 +10,7 @@ from astropy.io import fits
 from .._utils import to_quantity
 from ..exceptions import KpifsError
 
-__all__ = ["IFSCube", "read_generic", "read_wavelength_file"]
+__all__ = ["IFSCube", "read_generic", "read_wavelength_file", "FrameStack"]
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +72,56 @@ class IFSCube:
                 f"{self.pixscale:.2f}, from {self.name}>")
 
 
+class FrameStack:
+    """Frames from several files seen as one ``(nframe, nwave, ny, nx)`` array.
+
+    Nothing is read until a slice is asked for (``stack[f0:f1, iw]``), so
+    memory stays near one batch of frames. Each part is an array-like of shape
+    ``(nf_i, nwave, ny, nx)`` (memory-mapped, usually); *bad* parts (same
+    shapes, True = bad) turn their non-zero pixels into NaN on reading.
+    """
+
+    def __init__(self, parts, bad=None):
+        self.parts = list(parts)
+        self.bad = None if bad is None else list(bad)
+        shapes = {p.shape[1:] for p in self.parts}
+        if len(shapes) != 1:
+            raise KpifsError(f"the files do not share one cube shape: {sorted(shapes)}")
+        self._starts = np.cumsum([0] + [p.shape[0] for p in self.parts])
+        self.shape = (int(self._starts[-1]),) + shapes.pop()
+        self.ndim = 4
+        self.dtype = np.dtype(float)
+
+    def __len__(self):
+        return self.shape[0]
+
+    def __array__(self, dtype=None, copy=None):
+        return self[:].astype(dtype or float, copy=False)
+
+    def __getitem__(self, key):
+        if not isinstance(key, tuple):
+            key = (key,)
+        fkey, rest = key[0], key[1:]
+        if isinstance(fkey, (int, np.integer)):
+            return self[(slice(fkey, fkey + 1),) + rest][0]
+        idx = np.arange(self.shape[0])[fkey]
+        out = []
+        for i, part in enumerate(self.parts):
+            sel = idx[(idx >= self._starts[i]) & (idx < self._starts[i + 1])] - self._starts[i]
+            if sel.size == 0:
+                continue
+            sl = slice(sel[0], sel[-1] + 1) if np.all(np.diff(sel) == 1) else sel
+            chunk = np.array(part[(sl,) + rest], dtype=float)
+            if self.bad is not None:
+                # exact zeros (CHARIS: lenslets outside the field) stay zero: they
+                # add nothing to the Fourier sums and need no filling
+                chunk[np.asarray(self.bad[i][(sl,) + rest]) & (chunk != 0)] = np.nan
+            out.append(chunk)
+        if not out:
+            return np.empty((0,) + self.shape[1:])[(slice(None),) + rest]
+        return np.concatenate(out)
+
+
 def _open_fits(path):
     path = Path(path)
     if path.is_dir():
@@ -127,17 +177,18 @@ def _generic_from_hdul(hdul, path, wavelengths, pixscale):
     if hdu is not hdul[0]:
         hdr.update({k: v for k, v in hdu.header.items() if k not in hdr and k not in
                     ("XTENSION", "PCOUNT", "GCOUNT")})
-    if data.ndim == 2:
-        data = data[None, None]
-    elif data.ndim == 3:
-        data = data[None]
-    elif data.ndim != 4:
-        raise KpifsError(f"{path}: data have {data.ndim} dimensions; expected 2, 3 or 4")
     wl = wavelengths if wavelengths is not None else _header_wavelengths(hdr)
     if wl is None:
         raise KpifsError(f"{path}: no wavelengths: give them (--wavelengths 1.52um,1.60um or a "
                          f"file)")
     wl = np.atleast_1d(to_quantity(wl, u.um, name="wavelengths"))
+    if data.ndim == 2:
+        data = data[None, None]
+    elif data.ndim == 3:
+        # (nwave, ny, nx), or a stack of frames at a single wavelength
+        data = data[:, None] if (len(wl) == 1 and data.shape[0] != 1) else data[None]
+    elif data.ndim != 4:
+        raise KpifsError(f"{path}: data have {data.ndim} dimensions; expected 2, 3 or 4")
     if len(wl) != data.shape[1]:
         raise KpifsError(f"{path}: {len(wl)} wavelength(s) given but the cube has "
                          f"{data.shape[1]} channel(s)")

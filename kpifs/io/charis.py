@@ -1,0 +1,156 @@
+"""Reader for SCExAO/CHARIS cubes from the CHARIS data-reduction pipeline.
+
+One file per exposure, ``<raw>_cube.fits``: HDU 0 the header only, HDU 1 the
+cube ``(nlam, 201, 201)``, HDU 2 its inverse variance. Spaxels with
+``ivar == 0`` are bad (read as NaN); lenslets outside the field are exactly 0
+and stay 0 (they add nothing to the Fourier sums). Wavelengths (nm) are
+``LAM_MIN * exp(i * DLOGLAM)``, checked against ``NLAM``, the cube length and
+``LAM_MAX``.
+"""
+import logging
+
+import numpy as np
+from astropy import units as u
+
+from .._utils import to_quantity
+from ..exceptions import KpifsError
+from .cube import FrameStack, IFSCube, _open_fits
+
+__all__ = ["read_charis", "is_charis", "charis_wavelengths", "CHARIS_PIXSCALE"]
+
+log = logging.getLogger(__name__)
+
+#: Default CHARIS lenslet scale (published values 16.15-16.4 mas).
+CHARIS_PIXSCALE = 16.2 * u.mas
+
+
+def is_charis(hdul):
+    """True for a CHARIS pipeline cube (wavelength keys and a cube in HDU 1)."""
+    hdr = hdul[0].header
+    has_keys = all(k in hdr for k in ("LAM_MIN", "DLOGLAM", "NLAM"))
+    return has_keys and len(hdul) > 1 and hdul[1].data is not None and hdul[1].data.ndim == 3
+
+
+def charis_wavelengths(header, nlam_cube, *, source="CHARIS cube"):
+    """Channel wavelengths from a CHARIS header, checked for consistency."""
+    try:
+        lmin = float(header["LAM_MIN"])
+        dlog = float(header["DLOGLAM"])
+        nlam = int(header["NLAM"])
+    except KeyError as exc:
+        raise KpifsError(f"{source}: missing wavelength keyword {exc}") from None
+    except (TypeError, ValueError) as exc:
+        raise KpifsError(f"{source}: bad wavelength keyword: {exc}") from None
+    if nlam != nlam_cube:
+        raise KpifsError(f"{source}: NLAM = {nlam} but the cube has {nlam_cube} channels")
+    if not (lmin > 0 and dlog > 0):
+        raise KpifsError(f"{source}: LAM_MIN = {lmin} and DLOGLAM = {dlog} must be > 0")
+    wl = lmin * np.exp(np.arange(nlam) * dlog)
+    if "LAM_MAX" in header:
+        lmax = float(header["LAM_MAX"])
+        if abs(wl[-1] - lmax) > 0.005 * lmax:
+            raise KpifsError(f"{source}: LAM_MAX = {lmax} nm disagrees with LAM_MIN * "
+                             f"exp((NLAM-1) * DLOGLAM) = {wl[-1]:.2f} nm")
+    if not 300 < wl[0] < 30000:
+        raise KpifsError(f"{source}: LAM_MIN = {lmin} is not a wavelength in nm")
+    return (wl * u.nm).to(u.um)
+
+
+def read_charis(paths, *, pixscale=None):
+    """Read one or many CHARIS pipeline cubes as one `~kpifs.io.IFSCube`.
+
+    Parameters
+    ----------
+    paths : str or list of str
+        ``*_cube.fits`` files, one exposure each; they become the frames.
+    pixscale : `~astropy.units.Quantity`, optional
+        Lenslet scale; default `CHARIS_PIXSCALE` (16.2 mas).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.io.layouts import write_observation
+    >>> from kpifs.io.charis import read_charis
+    >>> d = tempfile.mkdtemp()
+    >>> files = write_observation(simulate_scene("charis", n_frames=2, npup=32, shape=(64, 64)),
+    ...                           d, layout="charis")
+    >>> cube = read_charis(files["target"])
+    >>> cube.shape, cube.instrument
+    ((2, 22, 64, 64), 'charis')
+    >>> cube.close()
+    """
+    if isinstance(paths, (str, bytes)) or not hasattr(paths, "__iter__"):
+        paths = [paths]
+    paths = [str(p) for p in paths]
+    if not paths:
+        raise KpifsError("no CHARIS files given")
+    ps = to_quantity(pixscale if pixscale is not None else CHARIS_PIXSCALE, u.mas,
+                     name="pixel scale")
+    files, data, bad, angles = [], [], [], []
+    wl = header = None
+    try:
+        for path in paths:
+            hdul = _open_fits(path)
+            files.append(hdul)
+            if not is_charis(hdul):
+                raise KpifsError(f"{path}: not a CHARIS pipeline cube (needs LAM_MIN, DLOGLAM, "
+                                 f"NLAM and a 3-D cube in HDU 1)")
+            cube = hdul[1].data
+            this_wl = charis_wavelengths(hdul[0].header, cube.shape[0], source=path)
+            if wl is None:
+                wl, header = this_wl, hdul[0].header.copy()
+            elif len(this_wl) != len(wl) or not np.allclose(this_wl, wl, rtol=1e-5):
+                raise KpifsError(f"{path}: its wavelengths differ from those of {paths[0]}")
+            if len(hdul) > 2 and hdul[2].data is not None:
+                ivar = hdul[2].data
+                if ivar.shape != cube.shape:
+                    raise KpifsError(f"{path}: inverse variance {ivar.shape} does not match "
+                                     f"the cube {cube.shape}")
+                bad.append(_IvarBad(ivar))
+            else:
+                bad.append(_IvarBad(None, cube.shape))
+            data.append(_OneFrame(cube))
+            par = hdul[0].header.get("PARANG", "unavailable")
+            try:
+                angles.append(float(par))
+            except (TypeError, ValueError):
+                angles.append(np.nan)
+        stack = FrameStack(data, bad)
+    except BaseException:
+        for f in files:
+            f.close()
+        raise
+    if np.all(np.isnan(angles)):
+        log.info("PARANG unavailable in the CHARIS headers")
+    log.info("read %d CHARIS exposure(s): %d channels %.4f-%.4f um", len(paths), len(wl),
+             wl[0].value, wl[-1].value)
+    return IFSCube(data=stack, wavelengths=wl, pixscale=ps, header=header,
+                   angles=np.array(angles) * u.deg, instrument="charis", source=paths,
+                   _files=files)
+
+
+class _OneFrame:
+    """A 3-D cube seen as a single frame ``(1, nlam, ny, nx)``."""
+
+    def __init__(self, cube):
+        self.cube = cube
+        self.shape = (1,) + cube.shape
+
+    def __getitem__(self, key):
+        return np.asarray(self.cube[key[1:]])[None] if len(key) > 1 else \
+            np.asarray(self.cube)[None]
+
+
+class _IvarBad(_OneFrame):
+    """``ivar == 0`` as a bad-pixel mask, read lazily."""
+
+    def __init__(self, ivar, shape=None):
+        self.ivar = ivar
+        self.shape = (1,) + (ivar.shape if ivar is not None else shape)
+
+    def __getitem__(self, key):
+        if self.ivar is None:
+            return np.zeros((1,) + np.empty(self.shape[1:])[key[1:]].shape, bool)
+        iv = np.asarray(self.ivar[key[1:]])
+        return (~np.isfinite(iv) | (iv <= 0))[None]

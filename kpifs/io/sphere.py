@@ -1,0 +1,125 @@
+"""Reader for VLT/SPHERE-IFS cubes.
+
+Community-pipeline products: ``(nwave, nframe, ny, nx)`` (or ``(nwave, ny, nx)``)
+with the wavelengths in a separate file (nm) and frame angles in another.
+SPHERE Data Center products (``HIERARCH ESO PRO REC1 ID = 'sph_ifs_science_dr'``)
+have the same layout but wavelengths in um and angles of the opposite sign.
+The cube is kept memory-mapped and viewed as ``(nframe, nwave, ny, nx)``.
+"""
+import logging
+from pathlib import Path
+
+import numpy as np
+from astropy import units as u
+from astropy.io import fits
+
+from .._utils import to_quantity
+from ..exceptions import KpifsError
+from .cube import IFSCube, _open_fits, _wavelength_quantity, read_wavelength_file
+
+__all__ = ["read_sphere", "is_sphere", "SPHERE_PIXSCALE"]
+
+log = logging.getLogger(__name__)
+
+#: SPHERE-IFS spaxel scale.
+SPHERE_PIXSCALE = 7.46 * u.mas
+
+_WAVE_NAMES = ("wavelength.fits", "wavelengths.fits", "lambda.fits")
+
+
+def _is_dc(header):
+    return str(header.get("HIERARCH ESO PRO REC1 ID", "")).strip() == "sph_ifs_science_dr"
+
+
+def is_sphere(hdul):
+    """True when the header says SPHERE-IFS (or the SPHERE Data Center)."""
+    hdr = hdul[0].header
+    return (_is_dc(hdr) or str(hdr.get("INSTRUME", "")).strip().upper() == "SPHERE"
+            or str(hdr.get("HIERARCH ESO SEQ ARM", "")).strip().upper() == "IFS")
+
+
+def _find_wavelengths(path, hdr, nwave, wavelengths):
+    if wavelengths is not None:
+        if isinstance(wavelengths, (str, Path)):
+            return read_wavelength_file(wavelengths, unit="um" if _is_dc(hdr) else None)
+        if isinstance(wavelengths, u.Quantity):
+            return to_quantity(wavelengths, u.um, name="wavelengths")
+        return _wavelength_quantity(wavelengths, source=path)
+    for name in _WAVE_NAMES:
+        cand = Path(path).with_name(name)
+        if cand.exists():
+            log.info("%s: wavelengths from %s", path, cand)
+            return read_wavelength_file(cand, unit="um" if _is_dc(hdr) else None)
+    lmin = hdr.get("HIERARCH ESO DRS IFS MIN LAMBDA")
+    lmax = hdr.get("HIERARCH ESO DRS IFS MAX LAMBDA")
+    if lmin is not None and lmax is not None:
+        log.info("%s: wavelengths spread linearly between the DRS limits", path)
+        return np.linspace(float(lmin), float(lmax), nwave) * u.um
+    raise KpifsError(f"{path}: no wavelengths: give a wavelength file (--wavelengths "
+                     f"wavelength.fits) or put one named wavelength.fits beside the cube")
+
+
+def read_sphere(path, *, wavelengths=None, pixscale=None, angles=None):
+    """Read a SPHERE-IFS cube as an `~kpifs.io.IFSCube`.
+
+    Parameters
+    ----------
+    path : str
+        ``(nwave, nframe, ny, nx)`` or ``(nwave, ny, nx)`` FITS cube.
+    wavelengths : str, array or `~astropy.units.Quantity`, optional
+        A wavelength file (FITS or text) or values; nm and um are told apart
+        from the values (or the header). Default: ``wavelength.fits`` beside
+        the cube, else the DRS limits in the header.
+    pixscale : `~astropy.units.Quantity`, optional
+        Default `SPHERE_PIXSCALE` (7.46 mas).
+    angles : str or array, optional
+        Frame angles (deg), or a FITS file of them; default
+        ``parallactic_angles.fits`` beside the cube when present. Data Center
+        angles are sign-inverted to the community convention.
+    """
+    hdul = _open_fits(path)
+    try:
+        hdu = next((h for h in hdul if h.data is not None and h.is_image), None)
+        if hdu is None:
+            raise KpifsError(f"{path}: no image data")
+        data = hdu.data
+        hdr = hdul[0].header.copy()
+        if data.ndim == 3:
+            view = data[None]                      # (1, nwave, ny, nx)
+        elif data.ndim == 4:
+            view = np.swapaxes(data, 0, 1)         # (nframe, nwave, ny, nx), still a memmap
+        else:
+            raise KpifsError(f"{path}: SPHERE-IFS cubes are 3-D (nwave, y, x) or 4-D (nwave, "
+                             f"nframe, y, x); this one has {data.ndim} dimension(s)")
+        nwave = view.shape[1]
+        wl = _find_wavelengths(path, hdr, nwave, wavelengths)
+        if len(wl) != nwave:
+            raise KpifsError(f"{path}: {len(wl)} wavelengths for {nwave} channels")
+        ps = to_quantity(pixscale if pixscale is not None else SPHERE_PIXSCALE, u.mas,
+                         name="pixel scale")
+        ang = _angles(path, angles, view.shape[0], _is_dc(hdr))
+    except BaseException:
+        hdul.close()
+        raise
+    log.info("read SPHERE-IFS cube %s: %d frame(s), %d channels %.4f-%.4f um%s", path,
+             view.shape[0], nwave, wl[0].value, wl[-1].value,
+             " (Data Center product)" if _is_dc(hdr) else "")
+    return IFSCube(data=view, wavelengths=wl, pixscale=ps, header=hdr, angles=ang,
+                   instrument="sphere", source=[str(path)], _files=[hdul])
+
+
+def _angles(path, angles, nframe, dc):
+    if angles is None:
+        cand = Path(path).with_name("parallactic_angles.fits")
+        if not cand.exists():
+            return None
+        angles = cand
+    if isinstance(angles, (str, Path)):
+        try:
+            angles = np.ravel(fits.getdata(angles)).astype(float)
+        except (OSError, TypeError) as exc:
+            raise KpifsError(f"{angles}: cannot read frame angles: {exc}") from None
+    ang = np.atleast_1d(np.asarray(u.Quantity(angles, u.deg).value, float))
+    if ang.size != nframe:
+        raise KpifsError(f"{path}: {ang.size} frame angles for {nframe} frame(s)")
+    return (-ang if dc else ang) * u.deg
