@@ -17,7 +17,7 @@ from astropy.table import QTable
 from ._utils import to_quantity
 from .exceptions import KpifsError
 from .kernel import MAS, KernelModel, load_kernel_model
-from .prepare import fill_bad_pixels, find_centres, super_gaussian
+from .prepare import cut_out, fill_bad_pixels, find_centres, window_weights
 
 __all__ = ["KernelPhaseData", "extract_kernel_phases", "DEFAULT_WINDOW_RADIUS"]
 
@@ -46,7 +46,11 @@ class KernelPhaseData:
         Raw Fourier phases (rad) and normalised amplitudes, for diagnostics.
     centres : `~astropy.table.QTable`, optional
         Star centres used, one row per (frame, wavelength).
-    covariance : ndarray, shape (nwave, nkp, nkp) or (nframe, nwave, nkp, nkp), optional
+    covariance : ndarray, shape (nwave, nkp, nkp), optional
+        Covariance of one frame's kernel phases, per channel (the same for
+        every frame).
+    joint_covariance : ndarray, shape (nwave*nkp, nwave*nkp), optional
+        The same across channels (spectral cross-talk included).
     header : `~astropy.io.fits.Header`, optional
         Header of the input cube (kept in products).
     meta : dict, optional
@@ -64,8 +68,8 @@ class KernelPhaseData:
     """
 
     def __init__(self, kp, wavelengths, pixscale, kernel_model, *, phases=None,
-                 amplitudes=None, centres=None, covariance=None, header=None, detpa=None,
-                 bandwidth=None, meta=None):
+                 amplitudes=None, centres=None, covariance=None, joint_covariance=None,
+                 header=None, detpa=None, bandwidth=None, meta=None):
         kp = np.asarray(kp, float)
         if kp.ndim == 2:
             kp = kp[None]
@@ -80,7 +84,22 @@ class KernelPhaseData:
         self.phases = phases
         self.amplitudes = amplitudes
         self.centres = centres
+        n = len(self.wavelengths) * kernel_model.n_kp
+        if covariance is not None:
+            covariance = np.asarray(covariance, float)
+            if covariance.ndim == 4:   # KPFITS (nframe, nwave, nkp, nkp): shared by frames
+                covariance = covariance.mean(axis=0)
+            if covariance.shape != (len(self.wavelengths), kernel_model.n_kp, kernel_model.n_kp):
+                raise KpifsError(f"covariance has shape {covariance.shape}, expected "
+                                 f"({len(self.wavelengths)}, {kernel_model.n_kp}, "
+                                 f"{kernel_model.n_kp})")
+        if joint_covariance is not None:
+            joint_covariance = np.asarray(joint_covariance, float)
+            if joint_covariance.shape != (n, n):
+                raise KpifsError(f"joint covariance has shape {joint_covariance.shape}, "
+                                 f"expected ({n}, {n})")
         self.covariance = covariance
+        self.joint_covariance = joint_covariance
         self.header = fits.Header() if header is None else header.copy()
         self.detpa = None if detpa is None else np.asarray(detpa, float)
         self.bandwidth = bandwidth
@@ -140,38 +159,6 @@ def _as_frames(data, nwave, source):
         raise KpifsError(f"{source}: cube has {data.shape[1]} channels but {nwave} "
                          f"wavelength(s) were given")
     return data
-
-
-def _cutouts(sl, centres, ws):
-    """``ws x ws`` cut-outs around the integer pixel nearest each centre.
-
-    Returns the cut-outs (a new array) and the sub-pixel remainders ``delta``
-    (centre minus the cut-out's origin pixel). Pixels outside the image are 0.
-    """
-    nb, ny, nx = sl.shape
-    h = ws // 2
-    ic = np.rint(centres).astype(int)
-    delta = centres - ic
-    lo_x, lo_y = ic[:, 0] - h, ic[:, 1] - h
-    inside = (lo_x >= 0) & (lo_y >= 0) & (lo_x + ws <= nx) & (lo_y + ws <= ny)
-    if inside.all() and np.all(ic == ic[0]):
-        # the usual case: one window for the whole batch, a plain slice
-        return sl[:, lo_y[0]:lo_y[0] + ws, lo_x[0]:lo_x[0] + ws].copy(), delta
-    padded = np.zeros((nb, ny + 2 * h, nx + 2 * h))
-    padded[:, h:h + ny, h:h + nx] = sl
-    off = np.arange(ws)
-    yy = (lo_y + h)[:, None, None] + off[None, :, None]
-    xx = (lo_x + h)[:, None, None] + off[None, None, :]
-    return padded[np.arange(nb)[:, None, None], yy, xx], delta
-
-
-def _windows(delta, off, radius, order):
-    """Super-Gaussian windows centred on the sub-pixel star positions."""
-    if np.all(delta == delta[0]):
-        delta = delta[:1]          # one window serves every frame
-    dy = off[None, :, None] - delta[:, 1][:, None, None]
-    dx = off[None, None, :] - delta[:, 0][:, None, None]
-    return super_gaussian(np.hypot(dx, dy), radius, order)
 
 
 def _centres_array(centres, nframe, nwave):
@@ -285,8 +272,6 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, centres=None, m
         centres = _centres_array(centres, nframe, nwave)
 
     ws = window_size
-    h = ws // 2
-    off = np.arange(ws) - h
     uvx, uvy = km.uv.value.T
     kp = np.empty((nframe, nwave, km.n_kp))
     phases = np.empty((nframe, nwave, km.n_uv)) if keep_phases else None
@@ -328,8 +313,8 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, centres=None, m
                 raise KpifsError(f"{source}: a star centre lies outside the {ny}x{nx} image "
                                  f"(channel {iw})")
             used_centres[f0:f1, iw] = bc
-            cut, delta = _cutouts(sl, bc, ws)
-            win = _windows(delta, off, window_radius, window_order)
+            cut, delta = cut_out(sl, bc, ws)
+            win = window_weights(delta, ws, window_radius, window_order)
             cut *= win
             cut = cut.reshape(len(cut), ws * ws)
             ri = cut @ mat.T

@@ -12,7 +12,8 @@ import numpy as np
 
 from .exceptions import KpifsError, KpifsWarning
 
-__all__ = ["super_gaussian", "find_centres", "fill_bad_pixels", "CENTROID_METHODS"]
+__all__ = ["super_gaussian", "find_centres", "fill_bad_pixels", "cut_out", "window_weights",
+           "CENTROID_METHODS"]
 
 log = logging.getLogger(__name__)
 
@@ -168,3 +169,50 @@ def fill_bad_pixels(images, *, sigma=1.0):
             flat[i] = interpolate_replace_nans(flat[i], kernel, boundary="extend")
     np.nan_to_num(flat, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
     return images
+
+
+def cut_out(sl, centres, ws):
+    """``ws x ws`` cut-outs of images ``sl`` (n, ny, nx) around their star centres.
+
+    Each cut-out is centred on the integer pixel nearest its centre ``(x, y)``
+    (that pixel lands at index ``ws // 2``). Returns the cut-outs (a new
+    array) and the sub-pixel remainders ``delta`` (centre minus that pixel).
+    Pixels outside the image are 0.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.prepare import cut_out
+    >>> cut, delta = cut_out(np.arange(100.).reshape(1, 10, 10), [[4.3, 5.0]], 4)
+    >>> float(cut[0, 2, 2]), delta
+    (54.0, array([[0.3, 0. ]]))
+    """
+    nb, ny, nx = sl.shape
+    h = ws // 2
+    ic = np.rint(centres).astype(int)
+    delta = centres - ic
+    lo_x, lo_y = ic[:, 0] - h, ic[:, 1] - h
+    inside = (lo_x >= 0) & (lo_y >= 0) & (lo_x + ws <= nx) & (lo_y + ws <= ny)
+    if inside.all() and np.all(ic == ic[0]):
+        # the usual case: one window for the whole batch, a plain slice
+        return sl[:, lo_y[0]:lo_y[0] + ws, lo_x[0]:lo_x[0] + ws].copy(), delta
+    padded = np.zeros((nb, ny + 2 * h, nx + 2 * h))
+    padded[:, h:h + ny, h:h + nx] = sl
+    off = np.arange(ws)
+    yy = (lo_y + h)[:, None, None] + off[None, :, None]
+    xx = (lo_x + h)[:, None, None] + off[None, None, :]
+    return padded[np.arange(nb)[:, None, None], yy, xx], delta
+
+
+def window_weights(delta, ws, radius, order=4):
+    """Super-Gaussian windows for ``ws x ws`` cut-outs whose stars sit at ``delta``.
+
+    Returns shape (n, ws, ws), or (1, ws, ws) when every ``delta`` is the same.
+    """
+    delta = np.asarray(delta, float)
+    off = np.arange(ws) - ws // 2
+    if np.all(delta == delta[0]):
+        delta = delta[:1]          # one window serves every frame
+    dy = off[None, :, None] - delta[:, 1][:, None, None]
+    dx = off[None, None, :] - delta[:, 0][:, None, None]
+    return super_gaussian(np.hypot(dx, dy), radius, order)

@@ -59,6 +59,12 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
             hdr[key] = (val, "extraction window (pixels)")
     for i, name in enumerate(inputs, 1):
         hdr[f"KPIN{i}"] = (str(name)[-68:], "input file")
+    for i, name in enumerate(kpd.meta.get("calibrators", []), 1):
+        hdr[f"KPCAL{i}"] = (str(name)[-68:], "calibrator")
+    if kpd.meta.get("calibrated"):
+        hdr["NFRTGT"] = (int(kpd.meta.get("n_target_frames", 0)), "target frames averaged")
+        hdr.add_history(f"kpifs {__version__}: calibrated with "
+                        f"{len(kpd.meta.get('calibrators', []))} calibrator(s)")
     for line in history:
         hdr.add_history(line)
     hdr.add_history(f"kpifs {__version__}: kernel phases of {kpd.meta.get('source', '?')}")
@@ -68,11 +74,20 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
     hdus.append(kd)
     cov = kpd.covariance
     if cov is not None:
-        sig = np.sqrt(np.diagonal(cov, axis1=-2, axis2=-1))
-        if sig.ndim == 2:
-            sig = np.broadcast_to(sig, kpd.kp.shape)
-        hdus.append(fits.ImageHDU(np.ascontiguousarray(sig), name="KP-SIGM"))
-        hdus.append(fits.ImageHDU(np.asarray(cov, float), name="KP-COV"))
+        sig = np.broadcast_to(np.sqrt(np.diagonal(cov, axis1=-2, axis2=-1)), kpd.kp.shape)
+        hs = fits.ImageHDU(np.ascontiguousarray(sig), name="KP-SIGM")
+        hs.header["BUNIT"] = "rad"
+        hdus.append(hs)
+        # one covariance shared by every frame: stored once, with a frame axis of 1
+        hc = fits.ImageHDU(np.asarray(cov, float)[None], name="KP-COV")
+        hc.header["BUNIT"] = "rad2"
+        hc.header["COVSHARE"] = (True, "the same covariance applies to every frame")
+        hdus.append(hc)
+    if kpd.joint_covariance is not None:
+        hj = fits.ImageHDU(np.asarray(kpd.joint_covariance, float), name="KP-JCOV")
+        hj.header["BUNIT"] = "rad2"
+        hj.header["COMMENT"] = "joint covariance across channels, index = iwave * nkp + ikp"
+        hdus.append(hj)
     wl = kpd.wavelengths.to_value(u.m)
     bw = (kpd.bandwidth.to_value(u.m) if kpd.bandwidth is not None
           else (np.gradient(wl) if len(wl) > 1 else 0.05 * wl))
@@ -120,6 +135,7 @@ def read_kpfits(path):
             else:
                 raise KpifsError(f"{path}: no wavelengths (CWAVEL)")
             cov = np.array(hdul["KP-COV"].data, float) if "KP-COV" in hdul else None
+            jcov = np.array(hdul["KP-JCOV"].data, float) if "KP-JCOV" in hdul else None
             detpa = np.array(hdul["DETPA"].data, float) if "DETPA" in hdul else None
             phases = amps = None
             if "CVIS-DATA" in hdul:
@@ -134,6 +150,9 @@ def read_kpfits(path):
                       ("WINORD", "window_order")):
         if key in hdr:
             meta[name] = hdr[key]
+    meta["calibrators"] = [hdr[k] for k in hdr if k.startswith("KPCAL") and k[5:].isdigit()]
+    if cov is not None and cov.ndim == 4 and cov.shape[0] > 1 and not hdr.get("COVSHARE"):
+        cov = cov.mean(axis=0)   # per-frame covariances from another tool: their mean
     return KernelPhaseData(kp, wl.to(u.um), hdr["PSCALE"] * u.mas, km, phases=phases,
-                           amplitudes=amps, covariance=cov, header=hdr, detpa=detpa,
-                           bandwidth=bw, meta=meta)
+                           amplitudes=amps, covariance=cov, joint_covariance=jcov, header=hdr,
+                           detpa=detpa, bandwidth=bw, meta=meta)

@@ -1,0 +1,255 @@
+"""Covariance of kernel phases and whitening operators.
+
+Three estimators:
+
+- `empirical_covariance`: the sample covariance of per-frame kernel phases,
+  per channel (``(nwave, nkp, nkp)``) or joint across channels
+  (``(nwave*nkp, nwave*nkp)``, which captures spectral cross-talk);
+- Ledoit-Wolf shrinkage (`ledoit_wolf`) towards a scaled identity, used
+  automatically (with a warning) when there are too few frames for the sample
+  covariance to be invertible;
+- `propagated_covariance`: photon and read noise propagated through the
+  linear extraction (``phi = arg(M w I)``), for one frame.
+
+`whitening_matrix` returns ``W = Sigma^(-1/2)`` (symmetric), so that
+``y = W k`` has identity covariance.
+"""
+import logging
+import warnings
+
+import numpy as np
+from astropy import units as u
+
+from ._utils import to_quantity
+from .exceptions import KpifsError, KpifsWarning
+from .prepare import cut_out, window_weights
+
+__all__ = ["empirical_covariance", "ledoit_wolf", "propagated_covariance",
+           "whitening_matrix", "whiten", "calibrated_covariance"]
+
+log = logging.getLogger(__name__)
+
+SHRINKAGE = ("auto", "ledoit-wolf", "none")
+
+
+def ledoit_wolf(x):
+    """Ledoit-Wolf (2004) shrinkage covariance of samples *x* (n, p).
+
+    ``(1 - s) S + s mu I`` with ``S`` the (1/n) sample covariance, ``mu = tr(S)/p``
+    and ``s = min(b2, d2) / d2`` where ``d2 = ||S - mu I||_F^2`` and
+    ``b2 = (1/n^2) sum_k ||x_k x_k^T - S||_F^2``.
+
+    Returns
+    -------
+    cov : ndarray (p, p)
+    shrinkage : float
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.covariance import ledoit_wolf
+    >>> x = np.random.default_rng(0).standard_normal((20, 50))
+    >>> cov, s = ledoit_wolf(x)
+    >>> bool(np.all(np.linalg.eigvalsh(cov) > 0)), bool(0.5 < s <= 1)
+    (True, True)
+    """
+    x = np.asarray(x, float)
+    n, p = x.shape
+    if n < 2:
+        raise KpifsError("at least two frames are needed to estimate a covariance")
+    xc = x - x.mean(axis=0)
+    s = xc.T @ xc / n
+    mu = np.trace(s) / p
+    d2 = np.sum(s ** 2) - 2 * mu * np.trace(s) + mu ** 2 * p
+    # sum_k ||x_k x_k^T - S||_F^2 = sum_k ||x_k||^4 - n ||S||_F^2
+    b2 = (np.sum(np.sum(xc ** 2, axis=1) ** 2) - n * np.sum(s ** 2)) / n ** 2
+    shrink = 1.0 if d2 <= 0 else float(min(b2, d2) / d2)
+    cov = (1 - shrink) * s
+    cov[np.diag_indices(p)] += shrink * mu
+    return cov, shrink
+
+
+def _one_covariance(x, shrinkage, what):
+    n, p = x.shape
+    if n < 2:
+        raise KpifsError(f"{what}: at least two frames are needed to estimate a covariance, "
+                         f"got {n}")
+    if shrinkage == "auto":
+        shrinkage = "ledoit-wolf" if n <= p else "none"
+        if n <= p:
+            warnings.warn(f"{what}: {n} frames for {p} kernel phases: the sample covariance "
+                          f"is singular; using Ledoit-Wolf shrinkage", KpifsWarning,
+                          stacklevel=3)
+    if shrinkage == "ledoit-wolf":
+        cov, s = ledoit_wolf(x)
+        return cov * n / (n - 1), s
+    return np.cov(x, rowvar=False, ddof=1).reshape(p, p), 0.0
+
+
+def empirical_covariance(kp, *, joint=False, shrinkage="auto", source="kernel phases"):
+    """Covariance of one frame's kernel phases, estimated from many frames.
+
+    Parameters
+    ----------
+    kp : ndarray, shape (nframe, nwave, nkp)
+    joint : bool
+        Estimate the joint ``(nwave*nkp, nwave*nkp)`` covariance (cross-channel
+        correlations included) instead of one ``(nkp, nkp)`` block per channel.
+    shrinkage : {'auto', 'ledoit-wolf', 'none'}
+        ``'auto'`` uses Ledoit-Wolf (with a `~kpifs.KpifsWarning`) when the
+        frames are not more than the dimension, the sample covariance otherwise.
+
+    Returns
+    -------
+    cov : ndarray, shape (nwave, nkp, nkp) or (nwave*nkp, nwave*nkp)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.covariance import empirical_covariance
+    >>> kp = np.random.default_rng(1).normal(0, 0.1, (500, 3, 10))
+    >>> cov = empirical_covariance(kp)
+    >>> cov.shape, round(float(np.mean(np.diagonal(cov, axis1=1, axis2=2))), 2)
+    ((3, 10, 10), 0.01)
+    """
+    if shrinkage not in SHRINKAGE:
+        raise KpifsError(f"shrinkage must be one of {SHRINKAGE}, got {shrinkage!r}")
+    kp = np.asarray(kp, float)
+    if kp.ndim != 3:
+        raise KpifsError(f"{source}: expected kernel phases (nframe, nwave, nkp), got shape "
+                         f"{kp.shape}")
+    if not np.all(np.isfinite(kp)):
+        raise KpifsError(f"{source}: kernel phases contain NaN or inf")
+    nf, nw, nk = kp.shape
+    if joint:
+        cov, s = _one_covariance(kp.reshape(nf, nw * nk), shrinkage, source)
+        log.debug("%s: joint covariance, shrinkage %.3f", source, s)
+        return cov
+    out = np.empty((nw, nk, nk))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", KpifsWarning)
+        for i in range(nw):
+            out[i], _ = _one_covariance(kp[:, i], shrinkage, source)
+    if caught:  # one warning for all channels, not one per channel
+        warnings.warn(str(caught[0].message), KpifsWarning, stacklevel=2)
+    return out
+
+
+def calibrated_covariance(target_cov, n_target, calibrator_covs, n_calibrators):
+    """Covariance of ``mean(target) - mean over calibrators of mean(calibrator)``.
+
+    ``Sigma_t / N_t + (1/M^2) sum_m Sigma_m / N_m`` for *M* calibrators.
+    """
+    m = len(calibrator_covs)
+    cal = sum(c / n for c, n in zip(calibrator_covs, n_calibrators)) / m ** 2
+    return target_cov / n_target + cal
+
+
+def whitening_matrix(cov, *, rtol=1e-10, source="covariance"):
+    """Symmetric inverse square root ``Sigma^(-1/2)`` of one or a stack of covariances.
+
+    Raises `~kpifs.KpifsError` if a matrix is not symmetric positive definite.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.covariance import whitening_matrix
+    >>> w = whitening_matrix(np.array([[4.0, 0.0], [0.0, 0.25]]))
+    >>> np.round(w, 3)
+    array([[0.5, 0. ],
+           [0. , 2. ]])
+    """
+    cov = np.asarray(cov, float)
+    if cov.ndim < 2 or cov.shape[-1] != cov.shape[-2]:
+        raise KpifsError(f"{source}: a covariance must be square, got shape {cov.shape}")
+    if not np.all(np.isfinite(cov)):
+        raise KpifsError(f"{source}: covariance contains NaN or inf")
+    if not np.allclose(cov, np.swapaxes(cov, -1, -2), rtol=1e-8,
+                       atol=1e-12 * np.abs(cov).max()):
+        raise KpifsError(f"{source}: covariance is not symmetric")
+    sym = 0.5 * (cov + np.swapaxes(cov, -1, -2))
+    vals, vecs = np.linalg.eigh(sym)
+    top = vals.max(axis=-1, keepdims=True)
+    if np.any(vals <= rtol * top) or np.any(top <= 0):
+        worst = float(np.min(vals / np.where(top > 0, top, 1)))
+        raise KpifsError(f"{source}: covariance is not positive definite (smallest/largest "
+                         f"eigenvalue {worst:.2e}); use more frames or shrinkage")
+    return (vecs / np.sqrt(vals)[..., None, :]) @ np.swapaxes(vecs, -1, -2)
+
+
+def whiten(kp, w):
+    """Apply whitening operators: ``y = W k`` per channel, or jointly.
+
+    Parameters
+    ----------
+    kp : ndarray, shape (..., nwave, nkp)
+    w : ndarray, shape (nwave, nkp, nkp) (per channel) or (nwave*nkp, nwave*nkp)
+
+    Returns
+    -------
+    ndarray, shape (..., nwave, nkp)
+    """
+    kp = np.asarray(kp, float)
+    nw, nk = kp.shape[-2:]
+    if w.shape == (nw, nk, nk):
+        return np.einsum("wij,...wj->...wi", w, kp)
+    if w.shape == (nw * nk, nw * nk):
+        flat = kp.reshape(kp.shape[:-2] + (nw * nk,))
+        return (flat @ w.T).reshape(kp.shape)
+    raise KpifsError(f"whitening operator of shape {w.shape} does not fit kernel phases "
+                     f"({nw} channels x {nk})")
+
+
+def propagated_covariance(images, variance, kernel_model, *, wavelengths, pixscale, centres,
+                          window_size, window_radius, window_order=4):
+    """Photon and read noise propagated through the linear extraction, for one frame.
+
+    To first order ``dphi_b = Im(dV_b / V_b)`` with ``dV = M (w dI)``; with
+    independent pixel noise of variance ``var`` this gives
+    ``cov(phi) = J diag(var) J^T`` and ``cov(k) = K cov(phi) K^T``.
+
+    Parameters
+    ----------
+    images, variance : ndarray, shape (nwave, ny, nx)
+        A (mean) frame and its per-pixel variance.
+    kernel_model : `~kpifs.kernel.KernelModel`
+        The model used for the extraction (after any Nyquist cut).
+    wavelengths, pixscale
+        As for `~kpifs.extract_kernel_phases`.
+    centres : array-like, shape (nwave, 2) or (2,)
+        Star centres ``(x, y)``.
+    window_size, window_radius, window_order
+        The extraction's window (``kpd.meta`` holds them).
+
+    Returns
+    -------
+    ndarray, shape (nwave, nkp, nkp)
+    """
+    wl = np.atleast_1d(to_quantity(wavelengths, u.m, name="wavelengths"))
+    ps = to_quantity(pixscale, u.mas, name="pixel scale")
+    images = np.asarray(images, float)
+    variance = np.asarray(variance, float)
+    if images.shape != variance.shape or images.ndim != 3 or images.shape[0] != len(wl):
+        raise KpifsError(f"images {images.shape} and variance {variance.shape} must both be "
+                         f"(nwave={len(wl)}, ny, nx)")
+    centres = np.broadcast_to(np.asarray(centres, float), (len(wl), 2))
+    km = kernel_model
+    ws = int(window_size)
+    out = np.empty((len(wl), km.n_kp, km.n_kp))
+    for i in range(len(wl)):
+        img = np.nan_to_num(images[i:i + 1])
+        var = np.nan_to_num(variance[i:i + 1], nan=0.0, posinf=0.0)
+        cut, delta = cut_out(img, centres[i:i + 1], ws)
+        vcut, _ = cut_out(var, centres[i:i + 1], ws)
+        w = window_weights(delta, ws, window_radius, window_order)[0].ravel()
+        mat = km.dft_matrix(wl[i], ps, (ws, ws))
+        iw = cut[0].ravel() * w
+        ri = mat @ iw
+        re, im = ri[:km.n_uv], ri[km.n_uv:]
+        amp2 = re ** 2 + im ** 2
+        # d(phase) = (re dIm - im dRe) / |V|^2, and dV = M (w dI)
+        jac = (re[:, None] * mat[km.n_uv:] - im[:, None] * mat[:km.n_uv]) * w[None, :]
+        jac /= amp2[:, None]
+        jk = km.kernel @ jac
+        out[i] = (jk * vcut[0].ravel()[None, :]) @ jk.T
+    return out
