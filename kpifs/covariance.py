@@ -145,10 +145,29 @@ def calibrated_covariance(target_cov, n_target, calibrator_covs, n_calibrators):
     return target_cov / n_target + cal
 
 
-def whitening_matrix(cov, *, rtol=1e-10, source="covariance"):
-    """Symmetric inverse square root ``Sigma^(-1/2)`` of one or a stack of covariances.
+def whitening_matrix(cov, *, rtol=1e-6, return_rank=False, source="covariance"):
+    """Whitening operator ``W = Sigma^(-1/2)`` of one covariance or a stack of them.
 
-    Raises `~kpifs.KpifsError` if a matrix is not symmetric positive definite.
+    Eigen-modes whose variance is below ``rtol`` times the largest are left out
+    (their rows of ``W`` are zero): kernel phases measured on a field of view
+    too small for the model's uv sampling, or from fewer frames than kernels
+    without shrinkage, have such (near-)null modes, which carry neither noise
+    nor measurable signal. The number of modes kept is the effective number
+    of degrees of freedom of the whitened data.
+
+    Parameters
+    ----------
+    cov : ndarray, shape (..., n, n)
+    rtol : float
+        Relative eigenvalue threshold.
+    return_rank : bool
+        Also return the number of modes kept (an int, or an array for a stack).
+
+    Raises
+    ------
+    `~kpifs.KpifsError`
+        If a matrix is not symmetric, not finite, or has a clearly negative
+        eigenvalue (not a covariance).
 
     Examples
     --------
@@ -170,11 +189,21 @@ def whitening_matrix(cov, *, rtol=1e-10, source="covariance"):
     sym = 0.5 * (cov + np.swapaxes(cov, -1, -2))
     vals, vecs = np.linalg.eigh(sym)
     top = vals.max(axis=-1, keepdims=True)
-    if np.any(vals <= rtol * top) or np.any(top <= 0):
+    if np.any(top <= 0) or np.any(vals < -1e-8 * top):
         worst = float(np.min(vals / np.where(top > 0, top, 1)))
-        raise KpifsError(f"{source}: covariance is not positive definite (smallest/largest "
-                         f"eigenvalue {worst:.2e}); use more frames or shrinkage")
-    return (vecs / np.sqrt(vals)[..., None, :]) @ np.swapaxes(vecs, -1, -2)
+        raise KpifsError(f"{source}: not a covariance: it is not positive (semi-)definite "
+                         f"(smallest/largest eigenvalue {worst:.2e})")
+    keep = vals > rtol * top
+    rank = keep.sum(axis=-1)
+    n = cov.shape[-1]
+    if np.any(rank < n):
+        log.info("%s: %s of %d modes kept for whitening (eigenvalues above %.0e of the "
+                 "largest)", source, np.unique(rank).tolist(), n, rtol)
+    inv_sqrt = np.where(keep, 1 / np.sqrt(np.where(keep, vals, 1.0)), 0.0)
+    w = (vecs * inv_sqrt[..., None, :]) @ np.swapaxes(vecs, -1, -2)
+    if return_rank:
+        return w, (int(rank) if np.ndim(rank) == 0 else rank)
+    return w
 
 
 def whiten(kp, w):
