@@ -30,6 +30,13 @@ EPILOG_EXTRACT = """examples:
   kpifs extract cube.fits --wavelengths 1.52um,1.60um,1.68um --pixscale 10.42mas \\
       --pupil subaru -o kp.fits
   kpifs extract sim/target.fits --pupil model.fits -o kp.fits --overwrite
+  kpifs extract target/CRSA*_cube.fits --calibrator calib/CRSA*_cube.fits -o cal_kp.fits
+  kpifs extract science_cube.fits --instrument sphere --wavelengths wavelength.fits \\
+      --calibrator ref_cube.fits -o cal_kp.fits
+"""
+EPILOG_INFO = """examples:
+  kpifs info target/CRSA00000000_cube.fits
+  kpifs info kp.fits
 """
 EPILOG_SIMULATE = """examples:
   kpifs simulate --preset paper --frames 100 -o sim
@@ -40,9 +47,10 @@ EPILOG_SIMULATE = """examples:
 
 def _add_pupil_options(p):
     g = p.add_argument_group("pupil model")
-    g.add_argument("--pupil", default="subaru",
+    g.add_argument("--pupil", default=None,
                    help="telescope name (subaru, vlt, pharo), pupil image FITS (PUPSCALE "
-                        "keyword or --pupil-scale) or kernel-model FITS (default: subaru)")
+                        "keyword or --pupil-scale) or kernel-model FITS (default: the "
+                        "instrument's telescope, subaru for plain cubes)")
     g.add_argument("--pupil-scale", help="pupil image pixel size, e.g. 0.02m")
     g.add_argument("--step", default="0.38m", help="grid step (default 0.38m)")
     g.add_argument("--offset", default="0.17m,0.11m",
@@ -52,6 +60,17 @@ def _add_pupil_options(p):
                    help="keep cells at least this much inside the pupil (default 0.9)")
     g.add_argument("--grey", action="store_true", help="keep fractional transmissions")
     g.add_argument("--hexagonal", action="store_true", help="hexagonal grid")
+
+
+def _add_cube_options(p):
+    g = p.add_argument_group("input cubes")
+    g.add_argument("--instrument", default="auto", choices=("auto", "charis", "sphere",
+                                                            "generic"),
+                   help="file format (default: recognised from the header)")
+    g.add_argument("--wavelengths", help="list (1.52um,1.60um) or file (text/FITS, um or nm); "
+                                         "default: from the file's header")
+    g.add_argument("--pixscale", help="pixel scale, e.g. 10.42mas; default: from the header "
+                                      "or the instrument (CHARIS 16.2mas, SPHERE 7.46mas)")
 
 
 def _kernel_model(args):
@@ -67,6 +86,8 @@ def _kernel_model(args):
 
 def cmd_kernel(args):
     check_output_path(args.output, overwrite=args.overwrite)
+    if args.pupil is None:
+        args.pupil = "subaru"
     km = _kernel_model(args)
     km.write(args.output, overwrite=args.overwrite)
     print(f"{km.pupil.n_sub} sub-apertures, {km.n_uv} uv points, rank {km.rank}, "
@@ -84,37 +105,131 @@ def parse_wavelengths(text):
     return to_quantity(text, u.um, name="--wavelengths")
 
 
-def cmd_extract(args):
+DEFAULT_PUPIL = {"charis": "subaru", "sphere": "vlt", "generic": "subaru"}
+
+
+def _read(paths, args, wl, ps):
+    from .io import read_cube
+    return read_cube(paths, instrument=args.instrument, wavelengths=wl, pixscale=ps)
+
+
+def _extract(cube, km, args):
     from .extract import extract_kernel_phases
-    from .io.cube import read_generic
+    with cube:
+        return extract_kernel_phases(
+            cube.data, km, wavelengths=cube.wavelengths, pixscale=cube.pixscale,
+            mask=cube.mask, window_size=args.window, window_radius=args.window_radius,
+            centroid=args.centroid, bad_pixels=args.bad_pixels, on_nyquist=args.nyquist,
+            header=cube.header, source=cube.name)
+
+
+def cmd_extract(args):
+    from .calibrate import calibrate
     check_output_path(args.output, overwrite=args.overwrite)
     wl = parse_wavelengths(args.wavelengths)
     ps = None if args.pixscale is None else to_quantity(args.pixscale, u.mas,
                                                         name="--pixscale")
-    km = _kernel_model(args)
-    results = []
-    for path in args.cubes:
-        with read_generic(path, wavelengths=wl, pixscale=ps) as cube:
-            results.append(extract_kernel_phases(
-                cube.data, km, wavelengths=cube.wavelengths, pixscale=cube.pixscale,
-                mask=cube.mask, window_size=args.window, window_radius=args.window_radius,
-                centroid=args.centroid, on_nyquist=args.nyquist, header=cube.header,
-                source=path))
-    kpd = results[0]
-    if len(results) > 1:
-        from .extract import KernelPhaseData
-        if any(r.n_kp != kpd.n_kp or not np.allclose(r.wavelengths, kpd.wavelengths)
-               for r in results):
-            raise KpifsError("the cubes do not share channels and kernel model")
-        kpd = KernelPhaseData(np.concatenate([r.kp for r in results]), kpd.wavelengths,
-                              kpd.pixscale, kpd.kernel_model,
-                              phases=np.concatenate([r.phases for r in results]),
-                              amplitudes=np.concatenate([r.amplitudes for r in results]),
-                              header=kpd.header, meta=kpd.meta)
-    kpd.write(args.output, overwrite=args.overwrite, inputs=args.cubes)
-    print(f"{kpd.n_frame} frame(s) x {kpd.n_wave} channel(s) x {kpd.n_kp} kernel phases "
-          f"-> {args.output}")
+    with _read(args.cubes, args, wl, ps) as cube:
+        if args.pupil is None:
+            args.pupil = DEFAULT_PUPIL[cube.instrument]
+        log.info("%s read as %s: %s", cube.name, cube.instrument, cube.shape)
+        km = _kernel_model(args)
+        kpd = _extract(cube, km, args)
+    inputs = list(args.cubes)
+    if args.calibrator:
+        cals = []
+        for files in args.calibrator:
+            cal_cube = _read(files, args, wl, ps)
+            cals.append(_extract(cal_cube, km, args))
+            inputs += files
+        kpd = calibrate(kpd, cals, shrinkage=args.shrinkage, joint=args.joint_covariance)
+    elif args.joint_covariance or args.covariance:
+        from .covariance import empirical_covariance
+        if kpd.n_frame < 2:
+            raise KpifsError(f"{cube.name}: one frame: no covariance can be estimated")
+        kpd.covariance = empirical_covariance(kpd.kp, shrinkage=args.shrinkage,
+                                              source=cube.name)
+        if args.joint_covariance:
+            kpd.joint_covariance = empirical_covariance(kpd.kp, joint=True,
+                                                        shrinkage=args.shrinkage,
+                                                        source=cube.name)
+    kpd.write(args.output, overwrite=args.overwrite, inputs=inputs)
+    what = "calibrated kernel phases" if args.calibrator else \
+        f"{kpd.n_frame} frame(s) x {kpd.n_wave} channel(s) x {kpd.n_kp} kernel phases"
+    print(f"{cube.instrument}: {what} -> {args.output}")
     return 0
+
+
+def cmd_info(args):
+    from astropy.io import fits
+    from .io import read_cube
+    from .io.cube import _open_fits
+    from .kernel import KernelModel
+    for path in args.files:
+        with _open_fits(path) as hdul:
+            is_kp = "KP-DATA" in hdul
+            is_model = "KER-MAT" in hdul
+        if is_kp:
+            _info_kpfits(path)
+        elif is_model:
+            print(f"{path}: kernel model\n  {KernelModel.read(path)!r}")
+        else:
+            wl = parse_wavelengths(args.wavelengths)
+            ps = None if args.pixscale is None else to_quantity(args.pixscale, u.mas,
+                                                                name="--pixscale")
+            with read_cube([path], instrument=args.instrument, wavelengths=wl,
+                           pixscale=ps) as cube:
+                _info_cube(cube, args)
+        del fits
+    return 0
+
+
+def _info_kpfits(path):
+    from .extract import KernelPhaseData
+    kpd = KernelPhaseData.read(path)
+    wl = kpd.wavelengths.to_value(u.um)
+    print(f"{path}: kernel-phase data (KPFITS)")
+    print(f"  {kpd.n_frame} frame(s) x {kpd.n_wave} channel(s) x {kpd.n_kp} kernel phases; "
+          f"{wl.min():.4f}-{wl.max():.4f} um; {kpd.pixscale:.2f}")
+    print(f"  model: {kpd.kernel_model!r}")
+    cals = ", ".join(kpd.meta.get("calibrators", []))
+    print(f"  calibrated: {'yes, with ' + cals if kpd.meta.get('calibrated') else 'no'}")
+    cov = "per channel" if kpd.covariance is not None else "none"
+    if kpd.joint_covariance is not None:
+        cov += " and joint"
+    print(f"  covariance: {cov}")
+
+
+def _info_cube(cube, args):
+    from .kernel import nyquist_usable
+    wl = cube.wavelengths.to_value(u.um)
+    print(f"{cube.name}: {cube.instrument} cube")
+    print(f"  frames x channels x y x x: {' x '.join(str(n) for n in cube.shape)}")
+    print(f"  wavelengths: {len(wl)} channels, {wl.min():.4f}-{wl.max():.4f} um")
+    print(f"  pixel scale: {cube.pixscale:.2f}")
+    if cube.angles is not None and np.any(np.isfinite(cube.angles.value)):
+        print(f"  frame angles: {np.nanmin(cube.angles.value):.2f}-"
+              f"{np.nanmax(cube.angles.value):.2f} deg")
+    for key in ("OBJECT", "TELESCOP", "EXPTIME", "KPSIMX", "KPSIMY"):
+        if key in cube.header:
+            print(f"  {key}: {cube.header[key]}")
+    if args.pupil is None:
+        args.pupil = DEFAULT_PUPIL[cube.instrument]
+    km = _kernel_model(args)
+    usable = nyquist_usable(km.uv, cube.wavelengths, cube.pixscale)
+    lost = (~usable).sum(axis=1)
+    print(f"  pupil model {args.pupil}: {km.pupil.n_sub} sub-apertures, {km.n_uv} uv points, "
+          f"{km.n_kp} kernel phases")
+    if lost.any():
+        for w, n in zip(wl[lost > 0], lost[lost > 0]):
+            print(f"  Nyquist: at {w:.4f} um, {n} of {km.n_uv} uv points are beyond the "
+                  f"sampling limit")
+        print("  extract drops them for every channel (--nyquist drop, the default) or "
+              "refuses (--nyquist raise)")
+    else:
+        print("  Nyquist: every channel is sampled well enough for every uv point")
+    print(f"  next: kpifs extract {cube.source[0]} --pupil {args.pupil} [--calibrator CAL] "
+          f"-o kp.fits")
 
 
 def cmd_simulate(args):
@@ -174,10 +289,19 @@ def build_parser():
 
     p = sub.add_parser("extract", parents=[common], help="kernel phases of IFS cubes",
                        epilog=EPILOG_EXTRACT, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("cubes", nargs="+", metavar="CUBE", help="FITS cube(s)")
-    p.add_argument("--wavelengths", help="list (1.52um,1.60um) or file (text/FITS, um or nm); "
-                                         "default: header cards KPWLn")
-    p.add_argument("--pixscale", help="pixel scale, e.g. 10.42mas; default: header PIXSCALE")
+    p.add_argument("cubes", nargs="+", metavar="CUBE",
+                   help="FITS cube(s) of the target; several files are more frames")
+    _add_cube_options(p)
+    p.add_argument("--calibrator", action="append", nargs="+", metavar="CUBE",
+                   help="cube(s) of a calibrator star; repeat the option for several "
+                        "calibrators (their mean is subtracted)")
+    g = p.add_argument_group("covariance")
+    g.add_argument("--shrinkage", default="auto", choices=("auto", "ledoit-wolf", "none"),
+                   help="covariance estimator (auto: Ledoit-Wolf when frames are too few)")
+    g.add_argument("--joint-covariance", action="store_true",
+                   help="also estimate the joint covariance across channels")
+    g.add_argument("--covariance", action="store_true",
+                   help="store the frames' covariance even without a calibrator")
     _add_pupil_options(p)
     g = p.add_argument_group("extraction")
     g.add_argument("--window", type=int, help="cut-out size in pixels (default: image size)")
@@ -185,11 +309,20 @@ def build_parser():
                    help="super-Gaussian radius in pixels (default 0.8 x half the cut-out)")
     g.add_argument("--centroid", default="com", choices=("com", "peak", "quadratic", "2dg"),
                    help="star-centre method (default com)")
+    g.add_argument("--bad-pixels", default="fill", choices=("fill", "exclude"),
+                   help="interpolate bad pixels (default) or leave them out")
     g.add_argument("--nyquist", default="drop", choices=("drop", "raise"),
                    help="uv points beyond the Nyquist limit: drop (warn) or refuse")
     p.add_argument("-o", "--output", required=True, help="output KPFITS file")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=cmd_extract)
+
+    p = sub.add_parser("info", parents=[common], help="describe a cube, KPFITS or model file",
+                       epilog=EPILOG_INFO, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("files", nargs="+", metavar="FILE")
+    _add_cube_options(p)
+    _add_pupil_options(p)
+    p.set_defaults(func=cmd_info)
 
     p = sub.add_parser("simulate", parents=[common], help="simulate a target and a calibrator",
                        epilog=EPILOG_SIMULATE,

@@ -64,7 +64,11 @@ class IFSCube:
 
     @property
     def name(self):
-        return ", ".join(str(s) for s in self.source) or "<array>"
+        """The input's name for messages: the first file, and how many more."""
+        if not self.source:
+            return "<array>"
+        more = f" (+{len(self.source) - 1} more)" if len(self.source) > 1 else ""
+        return f"{self.source[0]}{more}"
 
     def __repr__(self):
         return (f"<IFSCube {self.instrument}: {self.shape}, {len(self.wavelengths)} channels "

@@ -38,6 +38,14 @@ def _clean_header(header):
     return out
 
 
+def _card(value, comment):
+    """A (value, comment) pair that fits one 80-character card (long paths keep their end)."""
+    value = str(value)
+    if len(value) > 66:
+        value = "..." + value[-63:]
+    return (value, comment) if len(value) + len(comment) < 64 else (value, "")
+
+
 def kpd_to_hdulist(kpd, *, inputs=(), history=()):
     """Return *kpd* (`~kpifs.KernelPhaseData`) as a KPFITS1 `~astropy.io.fits.HDUList`."""
     from .. import __version__
@@ -58,9 +66,9 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
         if val is not None:
             hdr[key] = (val, "extraction window (pixels)")
     for i, name in enumerate(inputs, 1):
-        hdr[f"KPIN{i}"] = (str(name)[-68:], "input file")
+        hdr[f"KPIN{i}"] = _card(name, "input file")
     for i, name in enumerate(kpd.meta.get("calibrators", []), 1):
-        hdr[f"KPCAL{i}"] = (str(name)[-68:], "calibrator")
+        hdr[f"KPCAL{i}"] = _card(name, "calibrator")
     if kpd.meta.get("calibrated"):
         hdr["NFRTGT"] = (int(kpd.meta.get("n_target_frames", 0)), "target frames averaged")
         hdr.add_history(f"kpifs {__version__}: calibrated with "
