@@ -8,6 +8,7 @@ is cut at the integer pixel nearest the star centre; the sub-pixel remainder
 so the star centre is the DFT origin without interpolating the image.
 """
 import logging
+import warnings
 
 import numpy as np
 from astropy import units as u
@@ -15,7 +16,7 @@ from astropy.io import fits
 from astropy.table import QTable
 
 from ._utils import to_quantity
-from .exceptions import KpifsError
+from .exceptions import KpifsError, KpifsWarning
 from .kernel import MAS, KernelModel, load_kernel_model
 from .prepare import cut_out, fill_bad_pixels, find_centres, window_weights
 
@@ -278,6 +279,7 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, centres=None, m
     amps = np.empty((nframe, nwave, km.n_uv)) if keep_phases else None
     used_centres = np.empty((nframe, nwave, 2))
     n_bad_total = 0
+    n_clipped = 0
     bmask = None if mask is None else np.broadcast_to(mask, cube.shape)
     # wavelength outermost: each DFT matrix is built (or fetched) once per call
     for iw in range(nwave):
@@ -313,6 +315,10 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, centres=None, m
                 raise KpifsError(f"{source}: a star centre lies outside the {ny}x{nx} image "
                                  f"(channel {iw})")
             used_centres[f0:f1, iw] = bc
+            # the edge matters where the window still weighs more than 1/e
+            edge = np.minimum.reduce([bc[:, 0] + 0.5, nx - 0.5 - bc[:, 0],
+                                      bc[:, 1] + 0.5, ny - 0.5 - bc[:, 1]])
+            n_clipped += int(np.sum(edge < window_radius))
             cut, delta = cut_out(sl, bc, ws)
             win = window_weights(delta, ws, window_radius, window_order)
             cut *= win
@@ -328,6 +334,11 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, centres=None, m
             if keep_phases:
                 phases[f0:f1, iw] = ph
                 amps[f0:f1, iw] = np.hypot(re, im) / cut.sum(axis=1)[:, None]
+    if n_clipped:
+        warnings.warn(f"{source}: the star is closer to the image edge than the window radius "
+                      f"({window_radius:.1f} pixels) in {n_clipped} of {nframe * nwave} "
+                      f"slice(s); the edge cuts the window (use a smaller --window-radius)",
+                      KpifsWarning, stacklevel=2)
     if n_bad_total:
         log.info("%s: %d bad or NaN pixels excluded from the Fourier sums", source, n_bad_total)
     frame_idx, wave_idx = np.meshgrid(np.arange(nframe), np.arange(nwave), indexing="ij")

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import astropy.units as u
 
-from kpifs import KernelModel, KpifsError, extract_kernel_phases, make_pupil
+from kpifs import KernelModel, KpifsError, KpifsWarning, extract_kernel_phases, make_pupil
 from kpifs.extract import DEFAULT_WINDOW_RADIUS
 from kpifs.kernel import MAS
 from kpifs.pupil import pupil_image
@@ -44,8 +44,9 @@ def test_single_pixel_dft_sign(subaru_model):
     img = np.zeros((1, 32, 32))
     img[0, 16, 16] = 1.0
     img[0, 16 - 2, 16 + 3] = 0.5
-    kpd = extract_kernel_phases(img, subaru_model, wavelengths=[2.0] * u.um, pixscale=PIX,
-                                centres=(16, 16), window_radius=1e6)
+    with pytest.warns(KpifsWarning, match="closer to the image edge"):
+        kpd = extract_kernel_phases(img, subaru_model, wavelengths=[2.0] * u.um, pixscale=PIX,
+                                    centres=(16, 16), window_radius=1e6)
     uv = subaru_model.uv.value
     theta = 2 * np.pi * (3 * uv[:, 0] - 2 * uv[:, 1]) * PIX.value * MAS / 2e-6
     expected = np.angle(1 + 0.5 * np.exp(-1j * theta))
