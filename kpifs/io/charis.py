@@ -33,26 +33,28 @@ def is_charis(hdul):
 
 def charis_wavelengths(header, nlam_cube, *, source="CHARIS cube"):
     """Channel wavelengths from a CHARIS header, checked for consistency."""
+    missing = [k for k in ("LAM_MIN", "DLOGLAM", "NLAM") if k not in header]
+    if missing:
+        raise KpifsError(f"{source}: missing wavelength keyword(s) "
+                         f"{', '.join(repr(k) for k in missing)}")
     try:
         lmin = float(header["LAM_MIN"])
         dlog = float(header["DLOGLAM"])
         nlam = int(header["NLAM"])
-    except KeyError as exc:
-        raise KpifsError(f"{source}: missing wavelength keyword {exc}") from None
     except (TypeError, ValueError) as exc:
         raise KpifsError(f"{source}: bad wavelength keyword: {exc}") from None
     if nlam != nlam_cube:
         raise KpifsError(f"{source}: NLAM = {nlam} but the cube has {nlam_cube} channels")
     if not (lmin > 0 and dlog > 0):
         raise KpifsError(f"{source}: LAM_MIN = {lmin} and DLOGLAM = {dlog} must be > 0")
+    if not 300 < lmin < 30000:
+        raise KpifsError(f"{source}: LAM_MIN = {lmin} is not a wavelength in nm")
     wl = lmin * np.exp(np.arange(nlam) * dlog)
     if "LAM_MAX" in header:
         lmax = float(header["LAM_MAX"])
         if abs(wl[-1] - lmax) > 0.005 * lmax:
             raise KpifsError(f"{source}: LAM_MAX = {lmax} nm disagrees with LAM_MIN * "
                              f"exp((NLAM-1) * DLOGLAM) = {wl[-1]:.2f} nm")
-    if not 300 < wl[0] < 30000:
-        raise KpifsError(f"{source}: LAM_MIN = {lmin} is not a wavelength in nm")
     return (wl * u.nm).to(u.um)
 
 
@@ -93,9 +95,8 @@ def read_charis(paths, *, pixscale=None):
         for path in paths:
             hdul = _open_fits(path)
             files.append(hdul)
-            if not is_charis(hdul):
-                raise KpifsError(f"{path}: not a CHARIS pipeline cube (needs LAM_MIN, DLOGLAM, "
-                                 f"NLAM and a 3-D cube in HDU 1)")
+            if len(hdul) < 2 or hdul[1].data is None or hdul[1].data.ndim != 3:
+                raise KpifsError(f"{path}: not a CHARIS pipeline cube (no 3-D cube in HDU 1)")
             cube = hdul[1].data
             this_wl = charis_wavelengths(hdul[0].header, cube.shape[0], source=path)
             if wl is None:
