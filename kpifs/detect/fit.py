@@ -1,0 +1,84 @@
+"""Non-linear fit of a binary model to calibrated kernel phases.
+
+The model in channel ``i`` is ``K arg(1 + c_i w(alpha, beta) exp(-2 pi i (alpha u +
+beta v) / lambda_i))`` (``w`` the extraction window's value at the companion) and
+the residuals are whitened with the per-channel ``W_i``; the parameters are the
+offset ``(alpha, beta)`` in mas and one contrast per channel (the companion's
+low-resolution spectrum). Uncertainties come from the Jacobian at the optimum.
+"""
+import numpy as np
+from astropy import units as u
+from scipy import optimize
+
+from ..exceptions import KpifsError
+from ..kernel import MAS
+
+__all__ = ["fit_binary"]
+
+
+def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pixscale=None,
+               window=None, bounds_mas=None):
+    """Fit position and per-channel contrasts of a companion.
+
+    Parameters
+    ----------
+    kp : ndarray, shape (q, p)
+        Calibrated kernel phases.
+    whitening : ndarray, shape (q, p, p)
+    kernel_model : `~kpifs.kernel.KernelModel`
+    wavelengths : `~astropy.units.Quantity` (q,)
+    start : tuple
+        Starting ``(alpha, beta)`` in mas.
+    contrast0 : array-like (q,)
+        Starting contrasts.
+    pixscale, window
+        The extraction window ``(radius in pixels, order)`` and pixel scale, so
+        that contrasts are true ones.
+    bounds_mas : float, optional
+        Half-width of the box (mas) around *start* the position may move in.
+
+    Returns
+    -------
+    dict
+        ``x``, ``y`` (mas), ``x_err``, ``y_err``, ``contrast`` (q,), ``contrast_err``
+        (q,), ``chi2``, ``dof``, ``success``.
+    """
+    kp = np.asarray(kp, float)
+    q, p = kp.shape
+    lam = np.atleast_1d(u.Quantity(wavelengths, u.um)).to_value(u.m)
+    uv = kernel_model.uv.value
+    kern = kernel_model.kernel
+    ps = None if pixscale is None else u.Quantity(pixscale, u.mas).value
+
+    def wfac(a, b):
+        if window is None or ps is None:
+            return 1.0
+        return float(np.exp(-(np.hypot(a, b) / ps / window[0]) ** window[1]))
+
+    def model(params):
+        a, b = params[:2]
+        c = params[2:]
+        theta = 2 * np.pi * (a * MAS * uv[:, 0] + b * MAS * uv[:, 1])[None, :] / lam[:, None]
+        phi = np.angle(1 + (c * wfac(a, b))[:, None] * np.exp(-1j * theta))
+        return phi @ kern.T
+
+    def resid(params):
+        r = kp - model(params)
+        return np.einsum("wij,wj->wi", whitening, r).ravel()
+
+    x0 = np.concatenate([np.asarray(start, float), np.asarray(contrast0, float)])
+    if x0.size != q + 2:
+        raise KpifsError(f"need {q} starting contrasts, got {np.size(contrast0)}")
+    half = bounds_mas if bounds_mas is not None else 20.0
+    lo = np.concatenate([x0[:2] - half, np.full(q, -0.5)])
+    hi = np.concatenate([x0[:2] + half, np.full(q, 0.5)])
+    x0 = np.clip(x0, lo + 1e-12, hi - 1e-12)
+    scale = np.concatenate([[1.0, 1.0], np.maximum(np.abs(x0[2:]), 1e-5)])
+    res = optimize.least_squares(resid, x0, bounds=(lo, hi), x_scale=scale, method="trf")
+    jac = res.jac
+    cov = np.linalg.pinv(jac.T @ jac)
+    err = np.sqrt(np.clip(np.diag(cov), 0, None))
+    dof = int(np.count_nonzero(np.abs(whitening).sum(axis=2))) - (q + 2)
+    return {"x": res.x[0], "y": res.x[1], "x_err": err[0], "y_err": err[1],
+            "contrast": res.x[2:], "contrast_err": err[2:], "chi2": float(2 * res.cost),
+            "dof": dof, "success": bool(res.success)}

@@ -1,0 +1,256 @@
+"""`detect`: from calibrated kernel phases to maps, candidates, spectra and limits."""
+import logging
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+from astropy import units as u
+from astropy.table import QTable
+
+from ..calibrate import calibrate
+from ..covariance import empirical_covariance, whiten, whitening_matrix
+from ..exceptions import KpifsError, KpifsWarning
+from ..kernel import MAS
+from .fit import fit_binary
+from .limits import (energy_lambda, limit_binary, limit_energy, limit_np, radial_curves,
+                     spectrum_shape)
+from .maps import DetectionGrid, DetectionModel
+from .stats import TESTS, check_probability, energy_threshold
+from scipy import stats
+
+__all__ = ["detect", "DetectionResult", "default_grid"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class DetectionResult:
+    """Everything `detect` found: maps (ny, nx) on `grid`, tables and provenance."""
+
+    grid: DetectionGrid
+    test: str
+    pfa: float
+    pd: float
+    statistic: np.ndarray
+    pfa_local: np.ndarray
+    pfa_global: np.ndarray
+    contrast: np.ndarray
+    contrast_err: np.ndarray
+    limits: dict
+    curves: QTable
+    candidates: QTable
+    threshold: float
+    wavelengths: u.Quantity
+    energy: dict = field(default_factory=dict)
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def limit(self):
+        """The detection-limit map of the chosen test."""
+        return self.limits[self.test]
+
+
+def default_grid(kpd, *, step=None, max_sep=None, min_sep=None):
+    """A grid suited to the data: out to the window radius (and the aliasing limit),
+    from half a resolution element, in steps of a quarter of one."""
+    km = kpd.kernel_model
+    lam_min = kpd.wavelengths.to_value(u.m).min()
+    diam = float(np.max(np.hypot(*km.uv.value.T)))
+    res = lam_min / diam / MAS
+    limit = np.inf
+    if km.pupil.step is not None:
+        limit = 0.95 * lam_min / (2 * km.pupil.step.to_value(u.m)) / MAS
+    if "window_radius" in kpd.meta:
+        limit = min(limit, kpd.meta["window_radius"] * kpd.pixscale.to_value(u.mas))
+    step = res / 4 if step is None else u.Quantity(step, u.mas).value
+    max_sep = limit if max_sep is None else u.Quantity(max_sep, u.mas).value
+    min_sep = res / 2 if min_sep is None else u.Quantity(min_sep, u.mas).value
+    return DetectionGrid.from_separation(max_sep * u.mas, step * u.mas, min_sep=min_sep * u.mas)
+
+
+def _prepare(kpd, calibrator, shrinkage):
+    if calibrator is not None:
+        kpd = calibrate(kpd, calibrator, shrinkage=shrinkage)
+    if kpd.n_frame > 1:
+        warnings.warn(f"{kpd.meta.get('source', 'data')}: not calibrated; using the mean of "
+                      f"{kpd.n_frame} frames with their covariance / N", KpifsWarning,
+                      stacklevel=3)
+        cov = empirical_covariance(kpd.kp, shrinkage=shrinkage) / kpd.n_frame
+        return kpd.kp.mean(axis=0), cov, kpd
+    if kpd.covariance is None:
+        raise KpifsError(f"{kpd.meta.get('source', 'data')}: one frame and no covariance "
+                         f"(KP-COV): cannot whiten")
+    return kpd.kp[0], kpd.covariance, kpd
+
+
+def detect(kpd, *, calibrator=None, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
+           n_draws=30000, seed=0, shrinkage="auto", fit=True, max_candidates=5,
+           progress=False):
+    """Search calibrated kernel phases for a companion.
+
+    Parameters
+    ----------
+    kpd : `~kpifs.KernelPhaseData`
+        Calibrated data (one frame with a covariance), or frames of the target
+        (then *calibrator* is subtracted first, or, without one, the frames'
+        mean is used uncalibrated, with a warning).
+    calibrator : `~kpifs.KernelPhaseData` or list, optional
+    test : {'B', 'B-paper', 'NP', 'E'}
+        ``'B'``: the GLR binary test ``sum_i max(z_i, 0)^2``; ``'B-paper'``: the
+        seed paper's ``sum_i max(z_i, 0)``; ``'NP'``: the matched filter for the
+        given *spectrum* shape; these give the detection map. ``'E'``: the
+        energy detector (a single statistic for the whole data set, reported in
+        ``result.energy``); its map is that of ``'B'``.
+    pfa, pd : float
+        False-alarm probability (global, over the grid) and detection
+        probability for candidates and limits.
+    grid : `~kpifs.detect.DetectionGrid`, optional
+        Default `default_grid`.
+    spectrum : array-like, optional
+        Companion spectrum shape (per channel, any scale) for limits and the
+        matched filter; flat by default.
+    n_draws, seed : int
+        Monte-Carlo draws calibrating the grid search, and their seed.
+    fit : bool
+        Refine each candidate with `~kpifs.detect.fit.fit_binary`.
+    max_candidates : int
+        Candidates are searched one at a time: the strongest peak above the
+        threshold is fitted and its model subtracted before the map is
+        recomputed, so that side lobes of a companion are not reported.
+
+    Returns
+    -------
+    `DetectionResult`
+    """
+    if test not in TESTS:
+        raise KpifsError(f"unknown test {test!r}: use one of {TESTS}")
+    pfa = check_probability(pfa, "P_FA")
+    pd = check_probability(pd, "P_D")
+    kp, cov, kpd = _prepare(kpd, calibrator, shrinkage)
+    q, p = kp.shape
+    a = spectrum_shape(spectrum, q)
+    w, rank = whitening_matrix(cov, return_rank=True, source="covariance of the data")
+    rank = np.atleast_1d(rank)
+    y = whiten(kp, w)
+    if grid is None:
+        grid = default_grid(kpd)
+    window = None
+    if "window_radius" in kpd.meta:
+        window = (float(kpd.meta["window_radius"]), float(kpd.meta.get("window_order", 4)))
+    model = DetectionModel(kpd.kernel_model, kpd.wavelengths, w, grid, pixscale=kpd.pixscale,
+                           window=window, dof=rank)
+    form = "B" if test == "E" else test
+    cal = dict(form=form, n_draws=n_draws, seed=seed, spectrum=spectrum if form == "NP"
+               else None)
+    model.calibrate(progress=progress, **cal)
+    threshold = model.global_threshold(pfa, **cal)
+    t = model.local_statistic(y, form, spectrum)
+    c, cerr = model.contrast_maps(y)
+    valid = grid.valid
+    pglob = np.where(valid, model.global_pfa(t, **cal), np.nan)
+    ploc = np.where(valid, model.local_pfa(t, form), np.nan)
+
+    dof = int(rank.sum())
+    t_e = float(np.sum(y ** 2))
+    energy = {"statistic": t_e, "dof": dof, "pfa": float(stats.chi2.sf(t_e, dof)),
+              "threshold": float(energy_threshold(pfa, dof))}
+    limits = {"NP": limit_np(model.norm2, pfa, pd, a),
+              "E": limit_energy(model.norm2, pfa, pd, dof, a)}
+    for f in ("B", "B-paper"):
+        thr_f = threshold if f == form else model.global_threshold(
+            pfa, form=f, n_draws=n_draws, seed=seed)
+        limits[f] = limit_binary(model.norm2, thr_f, pd, form=f, spectrum=a, seed=seed)
+    # the NP reference uses the local threshold; with the grid search its own global one
+    if form == "NP":
+        limits["NP"] = (threshold - stats.norm.isf(pd)) / np.sqrt(
+            np.tensordot(a ** 2, model.norm2, axes=(0, 0)))
+    limits = {k: np.where(valid, v, np.nan) for k, v in limits.items()}
+    curves = radial_curves(limits, grid)
+    cands = _sequential_search(model, kp, w, kpd, window, threshold=threshold, form=form,
+                               cal=cal, spectrum=spectrum, fit=fit, max_candidates=max_candidates)
+    meta = {"test": test, "pfa": pfa, "pd": pd, "n_draws": n_draws, "seed": seed,
+            "calibrators": kpd.meta.get("calibrators", []),
+            "source": kpd.meta.get("source", ""), "spectrum": a.tolist(),
+            "lambda_energy": energy_lambda(pfa, pd, dof)}
+    log.info("detect: %d candidate(s) above the %s threshold %.3f (global P_FA %.1e)",
+             len(cands), form, threshold, pfa)
+    return DetectionResult(grid=grid, test=test, pfa=pfa, pd=pd, statistic=t, pfa_local=ploc,
+                           pfa_global=pglob, contrast=np.where(valid, c, np.nan),
+                           contrast_err=np.where(valid, cerr, np.nan), limits=limits,
+                           curves=curves, candidates=cands, threshold=threshold,
+                           wavelengths=kpd.wavelengths, energy=energy, meta=meta)
+
+
+def _sequential_search(model, kp, w, kpd, window, *, threshold, form, cal, spectrum, fit,
+                       max_candidates):
+    """Strongest peak above threshold, fitted and subtracted, until none is left."""
+    rows = []
+    residual = kp.copy()
+    for _ in range(max_candidates):
+        tab = model.candidates(whiten(residual, w), threshold=threshold, form=form,
+                               n_draws=cal["n_draws"], seed=cal["seed"], spectrum=spectrum)
+        if not len(tab):
+            break
+        row = tab[:1]
+        if fit:
+            _refine(row, residual, w, kpd, window)
+            r = row[0]
+            model_kp = kpd.kernel_model.binary_kernel_phases(
+                [r["fit_x"].to_value(u.mas), r["fit_y"].to_value(u.mas)] * u.mas,
+                np.asarray(r["fit_contrast"]) * _wfac(r, kpd, window), kpd.wavelengths)
+        else:
+            r = row[0]
+            model_kp = kpd.kernel_model.binary_kernel_phases(
+                [r["x"].to_value(u.mas), r["y"].to_value(u.mas)] * u.mas,
+                np.asarray(r["contrast"]) * _wfac(r, kpd, window, fitted=False),
+                kpd.wavelengths)
+        residual = residual - model_kp
+        rows.append(row)
+    if not rows:
+        empty = model.candidates(whiten(kp, w), threshold=np.inf, form=form,
+                                 n_draws=cal["n_draws"], seed=cal["seed"], spectrum=spectrum)
+        if fit:
+            for col in ("fit_x", "fit_y", "fit_x_err", "fit_y_err"):
+                empty[col] = [] * u.mas
+            q = kp.shape[0]
+            empty["fit_contrast"] = np.zeros((0, q))
+            empty["fit_contrast_err"] = np.zeros((0, q))
+            empty["fit_chi2"] = np.zeros(0)
+        return empty
+    from astropy.table import vstack
+    out = vstack(rows)
+    out.meta = rows[0].meta
+    return out
+
+
+def _wfac(row, kpd, window, fitted=True):
+    if window is None:
+        return 1.0
+    x = row["fit_x" if fitted else "x"].to_value(u.mas)
+    y = row["fit_y" if fitted else "y"].to_value(u.mas)
+    return float(np.exp(-(np.hypot(x, y) / kpd.pixscale.to_value(u.mas) / window[0])
+                        ** window[1]))
+
+
+def _refine(cands, kp, w, kpd, window):
+    q = kp.shape[0]
+    cols = {k: [] for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err", "fit_contrast",
+                            "fit_contrast_err", "fit_chi2")}
+    step = 20.0
+    for row in cands:
+        r = fit_binary(kp, w, kpd.kernel_model, kpd.wavelengths,
+                       (row["x"].to_value(u.mas), row["y"].to_value(u.mas)),
+                       np.asarray(row["contrast"]), pixscale=kpd.pixscale, window=window,
+                       bounds_mas=step)
+        cols["fit_x"].append(r["x"])
+        cols["fit_y"].append(r["y"])
+        cols["fit_x_err"].append(r["x_err"])
+        cols["fit_y_err"].append(r["y_err"])
+        cols["fit_contrast"].append(r["contrast"])
+        cols["fit_contrast_err"].append(r["contrast_err"])
+        cols["fit_chi2"].append(r["chi2"])
+    for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err"):
+        cands[k] = np.array(cols[k]) * u.mas
+    cands["fit_contrast"] = np.array(cols["fit_contrast"]).reshape(len(cands), q)
+    cands["fit_contrast_err"] = np.array(cols["fit_contrast_err"]).reshape(len(cands), q)
+    cands["fit_chi2"] = np.array(cols["fit_chi2"])

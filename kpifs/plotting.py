@@ -1,0 +1,113 @@
+"""Figures: detection map with candidates, contrast curves, candidate spectrum, ROC curves.
+
+Every function takes an optional matplotlib ``ax`` and returns the figure, so
+figures can be composed or saved by the caller; `save_detection_plots` writes
+the standard set as PNG files.
+"""
+import numpy as np
+from astropy import units as u
+
+__all__ = ["plot_detection_map", "plot_contrast_curves", "plot_candidate_spectrum",
+           "plot_roc", "save_detection_plots"]
+
+
+def _axes(ax, figsize=(5.5, 4.5)):
+    import matplotlib.pyplot as plt
+    if ax is None:
+        fig, ax = plt.subplots(figsize=figsize)
+    return ax.figure, ax
+
+
+def plot_detection_map(result, *, ax=None, truth=None):
+    """The map statistic with candidates circled (and the truth marked, if given)."""
+    fig, ax = _axes(ax)
+    g = result.grid
+    ext = [g.x[0], g.x[-1], g.y[0], g.y[-1]]
+    im = ax.imshow(result.statistic, origin="lower", extent=ext, cmap="magma")
+    fig.colorbar(im, ax=ax, label=f"{result.meta.get('test', result.test)} statistic")
+    ax.contour(g.X, g.Y, np.nan_to_num(result.statistic), levels=[result.threshold],
+               colors="cyan", linewidths=0.8)
+    for row in result.candidates:
+        x = row["fit_x"] if "fit_x" in row.colnames else row["x"]
+        y = row["fit_y"] if "fit_y" in row.colnames else row["y"]
+        ax.plot(x.to_value(u.mas), y.to_value(u.mas), "o", mfc="none", mec="cyan", ms=14)
+    if truth is not None:
+        ax.plot(*truth, "+", color="lime", ms=12, label="truth")
+        ax.legend(loc="upper right", fontsize=8)
+    ax.set_xlabel("offset along x (mas)")
+    ax.set_ylabel("offset along y (mas)")
+    ax.set_title(f"P_FA = {result.pfa:g}: {len(result.candidates)} candidate(s)")
+    return fig
+
+
+def plot_contrast_curves(result, *, ax=None):
+    """Median (line) and min-max (band) limiting contrast versus separation, per test."""
+    fig, ax = _axes(ax)
+    sep = result.curves["separation"].to_value(u.mas)
+    for name in ("NP", "B", "B-paper", "E"):
+        if f"{name}_median" not in result.curves.colnames:
+            continue
+        med = np.asarray(result.curves[f"{name}_median"])
+        line, = ax.semilogy(sep, med, label=name)
+        ax.fill_between(sep, result.curves[f"{name}_min"], result.curves[f"{name}_max"],
+                        color=line.get_color(), alpha=0.15)
+    ax.set_xlabel("separation (mas)")
+    ax.set_ylabel("limiting contrast")
+    ax.set_title(f"P_FA = {result.pfa:g}, P_D = {result.pd:g}")
+    ax.legend(fontsize=8)
+    return fig
+
+
+def plot_candidate_spectrum(result, index=0, *, ax=None, truth=None):
+    """Per-channel contrasts of a candidate (fitted, with 1-sigma errors)."""
+    fig, ax = _axes(ax)
+    wl = result.wavelengths.to_value(u.um)
+    if len(result.candidates) > index:
+        row = result.candidates[index]
+        key = "fit_contrast" if "fit_contrast" in row.colnames else "contrast"
+        ax.errorbar(wl, np.asarray(row[key]), yerr=np.asarray(row[key + "_err"]), fmt="o",
+                    label="candidate")
+    if truth is not None:
+        ax.plot(wl, truth, "k--", label="truth")
+    ax.set_xlabel("wavelength (um)")
+    ax.set_ylabel("contrast")
+    ax.legend(fontsize=8)
+    return fig
+
+
+def plot_roc(curves, *, ax=None, theory=None, title=None):
+    """ROC curves ``{label: (pfa, pd)}``; *theory* the same, drawn dashed."""
+    fig, ax = _axes(ax)
+    for label, (pfa, pd) in curves.items():
+        line, = ax.semilogx(pfa, pd, label=label)
+        if theory and label in theory:
+            ax.semilogx(*theory[label], "--", color=line.get_color(), lw=0.9)
+    ax.set_xlabel("P_FA")
+    ax.set_ylabel("P_D")
+    ax.set_xlim(1e-4, 1)
+    ax.set_ylim(0, 1.01)
+    if title:
+        ax.set_title(title)
+    ax.legend(fontsize=7, loc="lower right")
+    return fig
+
+
+def save_detection_plots(result, outdir, *, truth=None, truth_spectrum=None):
+    """Write detection_map.png, contrast_curves.png and candidate_spectrum.png."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from pathlib import Path
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name, fig in (("detection_map", plot_detection_map(result, truth=truth)),
+                      ("contrast_curves", plot_contrast_curves(result)),
+                      ("candidate_spectrum", plot_candidate_spectrum(result,
+                                                                     truth=truth_spectrum))):
+        p = outdir / f"{name}.png"
+        fig.tight_layout()
+        fig.savefig(p, dpi=100)
+        plt.close(fig)
+        paths.append(p)
+    return paths
