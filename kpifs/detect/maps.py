@@ -55,7 +55,7 @@ class DetectionGrid:
     >>> from kpifs.detect import DetectionGrid
     >>> g = DetectionGrid.from_separation(200 * u.mas, 10 * u.mas, min_sep=30 * u.mas)
     >>> g.shape, int(g.valid.sum())
-    ((41, 41), 1208)
+    ((41, 41), 1232)
     """
 
     def __init__(self, x, y, *, min_sep=None, max_sep=None):
