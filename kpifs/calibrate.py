@@ -10,7 +10,7 @@ import logging
 import numpy as np
 from astropy import units as u
 
-from .covariance import calibrated_covariance, empirical_covariance
+from .covariance import calibrated_covariance, empirical_covariance, hartlap_factor
 from .exceptions import KpifsError
 from .extract import KernelPhaseData
 
@@ -44,10 +44,10 @@ def _fmt(wl):
     return f"{len(wl)} channels {wl.min():.4f}-{wl.max():.4f} um"
 
 
-def _mean_and_cov(kpd, shrinkage, joint):
+def _mean_and_cov(kpd, shrinkage, joint, debias=True):
     """Mean kernel phases and the covariance of one frame (N = number of frames)."""
     if kpd.n_frame > 1:
-        cov = empirical_covariance(kpd.kp, joint=joint, shrinkage=shrinkage,
+        cov = empirical_covariance(kpd.kp, joint=joint, shrinkage=shrinkage, debias=debias,
                                    source=_name(kpd))
         return kpd.kp.mean(axis=0), cov, kpd.n_frame
     cov = kpd.joint_covariance if joint else kpd.covariance
@@ -57,7 +57,7 @@ def _mean_and_cov(kpd, shrinkage, joint):
     return kpd.kp[0], cov, 1
 
 
-def calibrate(target, calibrators, *, shrinkage="auto", joint=False):
+def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True):
     """Calibrated kernel phases of a target, with their covariance.
 
     Parameters
@@ -72,6 +72,10 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False):
     joint : bool
         Also estimate the joint cross-channel covariance
         (``result.joint_covariance``).
+    debias : bool
+        Scale sample covariances by the Hartlap factor ``(N-1)/(N-p-2)``
+        (`~kpifs.covariance.hartlap_factor`), so that data whitened with the
+        result have unit variance on average, as the detection tests assume.
 
     Returns
     -------
@@ -86,9 +90,9 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False):
     >>> from kpifs.calibrate import calibrate
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     >>> rng = np.random.default_rng(0)
-    >>> tgt = KernelPhaseData(rng.normal(0.01, 0.1, (50, 2, km.n_kp)), [1.6, 1.7] * u.um,
+    >>> tgt = KernelPhaseData(rng.normal(0.01, 0.1, (300, 2, km.n_kp)), [1.6, 1.7] * u.um,
     ...                       10 * u.mas, km)
-    >>> cal = KernelPhaseData(rng.normal(0.0, 0.1, (50, 2, km.n_kp)), [1.6, 1.7] * u.um,
+    >>> cal = KernelPhaseData(rng.normal(0.0, 0.1, (300, 2, km.n_kp)), [1.6, 1.7] * u.um,
     ...                       10 * u.mas, km)
     >>> res = calibrate(tgt, cal)
     >>> res.kp.shape, res.covariance.shape == (2, km.n_kp, km.n_kp)
@@ -101,16 +105,23 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False):
         raise KpifsError("no calibrator given")
     for cal in calibrators:
         check_compatible(target, cal)
-    t_mean, t_cov, n_t = _mean_and_cov(target, shrinkage, False)
-    cal_stats = [_mean_and_cov(c, shrinkage, False) for c in calibrators]
+    t_mean, t_cov, n_t = _mean_and_cov(target, shrinkage, False, False)
+    cal_stats = [_mean_and_cov(c, shrinkage, False, False) for c in calibrators]
     c_mean = np.mean([m for m, _, _ in cal_stats], axis=0)
-    cov = calibrated_covariance(t_cov, n_t, [c for _, c, _ in cal_stats],
-                                [n for _, _, n in cal_stats])
+    covs = [t_cov] + [c for _, c, _ in cal_stats]
+    frames = [n_t] + [n for _, _, n in cal_stats]
+    cov = calibrated_covariance(t_cov, n_t, covs[1:], frames[1:])
+    h = _effective_hartlap(covs, frames, target.n_kp, _name(target)) if debias else 1.0
+    cov = cov * h
     jcov = None
     if joint:
-        _, tj, _ = _mean_and_cov(target, shrinkage, True)
-        cj = [_mean_and_cov(c, shrinkage, True) for c in calibrators]
+        _, tj, _ = _mean_and_cov(target, shrinkage, True, False)
+        cj = [_mean_and_cov(c, shrinkage, True, False) for c in calibrators]
         jcov = calibrated_covariance(tj, n_t, [c for _, c, _ in cj], [n for _, _, n in cj])
+        if debias:
+            jcov = jcov * _effective_hartlap([tj] + [c for _, c, _ in cj], frames,
+                                             target.n_kp * target.n_wave, _name(target))
+    rows = _covariance_rows(target, calibrators, h)
     names = [_name(c) for c in calibrators]
     meta = dict(target.meta)
     meta.update(calibrated=True, calibrators=names, n_target_frames=n_t,
@@ -119,4 +130,55 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False):
              len(calibrators))
     return KernelPhaseData((t_mean - c_mean)[None], target.wavelengths, target.pixscale,
                            target.kernel_model, covariance=cov, joint_covariance=jcov,
-                           header=target.header, bandwidth=target.bandwidth, meta=meta)
+                           covariance_rows=rows, header=target.header,
+                           bandwidth=target.bandwidth, meta=meta)
+
+
+def _effective_hartlap(covs, frames, dim, source):
+    """Hartlap factor of a sum of covariance estimates ``sum_k Sigma_k / N_k``.
+
+    The degrees of freedom of the sum follow Welch-Satterthwaite,
+    ``nu = (sum a_k)^2 / sum (a_k^2 / (N_k - 1))`` with ``a_k = tr(Sigma_k) / N_k``
+    (calibrator terms carry their ``1/M^2``), and the factor is
+    ``nu / (nu - p - 1)`` (`~kpifs.covariance.hartlap_factor` with ``N - 1 = nu``).
+    Shrunk covariances (frames <= p) are not debiased.
+    """
+    import warnings
+    from .exceptions import KpifsWarning
+    m = len(covs) - 1
+    if any(n <= dim + 2 for n in frames):
+        return 1.0
+    a = [np.trace(c, axis1=-2, axis2=-1).sum() / n * (1 if k == 0 else 1 / m ** 2)
+         for k, (c, n) in enumerate(zip(covs, frames))]
+    nu = sum(a) ** 2 / sum(ak ** 2 / (n - 1) for ak, n in zip(a, frames))
+    h = hartlap_factor(nu + 1, dim)
+    if not np.isfinite(h):
+        return 1.0
+    if h > 1.5:
+        warnings.warn(f"{source}: {nu:.0f} effective frames for {dim} kernel phases: the "
+                      f"inverse covariance is debiased by a factor {h:.2f} (Hartlap et al. "
+                      f"2007); its errors still give heavier tails than Gaussian, so false-"
+                      f"alarm probabilities are optimistic: use several times more frames "
+                      f"than kernel phases", KpifsWarning, stacklevel=3)
+    return h
+
+
+def _covariance_rows(target, calibrators, h):
+    """Scaled frame deviations whose Gram matrix is the calibrated covariance.
+
+    ``R = sqrt(h) [dt_f / sqrt(N_t (N_t - 1)); dc_f / (M sqrt(N_c (N_c - 1)))]``, with
+    ``h`` the Hartlap factor applied to the covariance: ``R^T R`` is the
+    covariance of the calibrated mean across *all* channels (its per-channel
+    blocks equal ``result.covariance`` when no shrinkage was needed), so random
+    combinations of the rows are noise with the data's own spectral
+    correlations. ``None`` when a data set has a single frame.
+    """
+    parts = []
+    m = len(calibrators)
+    for kpd, scale in [(target, 1.0)] + [(c, 1.0 / m) for c in calibrators]:
+        n = kpd.n_frame
+        if n < 2:
+            return None
+        dev = kpd.kp - kpd.kp.mean(axis=0)
+        parts.append(dev * (scale * np.sqrt(h / (n * (n - 1)))))
+    return np.concatenate(parts)

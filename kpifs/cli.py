@@ -34,6 +34,12 @@ EPILOG_EXTRACT = """examples:
   kpifs extract science_cube.fits --instrument sphere --wavelengths wavelength.fits \\
       --calibrator ref_cube.fits -o cal_kp.fits
 """
+EPILOG_DETECT = """examples:
+  kpifs detect cal_kp.fits -o detection.fits --plots figures
+  kpifs detect target_kp.fits --calibrator calib_kp.fits --test B-paper --pfa 1e-3 \\
+      --max-sep 200mas --step 5mas -o detection.fits
+  kpifs detect cal_kp.fits --test NP --spectrum 1.3,1.0,0.7 -o detection.fits
+"""
 EPILOG_INFO = """examples:
   kpifs info target/CRSA00000000_cube.fits
   kpifs info kp.fits
@@ -169,7 +175,10 @@ def cmd_info(args):
         with _open_fits(path) as hdul:
             is_kp = "KP-DATA" in hdul
             is_model = "KER-MAT" in hdul
-        if is_kp:
+            is_det = hdul[0].header.get("CONTENT") == "KPIFS-DETECTION"
+        if is_det:
+            _info_detection(path)
+        elif is_kp:
             _info_kpfits(path)
         elif is_model:
             print(f"{path}: kernel model\n  {KernelModel.read(path)!r}")
@@ -182,6 +191,22 @@ def cmd_info(args):
                 _info_cube(cube, args)
         del fits
     return 0
+
+
+def _info_detection(path):
+    from .io.products import read_detection
+    d = read_detection(path)
+    h = d["header"]
+    print(f"{path}: kpifs detection products")
+    print(f"  test {h['TEST']}, global P_FA {h['PFA']:g}, P_D {h['PD']:g}, threshold "
+          f"{h['THRESH']:.3f} ({h['NDRAWS']} Monte-Carlo draws)")
+    print(f"  map {d['DETECTION'].shape[1]} x {d['DETECTION'].shape[0]}; energy detector: "
+          f"T_E = {h['ESTAT']:.1f} for {h['EDOF']} degrees of freedom, P_FA {h['EPFA']:.2e}")
+    cands = d["CANDIDATES"]
+    print(f"  {len(cands)} candidate(s)")
+    for row in cands:
+        print(f"    ({row['x'].to_value(u.mas):.1f}, {row['y'].to_value(u.mas):.1f}) mas, "
+              f"global P_FA {row['pfa_global']:.1e}")
 
 
 def _info_kpfits(path):
@@ -261,10 +286,108 @@ def cmd_simulate(args):
     return 0
 
 
+def _spectrum(text, nwave):
+    if text is None or text == "flat":
+        return None
+    if Path(text).exists():
+        return np.loadtxt(text, ndmin=1)
+    try:
+        return np.array([float(v) for v in text.split(",")])
+    except ValueError:
+        raise KpifsError(f"--spectrum: expected 'flat', comma-separated values or a file, "
+                         f"got {text!r}") from None
+
+
+def cmd_detect(args):
+    from .detect import detect
+    from .extract import KernelPhaseData
+    from .io.products import write_detection
+    check_output_path(args.output, overwrite=args.overwrite)
+    kpd = KernelPhaseData.read(args.kp)
+    cals = [KernelPhaseData.read(c) for c in (args.calibrator or [])]
+    grid = None
+    if args.max_sep or args.step or args.min_sep:
+        from .detect import default_grid
+        grid = default_grid(kpd, step=_mas(args.step), max_sep=_mas(args.max_sep),
+                            min_sep=_mas(args.min_sep))
+    res = detect(kpd, calibrator=cals or None, test=args.test, pfa=args.pfa, pd=args.pd,
+                 grid=grid, spectrum=_spectrum(args.spectrum, kpd.n_wave),
+                 n_draws=args.draws, seed=args.seed, progress=not args.quiet)
+    inputs = [args.kp] + list(args.calibrator or [])
+    write_detection(res, args.output, header=kpd.header, inputs=inputs,
+                    overwrite=args.overwrite)
+    print(f"{args.test} search, global P_FA {args.pfa:g}: {len(res.candidates)} candidate(s) "
+          f"-> {args.output}")
+    for row in res.candidates:
+        x = row["fit_x"] if "fit_x" in row.colnames else row["x"]
+        y = row["fit_y"] if "fit_y" in row.colnames else row["y"]
+        print(f"  ({x.to_value(u.mas):.1f}, {y.to_value(u.mas):.1f}) mas, separation "
+              f"{row['separation'].to_value(u.mas):.0f} mas, global P_FA {row['pfa_global']:.1e}")
+    if args.plots:
+        from .plotting import save_detection_plots
+        truth = None
+        if "KPSIMX" in kpd.header and "KPSIMY" in kpd.header:
+            truth = (kpd.header["KPSIMX"], kpd.header["KPSIMY"])
+        save_detection_plots(res, args.plots, truth=truth)
+        print(f"  figures in {args.plots}/")
+    return 0
+
+
+def _mas(text):
+    return None if text is None else to_quantity(text, u.mas, name="grid option")
+
+
+def cmd_roc(args):
+    from .detect.roc import paper_experiment
+    from .plotting import plot_roc
+    out = Path(args.output)
+    if out.exists() and not out.is_dir():
+        raise KpifsError(f"{out}: exists and is not a directory")
+    table_path = out / "roc.ecsv"
+    if table_path.exists() and not args.overwrite:
+        raise KpifsError(f"{table_path}: output exists; pass --overwrite to replace it")
+    table, curves = paper_experiment(preset=args.preset, n_frames=args.frames,
+                                     n_draws=args.draws, seed=args.seed,
+                                     progress=not args.quiet)
+    out.mkdir(parents=True, exist_ok=True)
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    names = list(curves)
+    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 4), squeeze=False)
+    for ax, name in zip(axes[0], names):
+        c = curves[name]
+        plot_roc({k: v for k, v in c.items() if "theory" not in k}, ax=ax,
+                 theory={k.split()[0]: v for k, v in c.items() if "theory" in k},
+                 title=f"channels: {name}")
+    fig.tight_layout()
+    fig.savefig(out / "roc.png", dpi=90)
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(5, 4))
+    plot_roc({n: curves[n]["NP"] for n in names}, ax=ax,
+             theory={n: curves[n]["NP theory"] for n in names}, title="NP: channel sets")
+    fig.tight_layout()
+    fig.savefig(out / "roc_np_channels.png", dpi=90)
+    plt.close(fig)
+    import tempfile
+    import os
+    fd, tmp = tempfile.mkstemp(dir=out, suffix=".ecsv")
+    os.close(fd)
+    table.write(tmp, overwrite=True, format="ascii.ecsv")
+    os.replace(tmp, table_path)
+    os.chmod(table_path, 0o644)
+    for row in table:
+        if row["channels"] == "all":
+            print(f"{row['test']:8s} all channels: AUC {row['auc']:.4f}, P_D(P_FA=0.01) "
+                  f"{row['pd']:.3f}")
+    print(f"-> {out}/roc.ecsv, roc.png, roc_np_channels.png")
+    return 0
+
+
 def cmd_demo(args):
     from .demo import run_demo
     run_demo(args.output, frames=args.frames, seed=args.seed, overwrite=args.overwrite,
-             progress=not args.quiet)
+             progress=not args.quiet, draws=args.draws)
     return 0
 
 
@@ -340,11 +463,46 @@ def build_parser():
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     p.set_defaults(func=cmd_simulate)
 
+    p = sub.add_parser("detect", parents=[common], help="search kernel phases for companions",
+                       epilog=EPILOG_DETECT, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("kp", metavar="KP.fits", help="kernel-phase data (KPFITS)")
+    p.add_argument("--calibrator", nargs="+", metavar="CAL_KP.fits",
+                   help="kernel phases of calibrator(s), if KP.fits is not calibrated")
+    p.add_argument("--test", default="B", choices=("B", "B-paper", "NP", "E"),
+                   help="B: GLR sum max(z,0)^2 (default); B-paper: sum max(z,0); NP: matched "
+                        "filter for --spectrum; E: energy detector")
+    p.add_argument("--pfa", type=float, default=1e-3, help="global false-alarm probability")
+    p.add_argument("--pd", type=float, default=0.5, help="detection probability of the limits")
+    p.add_argument("--max-sep", help="largest separation searched, e.g. 200mas")
+    p.add_argument("--min-sep", help="smallest separation searched, e.g. 20mas")
+    p.add_argument("--step", help="grid step, e.g. 5mas (default lambda/4D)")
+    p.add_argument("--spectrum", help="companion spectrum shape: flat, comma list or file")
+    p.add_argument("--draws", type=int, default=30000,
+                   help="Monte-Carlo draws calibrating the grid search (default 30000)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--plots", metavar="DIR", help="write PNG figures there")
+    p.add_argument("-o", "--output", required=True, help="output FITS file")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.set_defaults(func=cmd_detect)
+
+    p = sub.add_parser("roc", parents=[common], help="the seed paper's ROC experiment",
+                       epilog="example:\n  kpifs roc --preset paper --frames 300 -o roc",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--preset", default="paper", choices=("paper", "charis", "sphere"))
+    p.add_argument("--frames", type=int, default=1000, help="calibrator frames (default 1000)")
+    p.add_argument("--draws", type=int, default=30000, help="Monte-Carlo draws (default 30000)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("-o", "--output", required=True, help="output directory")
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    p.set_defaults(func=cmd_roc)
+
     p = sub.add_parser("demo", parents=[common], help="run the whole chain on simulated data",
                        epilog="example:\n  kpifs demo -o demo_output",
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("-o", "--output", default="kpifs_demo", help="output directory")
-    p.add_argument("--frames", type=int, default=40, help="frames per star (default 40)")
+    p.add_argument("--frames", type=int, default=200, help="exposures per star (default 200)")
+    p.add_argument("--draws", type=int, default=20000,
+                   help="Monte-Carlo draws calibrating the search (default 20000)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     p.set_defaults(func=cmd_demo)

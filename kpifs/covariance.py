@@ -24,7 +24,7 @@ from ._utils import to_quantity
 from .exceptions import KpifsError, KpifsWarning
 from .prepare import cut_out, window_weights
 
-__all__ = ["empirical_covariance", "ledoit_wolf", "propagated_covariance",
+__all__ = ["empirical_covariance", "ledoit_wolf", "hartlap_factor", "propagated_covariance",
            "whitening_matrix", "whiten", "calibrated_covariance"]
 
 log = logging.getLogger(__name__)
@@ -69,6 +69,23 @@ def ledoit_wolf(x):
     return cov, shrink
 
 
+def hartlap_factor(n_frames, dim):
+    """``(N - 1) / (N - p - 2)``: the bias of the inverse of a sample covariance.
+
+    ``E[S^-1] = (N - 1) / (N - p - 2) Sigma^-1`` for the sample covariance ``S`` of
+    ``N`` Gaussian frames in ``p`` dimensions (Hartlap, Simon & Schneider 2007,
+    A&A 464, 399); multiplying ``S`` by this factor makes the whitened data
+    have unit variance on average. Infinite when ``N <= p + 2``.
+
+    Examples
+    --------
+    >>> from kpifs.covariance import hartlap_factor
+    >>> round(hartlap_factor(100, 74), 3)
+    4.125
+    """
+    return (n_frames - 1) / (n_frames - dim - 2) if n_frames > dim + 2 else np.inf
+
+
 def _one_covariance(x, shrinkage, what):
     n, p = x.shape
     if n < 2:
@@ -78,15 +95,18 @@ def _one_covariance(x, shrinkage, what):
         shrinkage = "ledoit-wolf" if n <= p else "none"
         if n <= p:
             warnings.warn(f"{what}: {n} frames for {p} kernel phases: the sample covariance "
-                          f"is singular; using Ledoit-Wolf shrinkage", KpifsWarning,
-                          stacklevel=3)
+                          f"is singular; using Ledoit-Wolf shrinkage (false-alarm "
+                          f"probabilities assume a known covariance and will be optimistic: "
+                          f"use more frames than kernel phases, or a coarser pupil model)",
+                          KpifsWarning, stacklevel=3)
     if shrinkage == "ledoit-wolf":
         cov, s = ledoit_wolf(x)
         return cov * n / (n - 1), s
     return np.cov(x, rowvar=False, ddof=1).reshape(p, p), 0.0
 
 
-def empirical_covariance(kp, *, joint=False, shrinkage="auto", source="kernel phases"):
+def empirical_covariance(kp, *, joint=False, shrinkage="auto", debias=False,
+                         source="kernel phases"):
     """Covariance of one frame's kernel phases, estimated from many frames.
 
     Parameters
@@ -98,6 +118,9 @@ def empirical_covariance(kp, *, joint=False, shrinkage="auto", source="kernel ph
     shrinkage : {'auto', 'ledoit-wolf', 'none'}
         ``'auto'`` uses Ledoit-Wolf (with a `~kpifs.KpifsWarning`) when the
         frames are not more than the dimension, the sample covariance otherwise.
+    debias : bool
+        Scale a sample covariance by `hartlap_factor`, so that whitening with
+        it gives unit variance on average (what detection tests assume).
 
     Returns
     -------
@@ -124,15 +147,32 @@ def empirical_covariance(kp, *, joint=False, shrinkage="auto", source="kernel ph
     if joint:
         cov, s = _one_covariance(kp.reshape(nf, nw * nk), shrinkage, source)
         log.debug("%s: joint covariance, shrinkage %.3f", source, s)
+        if debias and s == 0:
+            cov = cov * _checked_hartlap(nf, nw * nk, source)
         return cov
     out = np.empty((nw, nk, nk))
+    shrunk = False
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", KpifsWarning)
         for i in range(nw):
-            out[i], _ = _one_covariance(kp[:, i], shrinkage, source)
+            out[i], s = _one_covariance(kp[:, i], shrinkage, source)
+            shrunk |= s > 0
     if caught:  # one warning for all channels, not one per channel
         warnings.warn(str(caught[0].message), KpifsWarning, stacklevel=2)
+    if debias and not shrunk:
+        out *= _checked_hartlap(nf, nk, source)
     return out
+
+
+def _checked_hartlap(n, p, source):
+    f = hartlap_factor(n, p)
+    if np.isfinite(f) and f > 1.5:
+        warnings.warn(f"{source}: {n} frames for {p} kernel phases: the inverse covariance is "
+                      f"debiased by a factor {f:.2f} (Hartlap et al. 2007); its errors still "
+                      f"give heavier tails than Gaussian, so false-alarm probabilities are "
+                      f"optimistic: use several times more frames than kernel phases",
+                      KpifsWarning, stacklevel=3)
+    return f if np.isfinite(f) else 1.0
 
 
 def calibrated_covariance(target_cov, n_target, calibrator_covs, n_calibrators):

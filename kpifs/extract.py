@@ -20,7 +20,8 @@ from .exceptions import KpifsError, KpifsWarning
 from .kernel import MAS, KernelModel, load_kernel_model
 from .prepare import cut_out, fill_bad_pixels, find_centres, window_weights
 
-__all__ = ["KernelPhaseData", "extract_kernel_phases", "DEFAULT_WINDOW_RADIUS"]
+__all__ = ["KernelPhaseData", "extract_kernel_phases", "DEFAULT_WINDOW_RADIUS",
+           "DEFAULT_MAX_WINDOW"]
 
 log = logging.getLogger(__name__)
 
@@ -29,6 +30,10 @@ log = logging.getLogger(__name__)
 #: ~90 % of its flux (w = exp(-(0.5/0.8)**4) = 0.86), narrow enough that the
 #: window is ~0.1 at the cut-out's edge.
 DEFAULT_WINDOW_RADIUS = 0.8
+
+#: Largest default cut-out (pixels): the image's smaller side up to this. A
+#: 64-pixel cut-out is ~1 arcsec for CHARIS and keeps each DFT matrix ~40 MB.
+DEFAULT_MAX_WINDOW = 64
 
 
 class KernelPhaseData:
@@ -52,6 +57,10 @@ class KernelPhaseData:
         every frame).
     joint_covariance : ndarray, shape (nwave*nkp, nwave*nkp), optional
         The same across channels (spectral cross-talk included).
+    covariance_rows : ndarray, shape (nrow, nwave, nkp), optional
+        Rows ``R`` with ``R^T R`` the covariance across all channels (see
+        `~kpifs.calibrate.calibrate`): a compact, always-available form of the
+        cross-channel covariance used to draw realistic noise.
     header : `~astropy.io.fits.Header`, optional
         Header of the input cube (kept in products).
     meta : dict, optional
@@ -70,7 +79,7 @@ class KernelPhaseData:
 
     def __init__(self, kp, wavelengths, pixscale, kernel_model, *, phases=None,
                  amplitudes=None, centres=None, covariance=None, joint_covariance=None,
-                 header=None, detpa=None, bandwidth=None, meta=None):
+                 covariance_rows=None, header=None, detpa=None, bandwidth=None, meta=None):
         kp = np.asarray(kp, float)
         if kp.ndim == 2:
             kp = kp[None]
@@ -99,8 +108,14 @@ class KernelPhaseData:
             if joint_covariance.shape != (n, n):
                 raise KpifsError(f"joint covariance has shape {joint_covariance.shape}, "
                                  f"expected ({n}, {n})")
+        if covariance_rows is not None:
+            covariance_rows = np.asarray(covariance_rows, float)
+            if covariance_rows.ndim != 3 or covariance_rows.shape[1:] != kp.shape[1:]:
+                raise KpifsError(f"covariance rows have shape {covariance_rows.shape}, "
+                                 f"expected (nrow, {kp.shape[1]}, {kp.shape[2]})")
         self.covariance = covariance
         self.joint_covariance = joint_covariance
+        self.covariance_rows = covariance_rows
         self.header = fits.Header() if header is None else header.copy()
         self.detpa = None if detpa is None else np.asarray(detpa, float)
         self.bandwidth = bandwidth
@@ -199,8 +214,8 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, centres=None, m
         Fourier sums (set to zero).
     window_size : int, optional
         Side of the square cut-out around the star (pixels); default the
-        image's smaller side (even). Pixels of the cut-out outside the image
-        count as excluded.
+        image's smaller side (even), at most `DEFAULT_MAX_WINDOW`. Pixels of the
+        cut-out outside the image count as excluded.
     window_radius : float, optional
         Super-Gaussian radius in pixels; default ``0.8 * window_size / 2``.
     window_order : float
@@ -248,7 +263,7 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, centres=None, m
     cube = _as_frames(data, len(wl), source)
     nframe, nwave, ny, nx = cube.shape
     if window_size is None:
-        window_size = min(ny, nx) - min(ny, nx) % 2
+        window_size = min(ny, nx, DEFAULT_MAX_WINDOW) - min(ny, nx, DEFAULT_MAX_WINDOW) % 2
     window_size = int(window_size)
     if window_size > min(ny, nx):
         raise KpifsError(f"{source}: window of {window_size} pixels is larger than the "

@@ -156,11 +156,21 @@ def test_simulate_command(tmp_path, capsys):
     _run_error(capsys, ["simulate", "--frames", "2", "-q", "-o", str(out)], "exists")
 
 
+@pytest.mark.slow
 def test_demo_command(tmp_path, capsys):
+    """The README's main job: simulated CHARIS files -> ... -> the companion is found."""
     out = tmp_path / "demo"
-    assert main(["demo", "-o", str(out), "--frames", "6", "-q"]) == 0
-    assert (out / "target_kp.fits").exists() and (out / "kernel_phases.png").exists()
-    _run_error(capsys, ["demo", "-o", str(out), "--frames", "6", "-q"], "--overwrite")
+    assert main(["demo", "-o", str(out), "--frames", "100", "--draws", "4000", "-q"]) == 0
+    for name in ("detection.fits", "calibrated_kp.fits", "target_kp.fits",
+                 "figures/detection_map.png", "figures/contrast_curves.png",
+                 "figures/candidate_spectrum.png"):
+        assert (out / name).exists(), name
+    assert len(list((out / "charis" / "target").glob("*_cube.fits"))) == 100
+    with fits.open(out / "detection.fits") as h:
+        cand = h["CANDIDATES"].data
+        assert len(cand) >= 1
+        assert abs(cand["fit_x"][0] - (-100)) < 5 and abs(cand["fit_y"][0] - 83) < 5
+    _run_error(capsys, ["demo", "-o", str(out), "-q"], "--overwrite")
 
 
 def test_entry_point_subprocess():

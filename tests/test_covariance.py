@@ -6,8 +6,8 @@ import astropy.units as u
 
 from kpifs import KernelPhaseData, KpifsError, KpifsWarning, extract_kernel_phases
 from kpifs.calibrate import calibrate
-from kpifs.covariance import (empirical_covariance, ledoit_wolf, propagated_covariance, whiten,
-                              whitening_matrix)
+from kpifs.covariance import (empirical_covariance, hartlap_factor, ledoit_wolf,
+                              propagated_covariance, whiten, whitening_matrix)
 from kpifs.simulate import simulate_psf
 
 PIX = 10.42 * u.mas
@@ -161,17 +161,25 @@ def test_calibration_covariance_and_null_chi2(psf, coarse_model):
         c = extract_kernel_phases(noise_frames(psf, 600, 100 + seed), coarse_model,
                                   wavelengths=WL, pixscale=PIX, centres=(20, 20),
                                   keep_phases=False, source=f"c{seed}")
-        res = calibrate(t, c)
-        np.testing.assert_allclose(res.covariance, empirical_covariance(t.kp) / 400
+        raw = calibrate(t, c, debias=False)
+        np.testing.assert_allclose(raw.covariance, empirical_covariance(t.kp) / 400
                                    + empirical_covariance(c.kp) / 600)
+        res = calibrate(t, c)            # Hartlap-debiased: whitened variance 1 on average
+        h = res.covariance[0, 0, 0] / raw.covariance[0, 0, 0]
+        # Welch-Satterthwaite: ~400 + 600 - 2 effective frames
+        assert hartlap_factor(1000, t.n_kp) < h < hartlap_factor(800, t.n_kp)
+        np.testing.assert_allclose(res.covariance, h * raw.covariance)
         assert res.meta["calibrators"] == [f"c{seed}"]
+        # the covariance rows reproduce the per-channel covariance blocks
+        r = res.covariance_rows
+        np.testing.assert_allclose(np.einsum("nwi,nwj->wij", r, r), res.covariance)
         y = whiten(res.kp[0], whitening_matrix(res.covariance))
         chi2.append(np.sum(y ** 2, axis=1))
     p = coarse_model.n_kp
     chi2 = np.array(chi2).ravel() / p
-    # 18 draws of chi2_p / p: mean 1 (+ a few % from the estimated covariances),
+    # 18 draws of chi2_p / p with a debiased estimated covariance: mean 1,
     # standard error sqrt(2/p/18) = 3.9 %
-    assert np.mean(chi2) == pytest.approx(1.05, abs=4 * np.sqrt(2 / p / 18))
+    assert np.mean(chi2) == pytest.approx(1.0, abs=3 * np.sqrt(2 / p / 18))
 
 
 def test_several_calibrators_average(subaru_model):
@@ -182,7 +190,7 @@ def test_several_calibrators_average(subaru_model):
                                [1.6, 1.7] * u.um, PIX, subaru_model, meta={"source": name})
     tgt = kpd(0.05, 800, "tgt")
     cals = [kpd(0.01, 800, "c1"), kpd(0.03, 800, "c2")]
-    res = calibrate(tgt, cals)
+    res = calibrate(tgt, cals, debias=False)
     assert np.mean(res.kp) == pytest.approx(0.03, abs=1e-3)
     # variance of the calibrated mean: s^2/N_t + (s^2/N_1 + s^2/N_2) / 4
     expected = 1e-4 / 800 + (1e-4 / 800 + 1e-4 / 800) / 4

@@ -262,7 +262,7 @@ class DetectionModel:
         return binary_pfa(np.nan_to_num(t, nan=0.0), len(self.wavelengths), form)
 
     # --- Monte-Carlo calibration of the grid search -----------------------------
-    def _key(self, form, n_draws, seed, spectrum=None):
+    def _key(self, form, n_draws, seed, spectrum=None, noise_rows=None):
         h = hashlib.sha1()
         for arr in (self.kernel_model.kernel, self.kernel_model.uv.value, self.whitening,
                     self.wavelengths.value, self._wfac):
@@ -270,6 +270,8 @@ class DetectionModel:
         for part in self.grid.key():
             h.update(repr(part).encode())
         h.update(f"{form}|{n_draws}|{seed}|{spectrum!r}".encode())
+        if noise_rows is not None:
+            h.update(np.ascontiguousarray(noise_rows).tobytes())
         return h.hexdigest()
 
     def _unit_signatures(self, rows):
@@ -296,18 +298,24 @@ class DetectionModel:
         return rows[half], True
 
     def calibrate(self, *, form="B", n_draws=30000, seed=0, batch=1000, progress=False,
-                  spectrum=None):
+                  spectrum=None, noise_rows=None):
         """Draws of the grid-maximised binary statistic under H0 (sorted).
 
         Under H0 the whitened data are standard normal, so ``z_i(pos)`` is the
         projection of a standard normal vector on the unit signature. A
         signature at ``-pos`` is minus that at ``pos``, so on a symmetric grid
         only half the positions are projected. Cached per (kernel model,
-        whitening, grid, form, draws, seed).
+        whitening, grid, form, draws, seed, noise).
+
+        With *noise_rows* (nrow, q, p), whitened rows whose Gram matrix is the
+        covariance of the whitened data across channels, the draws are random
+        combinations of the rows instead of independent channels: the
+        correlation between channels (from achromatic aberrations, spectral
+        cross-talk) is kept, which matters for multi-channel sums.
         """
         if form not in ("B", "B-paper", "NP"):
             raise KpifsError(f"unknown map test {form!r}: 'B', 'B-paper' or 'NP'")
-        key = self._key(form, n_draws, seed, spectrum)
+        key = self._key(form, n_draws, seed, spectrum, noise_rows)
         if key in _CALIBRATIONS:
             return _CALIBRATIONS[key]
         rng = as_rng(seed)
@@ -328,8 +336,15 @@ class DetectionModel:
             b = min(n_draws, a + batch)
             t_pos = np.zeros((b - a, len(rows)), np.float32)
             t_neg = np.zeros_like(t_pos) if mirrored else None
+            if noise_rows is not None:
+                coef = rng.standard_normal((b - a, len(noise_rows)), dtype=np.float32)
+                joint = coef @ noise_rows.reshape(len(noise_rows), -1).astype(np.float32)
+                joint = joint.reshape(b - a, q, p)
             for i in range(q):
-                eps = rng.standard_normal((b - a, p), dtype=np.float32)
+                if noise_rows is None:
+                    eps = rng.standard_normal((b - a, p), dtype=np.float32)
+                else:
+                    eps = joint[:, i]
                 z = eps @ unit[i].T
                 if form == "NP":
                     t_pos += mfw[i] * z
@@ -353,25 +368,20 @@ class DetectionModel:
         """Threshold of the grid-maximised statistic at global false-alarm *pfa*.
 
         Read from the Monte-Carlo draws when they reach *pfa* (at least 10 draws
-        above it); below that, extrapolated with an effective number of
-        independent positions ``N_eff = P_global / P_local`` measured at the
-        ``10 / n_draws`` level, solving ``N_eff P_local(xi) = P_FA``.
+        above it); below that, extrapolated from an exponential fit to the
+        draws' upper decile, ``P(T > t) = 0.1 exp(-(t - u) / beta)`` with ``u``
+        the 90 % quantile and ``beta`` the mean excess (the tail of a maximum of
+        chi-square-like variables), and logged as such.
         """
         pfa = check_probability(pfa, "P_FA")
         draws = self.calibrate(**kwargs)
         if pfa * len(draws) >= 10:
             return float(np.quantile(draws, 1 - pfa, method="higher"))
-        from scipy.optimize import brentq
-        form = kwargs.get("form", "B")
-        ref = 10 / len(draws)
-        xi0 = float(np.quantile(draws, 1 - ref, method="higher"))
-        n_eff = ref / float(self.local_pfa(np.array(xi0), form))
-        hi = xi0
-        while n_eff * float(self.local_pfa(np.array(hi), form)) > pfa:
-            hi = hi * 1.5 + 1
-        xi = brentq(lambda t: n_eff * float(self.local_pfa(np.array(t), form)) - pfa, xi0, hi)
+        u0 = float(np.quantile(draws, 0.9))
+        beta = float(np.mean(draws[draws > u0] - u0))
+        xi = u0 + beta * np.log(0.1 / pfa)
         log.info("global P_FA %.1e is below what %d draws reach: threshold %.3f extrapolated "
-                 "with %.0f effective independent positions", pfa, len(draws), xi, n_eff)
+                 "from the exponential tail of the draws", pfa, len(draws), xi)
         return float(xi)
 
     def global_pfa(self, t, **kwargs):
@@ -383,7 +393,7 @@ class DetectionModel:
 
     # --- candidates -------------------------------------------------------------
     def candidates(self, y, *, threshold, form="B", n_draws=30000, seed=0, min_distance=None,
-                   spectrum=None):
+                   spectrum=None, noise_rows=None):
         """Local maxima of the statistic above *threshold*, as a `~astropy.table.QTable`.
 
         Maxima closer than *min_distance* (mas; default ``lambda_min / D``) to a
@@ -413,7 +423,7 @@ class DetectionModel:
         tab["statistic"] = tt[iy, ix]
         tab["pfa_local"] = self.local_pfa(tt[iy, ix], form)
         tab["pfa_global"] = self.global_pfa(tt[iy, ix], form=form, n_draws=n_draws, seed=seed,
-                                            spectrum=spectrum)
+                                            spectrum=spectrum, noise_rows=noise_rows)
         tab["contrast"] = c[:, iy, ix].T.reshape(len(iy), q)
         tab["contrast_err"] = err[:, iy, ix].T.reshape(len(iy), q)
         tab.meta["test"] = form

@@ -75,7 +75,7 @@ def _prepare(kpd, calibrator, shrinkage):
         warnings.warn(f"{kpd.meta.get('source', 'data')}: not calibrated; using the mean of "
                       f"{kpd.n_frame} frames with their covariance / N", KpifsWarning,
                       stacklevel=3)
-        cov = empirical_covariance(kpd.kp, shrinkage=shrinkage) / kpd.n_frame
+        cov = empirical_covariance(kpd.kp, shrinkage=shrinkage, debias=True) / kpd.n_frame
         return kpd.kp.mean(axis=0), cov, kpd
     if kpd.covariance is None:
         raise KpifsError(f"{kpd.meta.get('source', 'data')}: one frame and no covariance "
@@ -140,8 +140,13 @@ def detect(kpd, *, calibrator=None, test="B", pfa=1e-3, pd=0.5, grid=None, spect
     model = DetectionModel(kpd.kernel_model, kpd.wavelengths, w, grid, pixscale=kpd.pixscale,
                            window=window, dof=rank)
     form = "B" if test == "E" else test
+    rows = None
+    if kpd.covariance_rows is not None:
+        rows = whiten(kpd.covariance_rows, w)
+    else:
+        log.info("no covariance rows: channels taken as independent in the null model")
     cal = dict(form=form, n_draws=n_draws, seed=seed, spectrum=spectrum if form == "NP"
-               else None)
+               else None, noise_rows=rows)
     model.calibrate(progress=progress, **cal)
     threshold = model.global_threshold(pfa, **cal)
     t = model.local_statistic(y, form, spectrum)
@@ -154,11 +159,19 @@ def detect(kpd, *, calibrator=None, test="B", pfa=1e-3, pd=0.5, grid=None, spect
     t_e = float(np.sum(y ** 2))
     energy = {"statistic": t_e, "dof": dof, "pfa": float(stats.chi2.sf(t_e, dof)),
               "threshold": float(energy_threshold(pfa, dof))}
+    if rows is not None:   # correlated channels: the energy's law from the same null model
+        rng = np.random.default_rng(seed)
+        flat = rows.reshape(len(rows), -1)
+        te = np.concatenate([np.sum((rng.standard_normal((min(2000, n_draws - a), len(rows)))
+                                     @ flat) ** 2, axis=1) for a in range(0, n_draws, 2000)])
+        energy["pfa"] = float((np.sum(te >= t_e) + 1) / (len(te) + 1))
+        energy["threshold"] = float(np.quantile(te, 1 - pfa)) if pfa * len(te) >= 10 \
+            else energy["threshold"]
     limits = {"NP": limit_np(model.norm2, pfa, pd, a),
               "E": limit_energy(model.norm2, pfa, pd, dof, a)}
     for f in ("B", "B-paper"):
         thr_f = threshold if f == form else model.global_threshold(
-            pfa, form=f, n_draws=n_draws, seed=seed)
+            pfa, form=f, n_draws=n_draws, seed=seed, noise_rows=rows)
         limits[f] = limit_binary(model.norm2, thr_f, pd, form=f, spectrum=a, seed=seed)
     # the NP reference uses the local threshold; with the grid search its own global one
     if form == "NP":
@@ -188,7 +201,8 @@ def _sequential_search(model, kp, w, kpd, window, *, threshold, form, cal, spect
     residual = kp.copy()
     for _ in range(max_candidates):
         tab = model.candidates(whiten(residual, w), threshold=threshold, form=form,
-                               n_draws=cal["n_draws"], seed=cal["seed"], spectrum=spectrum)
+                               n_draws=cal["n_draws"], seed=cal["seed"], spectrum=spectrum,
+                               noise_rows=cal["noise_rows"])
         if not len(tab):
             break
         row = tab[:1]
@@ -208,7 +222,8 @@ def _sequential_search(model, kp, w, kpd, window, *, threshold, form, cal, spect
         rows.append(row)
     if not rows:
         empty = model.candidates(whiten(kp, w), threshold=np.inf, form=form,
-                                 n_draws=cal["n_draws"], seed=cal["seed"], spectrum=spectrum)
+                                 n_draws=cal["n_draws"], seed=cal["seed"], spectrum=spectrum,
+                                 noise_rows=cal["noise_rows"])
         if fit:
             for col in ("fit_x", "fit_y", "fit_x_err", "fit_y_err"):
                 empty[col] = [] * u.mas

@@ -91,6 +91,11 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
         hc.header["BUNIT"] = "rad2"
         hc.header["COVSHARE"] = (True, "the same covariance applies to every frame")
         hdus.append(hc)
+    if kpd.covariance_rows is not None:
+        hr = fits.ImageHDU(np.asarray(kpd.covariance_rows, float), name="KP-COVROWS")
+        hr.header["BUNIT"] = "rad"
+        hr.header["COMMENT"] = "rows R with R^T R = covariance of KP-DATA across all channels"
+        hdus.append(hr)
     if kpd.joint_covariance is not None:
         hj = fits.ImageHDU(np.asarray(kpd.joint_covariance, float), name="KP-JCOV")
         hj.header["BUNIT"] = "rad2"
@@ -144,6 +149,8 @@ def read_kpfits(path):
                 raise KpifsError(f"{path}: no wavelengths (CWAVEL)")
             cov = np.array(hdul["KP-COV"].data, float) if "KP-COV" in hdul else None
             jcov = np.array(hdul["KP-JCOV"].data, float) if "KP-JCOV" in hdul else None
+            rows = (np.array(hdul["KP-COVROWS"].data, float) if "KP-COVROWS" in hdul
+                    else None)
             detpa = np.array(hdul["DETPA"].data, float) if "DETPA" in hdul else None
             phases = amps = None
             if "CVIS-DATA" in hdul:
@@ -162,5 +169,6 @@ def read_kpfits(path):
     if cov is not None and cov.ndim == 4 and cov.shape[0] > 1 and not hdr.get("COVSHARE"):
         cov = cov.mean(axis=0)   # per-frame covariances from another tool: their mean
     return KernelPhaseData(kp, wl.to(u.um), hdr["PSCALE"] * u.mas, km, phases=phases,
-                           amplitudes=amps, covariance=cov, joint_covariance=jcov, header=hdr,
+                           amplitudes=amps, covariance=cov, joint_covariance=jcov,
+                           covariance_rows=rows, header=hdr,
                            detpa=detpa, bandwidth=bw, meta=meta)

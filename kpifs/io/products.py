@@ -76,7 +76,8 @@ def detection_hdulist(result, *, header=None, inputs=()):
     curves.name = "CURVES"
     hdus.append(curves)
     cand = result.candidates.copy()
-    cand.meta = {k: v for k, v in cand.meta.items() if k in ("test", "threshold")}
+    cand.meta = {"TEST": cand.meta.get("test", result.test),
+                 "THRESH": float(cand.meta.get("threshold", result.threshold))}
     ch = fits.table_to_hdu(cand)
     ch.name = "CANDIDATES"
     hdus.append(ch)
