@@ -11,6 +11,11 @@ is the mean contrast over channels) the whitened signal at a position is
   ``z_i ~ N(c a_i ||s_i||, 1)`` and ``xi`` the (grid-search) threshold, found by
   bisection with a fixed set of Monte-Carlo draws.
 
+The binary and energy limits model the channels as independent; with strongly
+correlated channels (achromatic aberrations) the binary limit, which uses the
+threshold calibrated with the correlations, is approximate and the energy
+limit optimistic. The Neyman-Pearson limit is exact at a known position.
+
 Limits are always quoted with their ``(P_FA, P_D)``; `pfa_to_sigma`,
 `sigma_to_pfa` and `chi2_ratio_sigma` translate to the "n sigma" other tools
 print.

@@ -184,7 +184,8 @@ def detect(kpd, *, calibrator=None, test="B", pfa=1e-3, pd=0.5, grid=None, spect
     meta = {"test": test, "pfa": pfa, "pd": pd, "n_draws": n_draws, "seed": seed,
             "calibrators": kpd.meta.get("calibrators", []),
             "source": kpd.meta.get("source", ""), "spectrum": a.tolist(),
-            "lambda_energy": energy_lambda(pfa, pd, dof)}
+            "lambda_energy": energy_lambda(pfa, pd, dof),
+            "null_channels": "covariance rows" if rows is not None else "independent"}
     log.info("detect: %d candidate(s) above the %s threshold %.3f (global P_FA %.1e)",
              len(cands), form, threshold, pfa)
     return DetectionResult(grid=grid, test=test, pfa=pfa, pd=pd, statistic=t, pfa_local=ploc,
