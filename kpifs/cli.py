@@ -40,6 +40,15 @@ EPILOG_DETECT = """examples:
       --max-sep 200mas --step 5mas -o detection.fits
   kpifs detect cal_kp.fits --test NP --spectrum 1.3,1.0,0.7 -o detection.fits
 """
+EPILOG_BATCH = """examples:
+  kpifs batch archive.csv -o reprocessed
+  kpifs batch --glob 'night1/*_cube.fits' --calibrator 'night1/cal/*_cube.fits' -o out
+  kpifs batch archive.csv --scheduler tcp://10.0.0.5:8786 -o reprocessed
+manifest (CSV):
+  name,target,calibrator
+  hd1234,hd1234/CRSA*_cube.fits,ref1/CRSA*_cube.fits|ref2/CRSA*_cube.fits
+exit status 1 if any entry failed (see summary.ecsv); a rerun skips entries already done.
+"""
 EPILOG_INFO = """examples:
   kpifs info target/CRSA00000000_cube.fits
   kpifs info kp.fits
@@ -384,6 +393,31 @@ def cmd_roc(args):
     return 0
 
 
+def cmd_batch(args):
+    from .batch import BatchOptions, entries_from_glob, read_manifest, run_batch
+    entries = []
+    for m in args.manifest or []:
+        entries += read_manifest(m)
+    if args.glob:
+        if not args.calibrator:
+            raise KpifsError("--glob needs --calibrator PATTERN (the calibrator rule)")
+        entries += entries_from_glob(args.glob, args.calibrator)
+    if not entries:
+        raise KpifsError("nothing to do: give a MANIFEST or --glob PATTERN --calibrator PATTERN")
+    opts = BatchOptions(test=args.test, pfa=args.pfa, pd=args.pd, draws=args.draws,
+                        seed=args.seed, pupil=args.pupil, step=to_quantity(
+                            args.step, u.m, name="--step").value, window=args.window,
+                        overwrite=args.overwrite)
+    table = run_batch(entries, args.output, options=opts, scheduler=args.scheduler,
+                      n_workers=args.workers, progress=not args.quiet)
+    counts = {s: int(np.sum(table["status"] == s)) for s in ("ok", "skipped", "failed")}
+    print(f"{len(table)} entries: {counts['ok']} processed, {counts['skipped']} done earlier, "
+          f"{counts['failed']} failed -> {args.output}/summary.ecsv")
+    for row in table[table["status"] == "failed"]:
+        print(f"  {row['name']}: {row['message'][:200]}", file=sys.stderr)
+    return 0 if counts["failed"] == 0 else 1
+
+
 def cmd_demo(args):
     from .demo import run_demo
     run_demo(args.output, frames=args.frames, seed=args.seed, overwrite=args.overwrite,
@@ -495,6 +529,29 @@ def build_parser():
     p.add_argument("-o", "--output", required=True, help="output directory")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     p.set_defaults(func=cmd_roc)
+
+    p = sub.add_parser("batch", parents=[common], help="reprocess many observations on Dask",
+                       epilog=EPILOG_BATCH, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("manifest", nargs="*", metavar="MANIFEST",
+                   help="CSV/ECSV with columns name, target, calibrator (';' separates files, "
+                        "'|' calibrator stars; globs allowed)")
+    p.add_argument("--glob", help="one entry per matching target file")
+    p.add_argument("--calibrator", help="with --glob: calibrator file pattern for every entry")
+    p.add_argument("--scheduler", help="address of a running Dask scheduler (default: a local "
+                                       "cluster)")
+    p.add_argument("--workers", type=int, default=2, help="local-cluster workers (default 2)")
+    p.add_argument("--test", default="B", choices=("B", "B-paper", "NP", "E"))
+    p.add_argument("--pfa", type=float, default=1e-3)
+    p.add_argument("--pd", type=float, default=0.5)
+    p.add_argument("--draws", type=int, default=20000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--pupil", help="pupil or kernel model (default: the instrument's telescope)")
+    p.add_argument("--step", default="0.38m", help="pupil grid step (default 0.38m)")
+    p.add_argument("--window", type=int, help="cut-out size in pixels")
+    p.add_argument("-o", "--output", required=True, help="output directory")
+    p.add_argument("--overwrite", action="store_true",
+                   help="redo entries already done (default: skip them, resuming a run)")
+    p.set_defaults(func=cmd_batch)
 
     p = sub.add_parser("demo", parents=[common], help="run the whole chain on simulated data",
                        epilog="example:\n  kpifs demo -o demo_output",

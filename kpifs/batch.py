@@ -1,0 +1,314 @@
+"""Archive reprocessing on Dask: extraction -> calibration -> detection for many entries.
+
+An entry is a target observation (one or more cube files) with its calibrator
+star(s). Entries come from a manifest (CSV or ECSV; columns ``name``,
+``target``, ``calibrator`` and optionally ``instrument``, ``wavelengths``,
+``pixscale``; several files in one cell are separated by ``;``, several
+calibrator stars by ``|``) or from a glob with one calibrator rule.
+
+Each entry writes ``OUTDIR/<name>/calibrated_kp.fits`` and
+``OUTDIR/<name>/detection.fits``; ``OUTDIR/summary.ecsv`` lists every entry
+with its status, candidates and limits. An entry whose ``detection.fits``
+exists is skipped (a rerun resumes), unless ``overwrite=True``. A failure is
+recorded for its entry and does not stop the others.
+
+Dask is an optional dependency (``pip install kpifs[batch]``), imported only
+when a batch runs.
+"""
+import glob
+import logging
+import time
+import traceback
+import warnings
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from astropy import units as u
+from astropy.table import Table
+
+from ._utils import to_quantity
+from .exceptions import KpifsError
+
+__all__ = ["BatchEntry", "BatchOptions", "read_manifest", "entries_from_glob",
+           "process_entry", "run_batch"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class BatchEntry:
+    """One observation: target files and calibrator stars (each a list of files)."""
+
+    name: str
+    target: list
+    calibrators: list
+    instrument: str = "auto"
+    wavelengths: str = None
+    pixscale: str = None
+
+
+@dataclass
+class BatchOptions:
+    """Options shared by every entry (see `~kpifs.detect.detect`)."""
+
+    test: str = "B"
+    pfa: float = 1e-3
+    pd: float = 0.5
+    draws: int = 20000
+    seed: int = 0
+    pupil: str = None
+    step: float = 0.38
+    window: int = None
+    overwrite: bool = False
+    extra: dict = field(default_factory=dict)
+
+
+def _split(cell, sep=";"):
+    cell = "" if cell is None or (isinstance(cell, np.ma.core.MaskedConstant)) else str(cell)
+    return [p.strip() for p in cell.split(sep) if p.strip()]
+
+
+def _expand(pattern, base):
+    path = Path(pattern)
+    if not path.is_absolute():
+        path = base / path
+    hits = sorted(glob.glob(str(path)))
+    return hits or [str(path)]          # a missing file fails its entry, with its name
+
+
+def read_manifest(path):
+    """Read a manifest (CSV or ECSV) into a list of `BatchEntry`.
+
+    Relative paths are relative to the manifest's folder; cells may hold globs.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> from kpifs.batch import read_manifest
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> _ = (d / "m.csv").write_text("name,target,calibrator\\nstar1,a.fits,b.fits|c.fits\\n")
+    >>> e = read_manifest(d / "m.csv")[0]
+    >>> e.name, len(e.calibrators)
+    ('star1', 2)
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise KpifsError(f"{path}: manifest not found")
+    fmt = "ascii.ecsv" if path.suffix == ".ecsv" else "ascii.csv"
+    try:
+        tab = Table.read(path, format=fmt)
+    except Exception as exc:  # astropy raises many types on malformed tables
+        raise KpifsError(f"{path}: cannot read the manifest: {exc}") from None
+    missing = {"name", "target", "calibrator"} - set(tab.colnames)
+    if missing:
+        raise KpifsError(f"{path}: manifest lacks column(s) {sorted(missing)}; needs name, "
+                         f"target, calibrator")
+    names = [str(n) for n in tab["name"]]
+    dup = {n for n in names if names.count(n) > 1}
+    if dup:
+        raise KpifsError(f"{path}: entry names must be unique; repeated: {sorted(dup)}")
+    base = path.parent
+    entries = []
+    for row in tab:
+        target = [f for p in _split(row["target"]) for f in _expand(p, base)]
+        cals = [[f for p in _split(star) for f in _expand(p, base)]
+                for star in _split(row["calibrator"], "|")]
+        opt = {k: (None if np.ma.is_masked(row[k]) else str(row[k]))
+               for k in ("instrument", "wavelengths", "pixscale") if k in tab.colnames}
+        entries.append(BatchEntry(name=str(row["name"]), target=target, calibrators=cals,
+                                  instrument=opt.get("instrument") or "auto",
+                                  wavelengths=opt.get("wavelengths"),
+                                  pixscale=opt.get("pixscale")))
+    return entries
+
+
+def entries_from_glob(pattern, calibrator):
+    """One entry per file matching *pattern*, all calibrated by the files of *calibrator*."""
+    files = sorted(glob.glob(pattern))
+    if not files:
+        raise KpifsError(f"no file matches {pattern!r}")
+    cals = sorted(glob.glob(calibrator))
+    if not cals:
+        raise KpifsError(f"no calibrator file matches {calibrator!r}")
+    return [BatchEntry(name=Path(f).name.split(".fits")[0], target=[f], calibrators=[cals])
+            for f in files]
+
+
+def process_entry(entry, options, outdir):
+    """Extraction, calibration and detection of one entry; never raises.
+
+    Returns a dict: ``name``, ``status`` ('ok', 'skipped' or 'failed'),
+    ``message``, ``n_candidates``, the strongest candidate, the median limit,
+    and the elapsed time.
+    """
+    t0 = time.perf_counter()
+    out = Path(outdir) / entry.name
+    row = {"name": entry.name, "status": "failed", "message": "", "n_candidates": -1,
+           "best_x": np.nan, "best_y": np.nan, "best_separation": np.nan,
+           "best_pfa_global": np.nan, "best_contrast": np.nan, "limit_median": np.nan,
+           "seconds": 0.0}
+    det_path = out / "detection.fits"
+    if det_path.exists() and not options.overwrite:
+        row.update(status="skipped", message="done earlier (detection.fits exists)")
+        try:
+            _summarise_products(det_path, row)
+        except Exception as exc:  # a damaged earlier product: say so, keep going
+            row.update(status="failed", message=f"earlier detection.fits unreadable: {exc}")
+        return row
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            res = _run_entry(entry, options, out)
+        row["message"] = "; ".join(sorted({str(w.message)[:160] for w in caught}))
+        row.update(status="ok", n_candidates=len(res.candidates),
+                   limit_median=float(np.nanmedian(res.limit)))
+        if len(res.candidates):
+            best = res.candidates[0]
+            row.update(best_x=float(best["x"].to_value(u.mas)),
+                       best_y=float(best["y"].to_value(u.mas)),
+                       best_separation=float(best["separation"].to_value(u.mas)),
+                       best_pfa_global=float(best["pfa_global"]),
+                       best_contrast=float(np.mean(best["fit_contrast"]
+                                                   if "fit_contrast" in best.colnames
+                                                   else best["contrast"])))
+    except Exception as exc:  # one entry's failure must not stop the batch
+        row["message"] = f"{type(exc).__name__}: {exc}"
+        if not isinstance(exc, (KpifsError, OSError)):
+            row["message"] += " | " + traceback.format_exc(limit=3).replace("\n", " ")
+    row["seconds"] = time.perf_counter() - t0
+    return row
+
+
+def _summarise_products(path, row):
+    from .io.products import read_detection
+    d = read_detection(path)
+    cand = d["CANDIDATES"]
+    row.update(n_candidates=len(cand), limit_median=float(np.nanmedian(d["LIMIT"])))
+    if len(cand):
+        best = cand[0]
+        key = "fit_contrast" if "fit_contrast" in cand.colnames else "contrast"
+        row.update(best_x=float(u.Quantity(best["x"], u.mas).value),
+                   best_y=float(u.Quantity(best["y"], u.mas).value),
+                   best_separation=float(u.Quantity(best["separation"], u.mas).value),
+                   best_pfa_global=float(best["pfa_global"]),
+                   best_contrast=float(np.mean(best[key])))
+
+
+def _run_entry(entry, options, out):
+    from .calibrate import calibrate
+    from .detect import detect
+    from .extract import extract_kernel_phases
+    from .io import read_cube
+    from .io.products import write_detection
+    from .kernel import load_kernel_model
+    wl = None
+    if entry.wavelengths:
+        from .cli import parse_wavelengths
+        wl = parse_wavelengths(entry.wavelengths)
+    ps = None if entry.pixscale is None else to_quantity(entry.pixscale, u.mas,
+                                                         name="pixel scale")
+    if not entry.calibrators:
+        raise KpifsError(f"{entry.name}: no calibrator")
+
+    def extract(files, km=None):
+        with read_cube(files, instrument=entry.instrument, wavelengths=wl,
+                       pixscale=ps) as cube:
+            if km is None:
+                pupil = options.pupil or {"charis": "subaru", "sphere": "vlt"}.get(
+                    cube.instrument, "subaru")
+                km = load_kernel_model(pupil, step=options.step * u.m)
+            return extract_kernel_phases(cube.data, km, wavelengths=cube.wavelengths,
+                                         pixscale=cube.pixscale, window_size=options.window,
+                                         header=cube.header, source=cube.name), km
+
+    target, km = extract(entry.target)
+    cals = [extract(files, km)[0] for files in entry.calibrators]
+    cal = calibrate(target, cals)
+    out.mkdir(parents=True, exist_ok=True)
+    cal.write(out / "calibrated_kp.fits", overwrite=True, inputs=entry.target)
+    res = detect(cal, test=options.test, pfa=options.pfa, pd=options.pd,
+                 n_draws=options.draws, seed=options.seed)
+    write_detection(res, out / "detection.fits", header=cal.header,
+                    inputs=[str(out / "calibrated_kp.fits")], overwrite=True)
+    return res
+
+
+def run_batch(entries, outdir, *, options=None, scheduler=None, n_workers=2,
+              processes=True, progress=True):
+    """Process *entries* on Dask; write and return the summary table.
+
+    Parameters
+    ----------
+    entries : list of `BatchEntry`
+    outdir : str or Path
+    options : `BatchOptions`
+    scheduler : str, optional
+        Address of a running Dask scheduler; default a local cluster of
+        *n_workers* single-threaded workers.
+    processes : bool
+        Local cluster with worker processes (default) or threads.
+    progress : bool
+        A tqdm progress bar over finished entries.
+
+    Returns
+    -------
+    `~astropy.table.Table`
+        One row per entry (also written to ``OUTDIR/summary.ecsv``).
+    """
+    try:
+        from dask.distributed import Client, LocalCluster, as_completed
+    except ImportError:
+        raise KpifsError("kpifs batch needs Dask: pip install 'kpifs[batch]'") from None
+    options = options or BatchOptions()
+    outdir = Path(outdir)
+    if outdir.exists() and not outdir.is_dir():
+        raise KpifsError(f"{outdir}: exists and is not a directory")
+    outdir.mkdir(parents=True, exist_ok=True)
+    names = [e.name for e in entries]
+    if len(set(names)) != len(names):
+        raise KpifsError("entry names must be unique")
+    cluster = None
+    if scheduler is None:
+        cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=processes,
+                               dashboard_address=None)
+        client = Client(cluster)
+    else:
+        client = Client(scheduler)
+    rows = []
+    try:
+        futures = [client.submit(process_entry, e, options, str(outdir), key=f"kpifs-{e.name}",
+                                 pure=False) for e in entries]
+        done = as_completed(futures)
+        if progress:
+            try:
+                from tqdm.auto import tqdm
+                done = tqdm(done, total=len(futures), desc="batch", unit="entry")
+            except ImportError:
+                pass
+        for fut in done:
+            rows.append(fut.result())
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    order = {n: i for i, n in enumerate(names)}
+    rows.sort(key=lambda r: order[r["name"]])
+    table = Table(rows=[[r[k] for k in rows[0]] for r in rows], names=list(rows[0]))
+    table.meta.update({"options": {k: v for k, v in asdict(options).items()
+                                   if isinstance(v, (int, float, str, bool, type(None)))},
+                       "n_entries": len(rows)})
+    for col in ("best_x", "best_y", "best_separation"):
+        table[col].unit = u.mas
+    _write_summary(table, outdir / "summary.ecsv")
+    return table
+
+
+def _write_summary(table, path):
+    import os
+    import tempfile
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".ecsv")
+    os.close(fd)
+    table.write(tmp, format="ascii.ecsv", overwrite=True)
+    os.chmod(tmp, 0o644)
+    os.replace(tmp, path)
