@@ -286,6 +286,12 @@ def cmd_simulate(args):
                                     sep * np.sin(np.radians(pa))] * u.mas
     if args.wavefront is not None:
         over["wavefront_rms"] = to_quantity(args.wavefront, u.nm, name="--wavefront")
+    if args.shape is not None:
+        if args.shape < 8:
+            raise KpifsError(f"--shape must be at least 8 pixels, got {args.shape}")
+        over["shape"] = (args.shape, args.shape)
+    if args.exptime is not None:
+        over["exptime"] = to_quantity(args.exptime, u.s, name="--exptime")
     obs = simulate_scene(args.preset, seed=args.seed, progress=not args.quiet, **over)
     paths = write_observation(obs, args.output, layout=args.layout, overwrite=args.overwrite)
     n = sum(len(v) for v in paths.values())
@@ -492,6 +498,8 @@ def build_parser():
     p.add_argument("--separation", help="companion separation, e.g. 100mas")
     p.add_argument("--pa", help="companion angle from +x towards +y, e.g. 36.87deg")
     p.add_argument("--wavefront", help="rms wavefront error, e.g. 100nm")
+    p.add_argument("--shape", type=int, help="image side in pixels (preset default)")
+    p.add_argument("--exptime", help="exposure time per frame, e.g. 1s (default 0.1s)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("-o", "--output", required=True, help="output directory")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
@@ -594,6 +602,9 @@ def main(argv=None):
             warnings.simplefilter("default")
             warnings.showwarning = _make_show(args)
             return args.func(args)
+    except BrokenPipeError:  # output piped into `head` and closed: not an error
+        sys.stderr.close()
+        return 0
     except (KpifsError, OSError) as exc:
         if args.debug:
             raise

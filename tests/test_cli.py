@@ -203,3 +203,17 @@ def test_example_data_extracts(tmp_path):
     assert main(["extract", str(example), "-o", str(out)]) == 0
     with fits.open(out) as h:
         assert h["KP-DATA"].data.shape == (10, 3, 369)
+
+
+@pytest.mark.parametrize("layout, pattern, shape", [
+    ("charis", "target/CRSA*_cube.fits", (2, 22, 48, 48)),
+    ("sphere", "target/science_cube.fits", (2, 39, 48, 48))])
+def test_example_layouts_read(layout, pattern, shape):
+    from pathlib import Path
+    from kpifs.io import read_cube
+    base = Path(__file__).resolve().parents[1] / "data_examples" / layout
+    files = sorted(base.glob(pattern))
+    if not files:
+        pytest.skip("data_examples/ not present")
+    with read_cube(files) as cube:
+        assert cube.instrument == layout and cube.shape == shape
