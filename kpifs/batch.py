@@ -38,7 +38,15 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class BatchEntry:
-    """One observation: target files and calibrator stars (each a list of files)."""
+    """One observation: target files and calibrator stars (each a list of files).
+
+    Examples
+    --------
+    >>> from kpifs.batch import BatchEntry
+    >>> e = BatchEntry("hd1234", ["t1.fits", "t2.fits"], [["c1.fits"]])
+    >>> e.instrument, len(e.calibrators)
+    ('auto', 1)
+    """
 
     name: str
     target: list
@@ -50,7 +58,14 @@ class BatchEntry:
 
 @dataclass
 class BatchOptions:
-    """Options shared by every entry (see `~kpifs.detect.detect`)."""
+    """Options shared by every entry (see `~kpifs.detect.detect`).
+
+    Examples
+    --------
+    >>> from kpifs.batch import BatchOptions
+    >>> BatchOptions(pfa=1e-4).test
+    'B'
+    """
 
     test: str = "B"
     pfa: float = 1e-3
@@ -124,7 +139,18 @@ def read_manifest(path):
 
 
 def entries_from_glob(pattern, calibrator):
-    """One entry per file matching *pattern*, all calibrated by the files of *calibrator*."""
+    """One entry per file matching *pattern*, all calibrated by the files of *calibrator*.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> from kpifs.batch import entries_from_glob
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> for name in ("a.fits", "b.fits", "cal.fits"):
+    ...     _ = (d / name).write_bytes(b"")
+    >>> [e.name for e in entries_from_glob(str(d / "[ab].fits"), str(d / "cal.fits"))]
+    ['a', 'b']
+    """
     files = sorted(glob.glob(pattern))
     if not files:
         raise KpifsError(f"no file matches {pattern!r}")
@@ -141,6 +167,15 @@ def process_entry(entry, options, outdir):
     Returns a dict: ``name``, ``status`` ('ok', 'skipped' or 'failed'),
     ``message``, ``n_candidates``, the strongest candidate, the median limit,
     and the elapsed time.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from kpifs.batch import BatchEntry, BatchOptions, process_entry
+    >>> row = process_entry(BatchEntry("x", ["missing.fits"], [["cal.fits"]]), BatchOptions(),
+    ...                     tempfile.mkdtemp())
+    >>> row["status"], "missing.fits" in row["message"]
+    ('failed', True)
     """
     t0 = time.perf_counter()
     out = Path(outdir) / entry.name
@@ -247,7 +282,9 @@ def run_batch(entries, outdir, *, options=None, scheduler=None, n_workers=2,
         Address of a running Dask scheduler; default a local cluster of
         *n_workers* single-threaded workers.
     processes : bool
-        Local cluster with worker processes (default) or threads.
+        Local cluster with worker processes (default) or, for small jobs and
+        tests, one thread (entries then run one at a time: recording each
+        entry's warnings is process-wide in Python).
     progress : bool
         A tqdm progress bar over finished entries.
 
@@ -255,6 +292,16 @@ def run_batch(entries, outdir, *, options=None, scheduler=None, n_workers=2,
     -------
     `~astropy.table.Table`
         One row per entry (also written to ``OUTDIR/summary.ecsv``).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from kpifs.batch import BatchEntry, run_batch
+    >>> entries = [BatchEntry("x", ["missing.fits"], [["cal.fits"]])]
+    >>> table = run_batch(entries, tempfile.mkdtemp(), n_workers=1, processes=False,
+    ...                   progress=False)
+    >>> [str(s) for s in table["status"]]
+    ['failed']
     """
     try:
         from dask.distributed import Client, LocalCluster, as_completed
@@ -270,8 +317,8 @@ def run_batch(entries, outdir, *, options=None, scheduler=None, n_workers=2,
         raise KpifsError("entry names must be unique")
     cluster = None
     if scheduler is None:
-        cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=processes,
-                               dashboard_address=None)
+        cluster = LocalCluster(n_workers=n_workers if processes else 1, threads_per_worker=1,
+                               processes=processes, dashboard_address=None)
         client = Client(cluster)
     else:
         client = Client(scheduler)

@@ -24,7 +24,22 @@ def _name(kpd):
 
 
 def check_compatible(target, other):
-    """Raise `~kpifs.KpifsError` unless *other* has the target's channels, scale and kernel."""
+    """Raise `~kpifs.KpifsError` unless *other* has the target's channels, scale and kernel.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, KpifsError, make_pupil
+    >>> from kpifs.calibrate import check_compatible
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> a = KernelPhaseData(np.zeros((2, 1, km.n_kp)), [1.6] * u.um, 10 * u.mas, km)
+    >>> b = KernelPhaseData(np.zeros((2, 1, km.n_kp)), [1.6] * u.um, 12 * u.mas, km)
+    >>> try:
+    ...     check_compatible(a, b)
+    ... except KpifsError as err:
+    ...     print("pixel scale" in str(err))
+    True
+    """
     t, o = _name(target), _name(other)
     if other.n_wave != target.n_wave or not np.allclose(
             other.wavelengths.to_value(u.um), target.wavelengths.to_value(u.um), rtol=1e-4):

@@ -179,6 +179,14 @@ def calibrated_covariance(target_cov, n_target, calibrator_covs, n_calibrators):
     """Covariance of ``mean(target) - mean over calibrators of mean(calibrator)``.
 
     ``Sigma_t / N_t + (1/M^2) sum_m Sigma_m / N_m`` for *M* calibrators.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.covariance import calibrated_covariance
+    >>> calibrated_covariance(np.eye(2), 100, [np.eye(2)], [50])
+    array([[0.03, 0.  ],
+           [0.  , 0.03]])
     """
     m = len(calibrator_covs)
     cal = sum(c / n for c, n in zip(calibrator_covs, n_calibrators)) / m ** 2
@@ -257,6 +265,14 @@ def whiten(kp, w):
     Returns
     -------
     ndarray, shape (..., nwave, nkp)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.covariance import whiten
+    >>> w = np.stack([np.diag([2.0, 0.5])])            # one channel, two kernel phases
+    >>> whiten(np.array([[1.0, 4.0]]), w)
+    array([[2., 2.]])
     """
     kp = np.asarray(kp, float)
     nw, nk = kp.shape[-2:]
@@ -293,6 +309,21 @@ def propagated_covariance(images, variance, kernel_model, *, wavelengths, pixsca
     Returns
     -------
     ndarray, shape (nwave, nkp, nkp)
+
+    Examples
+    --------
+    >>> import astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.covariance import propagated_covariance
+    >>> from kpifs.simulate import simulate_psf
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> img = 1e6 * simulate_psf("subaru", [1.6] * u.um, pixscale=10.42 * u.mas,
+    ...                          shape=(32, 32), npup=48)
+    >>> cov = propagated_covariance(img, img + 100, km, wavelengths=[1.6] * u.um,
+    ...                             pixscale=10.42 * u.mas, centres=(16, 16), window_size=32,
+    ...                             window_radius=12.8)
+    >>> cov.shape
+    (1, 44, 44)
     """
     wl = np.atleast_1d(to_quantity(wavelengths, u.m, name="wavelengths"))
     ps = to_quantity(pixscale, u.mas, name="pixel scale")

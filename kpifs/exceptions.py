@@ -10,8 +10,26 @@ class KpifsError(ValueError):
     It subclasses `ValueError` so that code catching ``ValueError`` keeps
     working; the command line turns it into a one-line message and exit
     status 2.
+
+    Examples
+    --------
+    >>> from kpifs import KpifsError, make_pupil
+    >>> try:
+    ...     make_pupil("hubble")
+    ... except KpifsError as err:
+    ...     print(str(err).split(":")[0])
+    unknown pupil 'hubble'
     """
 
 
 class KpifsWarning(AstropyUserWarning):
-    """A warning issued by kpifs (e.g. baselines dropped at the Nyquist limit)."""
+    """A warning issued by kpifs (e.g. baselines dropped at the Nyquist limit).
+
+    Examples
+    --------
+    >>> import warnings
+    >>> from kpifs import KpifsWarning
+    >>> from astropy.utils.exceptions import AstropyUserWarning
+    >>> issubclass(KpifsWarning, AstropyUserWarning)
+    True
+    """

@@ -19,7 +19,16 @@ def _axes(ax, figsize=(5.5, 4.5)):
 
 
 def plot_detection_map(result, *, ax=None, truth=None):
-    """The map statistic with candidates circled (and the truth marked, if given)."""
+    """The map statistic with candidates circled (and the truth marked, if given).
+
+    Examples
+    --------
+    >>> from kpifs.detect.pipeline import _example_result
+    >>> from kpifs.plotting import plot_detection_map
+    >>> fig = plot_detection_map(_example_result(), truth=(60, -40))
+    >>> len(fig.axes)
+    2
+    """
     fig, ax = _axes(ax)
     g = result.grid
     ext = [g.x[0], g.x[-1], g.y[0], g.y[-1]]
@@ -41,7 +50,16 @@ def plot_detection_map(result, *, ax=None, truth=None):
 
 
 def plot_contrast_curves(result, *, ax=None):
-    """Median (line) and min-max (band) limiting contrast versus separation, per test."""
+    """Median (line) and min-max (band) limiting contrast versus separation, per test.
+
+    Examples
+    --------
+    >>> from kpifs.detect.pipeline import _example_result
+    >>> from kpifs.plotting import plot_contrast_curves
+    >>> fig = plot_contrast_curves(_example_result())
+    >>> fig.axes[0].get_xlabel()
+    'separation (mas)'
+    """
     fig, ax = _axes(ax)
     sep = result.curves["separation"].to_value(u.mas)
     for name in ("NP", "B", "B-paper", "E"):
@@ -59,7 +77,16 @@ def plot_contrast_curves(result, *, ax=None):
 
 
 def plot_candidate_spectrum(result, index=0, *, ax=None, truth=None):
-    """Per-channel contrasts of a candidate (fitted, with 1-sigma errors)."""
+    """Per-channel contrasts of a candidate (fitted, with 1-sigma errors).
+
+    Examples
+    --------
+    >>> from kpifs.detect.pipeline import _example_result
+    >>> from kpifs.plotting import plot_candidate_spectrum
+    >>> fig = plot_candidate_spectrum(_example_result())
+    >>> fig.axes[0].get_ylabel()
+    'contrast'
+    """
     fig, ax = _axes(ax)
     wl = result.wavelengths.to_value(u.um)
     if len(result.candidates) > index:
@@ -76,7 +103,16 @@ def plot_candidate_spectrum(result, index=0, *, ax=None, truth=None):
 
 
 def plot_roc(curves, *, ax=None, theory=None, title=None):
-    """ROC curves ``{label: (pfa, pd)}``; *theory* the same, drawn dashed."""
+    """ROC curves ``{label: (pfa, pd)}``; *theory* the same, drawn dashed.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.plotting import plot_roc
+    >>> fig = plot_roc({"test": (np.logspace(-4, 0, 5), np.linspace(0.2, 1, 5))})
+    >>> fig.axes[0].get_xlabel()
+    'P_FA'
+    """
     fig, ax = _axes(ax)
     for label, (pfa, pd) in curves.items():
         line, = ax.semilogx(pfa, pd, label=label)
@@ -93,7 +129,16 @@ def plot_roc(curves, *, ax=None, theory=None, title=None):
 
 
 def save_detection_plots(result, outdir, *, truth=None, truth_spectrum=None):
-    """Write detection_map.png, contrast_curves.png and candidate_spectrum.png."""
+    """Write detection_map.png, contrast_curves.png and candidate_spectrum.png.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from kpifs.detect.pipeline import _example_result
+    >>> from kpifs.plotting import save_detection_plots
+    >>> [p.name for p in save_detection_plots(_example_result(), tempfile.mkdtemp())]
+    ['detection_map.png', 'contrast_curves.png', 'candidate_spectrum.png']
+    """
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

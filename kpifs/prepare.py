@@ -208,6 +208,13 @@ def window_weights(delta, ws, radius, order=4):
     """Super-Gaussian windows for ``ws x ws`` cut-outs whose stars sit at ``delta``.
 
     Returns shape (n, ws, ws), or (1, ws, ws) when every ``delta`` is the same.
+
+    Examples
+    --------
+    >>> from kpifs.prepare import window_weights
+    >>> w = window_weights([[0.0, 0.0]], 8, 3.0)
+    >>> w.shape, float(w[0, 4, 4])
+    ((1, 8, 8), 1.0)
     """
     delta = np.asarray(delta, float)
     off = np.arange(ws) - ws // 2

@@ -43,6 +43,13 @@ class ApertureGeometry:
         (degrees from +x towards +y).
     name : str
         Human-readable name.
+
+    Examples
+    --------
+    >>> from kpifs.pupil import ApertureGeometry
+    >>> geo = ApertureGeometry(diameter=4.0, obstruction=1.0, name="small")
+    >>> geo.transmission([0.0, 1.0, 3.0], [0.0, 0.0, 0.0])
+    array([0., 1., 0.])
     """
 
     diameter: float
@@ -230,6 +237,17 @@ def read_pupil_fits(path, *, pupil_scale=None):
 
     The pixel size comes from *pupil_scale* or the header keyword ``PUPSCALE``
     (metres per pixel).
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np
+    >>> from astropy.io import fits
+    >>> from kpifs.pupil import read_pupil_fits
+    >>> path = tempfile.mkdtemp() + "/pupil.fits"
+    >>> fits.writeto(path, np.ones((8, 8)), fits.Header({"PUPSCALE": 0.5}))
+    >>> image, scale = read_pupil_fits(path)
+    >>> image.shape, scale
+    ((8, 8), 0.5)
     """
     try:
         with fits.open(path) as hdul:

@@ -146,7 +146,15 @@ def simulate_psf(pupil, wavelengths, *, pixscale, shape=(64, 64), npup=128, opd=
 
 @dataclass
 class SceneParameters:
-    """Everything that defines a simulated observation (see `PRESETS`)."""
+    """Everything that defines a simulated observation (see `PRESETS`).
+
+    Examples
+    --------
+    >>> from kpifs.simulate import SceneParameters
+    >>> p = SceneParameters()
+    >>> p.telescope, p.shape, round(float(p.contrasts.mean()), 6)
+    ('subaru', (40, 40), 0.000631)
+    """
 
     telescope: str = "subaru"
     wavelengths: u.Quantity = field(default_factory=lambda: [1.52, 1.60, 1.68] * u.um)
@@ -186,6 +194,13 @@ def charis_field(shape=(201, 201), *, side=133.0, angle=27.0):
 
     Approximates the real pipeline's Broadband lenslet flat (a ~133-spaxel
     square turned by ~27 degrees in the 201x201 cube).
+
+    Examples
+    --------
+    >>> from kpifs.simulate import charis_field
+    >>> field = charis_field()
+    >>> field.shape, bool(field[100, 100]), bool(field[0, 0])
+    ((201, 201), True, False)
     """
     ny, nx = shape
     y, x = np.mgrid[:ny, :nx]
@@ -240,7 +255,15 @@ PRESETS = {
 
 @dataclass
 class SimulatedObservation:
-    """A simulated target and calibrator with the truth used to make them."""
+    """A simulated target and calibrator with the truth used to make them.
+
+    Examples
+    --------
+    >>> from kpifs.simulate import simulate_scene
+    >>> obs = simulate_scene("paper", n_frames=1, seed=3, npup=32)
+    >>> obs.truth["KPSIMX"][0], obs.calibrator.shape
+    (80.0, (1, 3, 40, 40))
+    """
 
     target: np.ndarray        # (nframe, nwave, ny, nx), electrons
     calibrator: np.ndarray    # same shape, no companion

@@ -42,6 +42,19 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
     dict
         ``x``, ``y`` (mas), ``x_err``, ``y_err``, ``contrast`` (q,), ``contrast_err``
         (q,), ``chi2``, ``dof``, ``success``.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.detect.fit import fit_binary
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=0.6 * u.m))
+    >>> wl = [1.6] * u.um
+    >>> kp = km.binary_kernel_phases([60, -30] * u.mas, [5e-3], wl)
+    >>> w = np.eye(km.n_kp)[None] * 1e4
+    >>> r = fit_binary(kp, w, km, wl, (55.0, -25.0), [3e-3])
+    >>> round(float(r["x"]), 1), round(float(r["y"]), 1), round(float(r["contrast"][0]), 4)
+    (60.0, -30.0, 0.005)
     """
     kp = np.asarray(kp, float)
     q, p = kp.shape

@@ -93,7 +93,15 @@ def energy_lambda(pfa, pd, dof):
 
 
 def limit_energy(norm2, pfa, pd, dof, spectrum=None):
-    """Energy-detector limit map (``dof`` = total whitened dimension)."""
+    """Energy-detector limit map (``dof`` = total whitened dimension).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.limits import limit_energy
+    >>> round(float(limit_energy(np.ones((1, 1, 1)), 0.01, 0.5, 303)[0, 0]), 3)
+    7.807
+    """
     a = spectrum_shape(spectrum, len(norm2))
     with np.errstate(divide="ignore"):
         return np.sqrt(energy_lambda(pfa, pd, dof)) / _norm_a(norm2, a)
@@ -185,6 +193,16 @@ def radial_curves(limits, grid, *, bin_width=None):
     `~astropy.table.QTable`
         ``separation`` (mas) and, per test, ``<test>_min``, ``<test>_median``,
         ``<test>_max``.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs.detect import DetectionGrid
+    >>> from kpifs.detect.limits import radial_curves
+    >>> g = DetectionGrid.from_separation(50 * u.mas, 10 * u.mas)
+    >>> tab = radial_curves({"NP": g.sep * 1e-5}, g)
+    >>> tab.colnames
+    ['separation', 'NP_min', 'NP_median', 'NP_max']
     """
     step = bin_width or abs(grid.step[0])
     sep = grid.sep[grid.valid]

@@ -129,6 +129,17 @@ class DetectionModel:
     window : tuple, optional
     dof : sequence of int, optional
         Whitened dimension kept per channel (for the energy detector).
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.detect import DetectionGrid, DetectionModel
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas)
+    >>> dm = DetectionModel(km, [1.6] * u.um, np.eye(km.n_kp)[None] * 1e3, grid)
+    >>> dm.local_statistic(np.zeros((1, km.n_kp))).shape
+    (21, 21)
     """
 
     def __init__(self, kernel_model, wavelengths, whitening, grid, *, pixscale=None,

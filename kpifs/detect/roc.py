@@ -40,14 +40,32 @@ def _bases(cov, rtol=1e-6):
 
 
 def whitened_signal(kernel_model, whitening, wavelengths, offset, contrasts, *, window_factor=1.0):
-    """``W_i K arg(1 + c_i w exp(...))`` per channel: (q, p)."""
+    """``W_i K arg(1 + c_i w exp(...))`` per channel: (q, p).
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.detect.roc import whitened_signal
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> x = whitened_signal(km, np.eye(km.n_kp)[None], [1.6] * u.um, [80, 60] * u.mas, [1e-3])
+    >>> x.shape
+    (1, 44)
+    """
     kp = kernel_model.binary_kernel_phases(offset, np.asarray(contrasts) * window_factor,
                                            wavelengths)
     return np.einsum("wij,wj->wi", whitening, kp)
 
 
 def theory_roc(test, norm_x, dof, pfa):
-    """Theoretical ``P_D(P_FA)`` for ``'NP'`` and ``'E'``."""
+    """Theoretical ``P_D(P_FA)`` for ``'NP'`` and ``'E'``.
+
+    Examples
+    --------
+    >>> from kpifs.detect.roc import theory_roc
+    >>> round(float(theory_roc("NP", 3.0, None, 0.01)), 4)
+    0.7497
+    """
     pfa = np.asarray(pfa, float)
     if test == "NP":
         return stats.norm.sf(stats.norm.isf(pfa) - norm_x)
@@ -87,6 +105,17 @@ def paper_experiment(*, preset="paper", n_frames=1000, n_draws=30000, seed=0, pf
         ``auc_theory``, ``pd_theory`` for NP and E; ``norm_x`` and ``dof``.
     curves : dict
         ``{channel set: {test: (pfa, pd)}}`` plus ``'theory'`` entries.
+
+    Examples
+    --------
+    >>> import warnings
+    >>> from kpifs.detect.roc import paper_experiment
+    >>> with warnings.catch_warnings():
+    ...     warnings.simplefilter("ignore")       # 20 frames: shrinkage warning
+    ...     table, curves = paper_experiment(n_frames=20, n_draws=2000, seed=1, npup=32,
+    ...                                      shape=(24, 24))
+    >>> sorted(set(str(t) for t in table["test"]))
+    ['B', 'B-paper', 'E', 'NP']
     """
     obs = simulate_scene(preset, n_frames=n_frames, seed=seed, progress=progress, **scene)
     p = obs.params

@@ -28,7 +28,14 @@ TESTS = ("NP", "E", "B", "B-paper")
 
 
 def check_probability(value, name):
-    """Return *value* as a float in (0, 1), else raise a `~kpifs.KpifsError`."""
+    """Return *value* as a float in (0, 1), else raise a `~kpifs.KpifsError`.
+
+    Examples
+    --------
+    >>> from kpifs.detect.stats import check_probability
+    >>> check_probability("1e-3", "P_FA")
+    0.001
+    """
     try:
         v = float(value)
     except (TypeError, ValueError):
@@ -40,7 +47,15 @@ def check_probability(value, name):
 
 # --- Neyman-Pearson ------------------------------------------------------------
 def np_statistic(y, x):
-    """``T_NP = sum y x`` over the last two axes (channels, kernels)."""
+    """``T_NP = sum y x`` over the last two axes (channels, kernels).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.stats import np_statistic
+    >>> float(np_statistic(np.ones((2, 3)), np.full((2, 3), 0.5)))
+    3.0
+    """
     return np.sum(np.asarray(y) * np.asarray(x), axis=(-2, -1))
 
 
@@ -70,7 +85,15 @@ def np_pd(pfa, norm_x):
 
 # --- energy detector -----------------------------------------------------------
 def energy_statistic(y):
-    """``T_E = ||y||^2`` over the last two axes."""
+    """``T_E = ||y||^2`` over the last two axes.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.stats import energy_statistic
+    >>> float(energy_statistic(np.full((2, 3), 2.0)))
+    24.0
+    """
     return np.sum(np.asarray(y) ** 2, axis=(-2, -1))
 
 
@@ -87,13 +110,29 @@ def energy_threshold(pfa, dof):
 
 
 def energy_pd(pfa, dof, norm_x):
-    """Detection probability of ``T_E``: ``ncx2.sf(xi, dof, ||x||^2)``."""
+    """Detection probability of ``T_E``: ``ncx2.sf(xi, dof, ||x||^2)``.
+
+    Examples
+    --------
+    >>> from kpifs.detect.stats import energy_pd
+    >>> round(float(energy_pd(0.01, 303, 3.0)), 4)
+    0.0258
+    """
     return stats.ncx2.sf(energy_threshold(pfa, dof), dof, np.asarray(norm_x) ** 2)
 
 
 # --- binary test at a known position --------------------------------------------
 def binary_statistic(z, form="B"):
-    """``sum_i max(z_i, 0)^2`` (``'B'``) or ``sum_i max(z_i, 0)`` (``'B-paper'``) over axis -1."""
+    """``sum_i max(z_i, 0)^2`` (``'B'``) or ``sum_i max(z_i, 0)`` (``'B-paper'``) over axis -1.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.stats import binary_statistic
+    >>> z = np.array([2.0, -1.0, 1.0])
+    >>> float(binary_statistic(z, "B")), float(binary_statistic(z, "B-paper"))
+    (5.0, 3.0)
+    """
     zp = np.clip(z, 0, None)
     if form == "B":
         return np.sum(zp ** 2, axis=-1)
@@ -153,7 +192,14 @@ def binary_pfa(xi, n_channels, form="B"):
 
 
 def binary_threshold(pfa, n_channels, form="B"):
-    """Threshold of the binary test at one known position (inverse of `binary_pfa`)."""
+    """Threshold of the binary test at one known position (inverse of `binary_pfa`).
+
+    Examples
+    --------
+    >>> from kpifs.detect.stats import binary_threshold
+    >>> round(binary_threshold(0.01, 3, "B"), 3)
+    8.746
+    """
     pfa = check_probability(pfa, "P_FA")
     if pfa >= 1 - 2.0 ** -n_channels:
         raise KpifsError(f"P_FA = {pfa} is not reachable: the statistic is 0 with "
@@ -171,6 +217,15 @@ def roc_curve(t0, t1, pfa=None):
 
     Returns ``(pfa, pd)`` with *pd* the fraction of *t1* above the thresholds that
     give the false-alarm rates *pfa* on *t0* (default: a log grid 1e-4..1).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.stats import roc_curve
+    >>> rng = np.random.default_rng(0)
+    >>> pfa, pd = roc_curve(rng.normal(0, 1, 10000), rng.normal(3, 1, 10000), pfa=[0.01])
+    >>> abs(float(pd[0]) - 0.7497) < 0.02        # theory: Q(Q^-1(0.01) - 3)
+    True
     """
     t0 = np.sort(np.asarray(t0, float))
     t1 = np.asarray(t1, float)
@@ -222,6 +277,15 @@ def monte_carlo_roc(x, *, n_draws=30000, seed=None, dof=None, tests=TESTS, basis
     -------
     dict
         ``{test: (t0, t1)}`` with arrays of length *n_draws*.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.stats import auc, monte_carlo_roc
+    >>> x = np.full((1, 9), 1.0)                         # ||x|| = 3
+    >>> res = monte_carlo_roc(x, n_draws=20000, seed=0)
+    >>> round(auc(*res["NP"]), 2)
+    0.98
     """
     rng = np.random.default_rng(seed)
     x = np.atleast_2d(np.asarray(x, float))

@@ -34,6 +34,14 @@ class IFSCube:
     instrument : str
     source : list of str
         Input file names.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs.io import IFSCube
+    >>> cube = IFSCube(np.zeros((2, 3, 16, 16)), [1.5, 1.6, 1.7] * u.um, 10 * u.mas)
+    >>> cube.shape, cube.name
+    ((2, 3, 16, 16), '<array>')
     """
 
     data: np.ndarray
@@ -160,6 +168,17 @@ def read_generic(path, *, wavelengths=None, pixscale=None):
     Wavelengths come from *wavelengths* or the header cards ``KPWL1 ... KPWLn``
     (um, as kpifs's simulator writes them); the pixel scale from *pixscale* or
     ``PIXSCALE`` (mas). The data stay memory-mapped.
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np, astropy.units as u
+    >>> from astropy.io import fits
+    >>> from kpifs.io import read_generic
+    >>> path = tempfile.mkdtemp() + "/cube.fits"
+    >>> fits.writeto(path, np.ones((3, 16, 16), np.float32))
+    >>> with read_generic(path, wavelengths=[1.5, 1.6, 1.7] * u.um, pixscale=10 * u.mas) as c:
+    ...     print(c.shape)
+    (1, 3, 16, 16)
     """
     hdul = _open_fits(path)
     try:
@@ -209,6 +228,15 @@ def read_wavelength_file(path, *, unit=None):
 
     The unit comes from *unit*, from ``BUNIT``/``CUNIT1`` in a FITS header, or
     is inferred from the values (0.3-30 means um, 300-30000 means nm) and logged.
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np
+    >>> from kpifs.io import read_wavelength_file
+    >>> path = tempfile.mkdtemp() + "/wl.txt"
+    >>> np.savetxt(path, [1159.56, 1199.70])          # nm, recognised from the values
+    >>> read_wavelength_file(path)
+    <Quantity [1.15956, 1.1997 ] um>
     """
     path = Path(path)
     if path.is_dir():

@@ -47,7 +47,19 @@ def _card(value, comment):
 
 
 def kpd_to_hdulist(kpd, *, inputs=(), history=()):
-    """Return *kpd* (`~kpifs.KernelPhaseData`) as a KPFITS1 `~astropy.io.fits.HDUList`."""
+    """Return *kpd* (`~kpifs.KernelPhaseData`) as a KPFITS1 `~astropy.io.fits.HDUList`.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs.io.kpfits import kpd_to_hdulist
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> hdul = kpd_to_hdulist(KernelPhaseData(np.zeros((1, 1, km.n_kp)), [1.6] * u.um,
+    ...                                       10 * u.mas, km))
+    >>> [h.name for h in hdul][:6]
+    ['PRIMARY', 'APERTURE', 'UV-PLANE', 'KER-MAT', 'BLM-MAT', 'KP-DATA']
+    """
     from .. import __version__
     km = kpd.kernel_model
     hdr = _clean_header(kpd.header)
@@ -115,7 +127,19 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
 
 
 def write_kpfits(kpd, path, *, overwrite=False, inputs=(), history=()):
-    """Write *kpd* to *path* (atomically; never over an input)."""
+    """Write *kpd* to *path* (atomically; never over an input).
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs.io import write_kpfits
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> kpd = KernelPhaseData(np.zeros((2, 1, km.n_kp)), [1.6] * u.um, 10 * u.mas, km)
+    >>> path = write_kpfits(kpd, tempfile.mkdtemp() + "/kp.fits")
+    >>> path.name
+    'kp.fits'
+    """
     return write_hdulist(kpd_to_hdulist(kpd, inputs=inputs, history=history), path,
                          overwrite=overwrite, inputs=inputs)
 
@@ -125,6 +149,17 @@ def read_kpfits(path):
 
     Kernel rows need not be unit-normalised and redundancies may be integers
     or floats (files written by other tools).
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs.io import read_kpfits
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> path = tempfile.mkdtemp() + "/kp.fits"
+    >>> _ = KernelPhaseData(np.zeros((2, 1, km.n_kp)), [1.6] * u.um, 10 * u.mas, km).write(path)
+    >>> read_kpfits(path).shape
+    (2, 1, 44)
     """
     from ..extract import KernelPhaseData
     from ..kernel import KernelModel

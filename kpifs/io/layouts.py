@@ -43,7 +43,17 @@ def _base_header(cards, *, instrument, pixscale, exptime=None, obj="SIMULATED"):
 
 def write_plain_cube(path, cube, wavelengths, pixscale, *, cards=None, overwrite=False,
                      exptime=None, obj="SIMULATED"):
-    """Write a 4-D cube ``(nframe, nwave, ny, nx)`` with its wavelengths in the header."""
+    """Write a 4-D cube ``(nframe, nwave, ny, nx)`` with its wavelengths in the header.
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np, astropy.units as u
+    >>> from kpifs.io.layouts import write_plain_cube
+    >>> paths = write_plain_cube(tempfile.mkdtemp() + "/c.fits", np.zeros((1, 2, 8, 8)),
+    ...                          [1.5, 1.6] * u.um, 10 * u.mas)
+    >>> paths[0].name
+    'c.fits'
+    """
     wl = u.Quantity(wavelengths, u.um)
     hdr = _base_header(cards or {}, instrument="generic", pixscale=pixscale, exptime=exptime,
                        obj=obj)
@@ -56,7 +66,18 @@ def write_plain_cube(path, cube, wavelengths, pixscale, *, cards=None, overwrite
 def write_charis_exposures(outdir, cube, ivar, wavelengths, pixscale, *, prefix="CRSA",
                            cards=None, overwrite=False, exptime=None, obj="SIMULATED",
                            parang=None):
-    """One CHARIS-pipeline ``*_cube.fits`` file per frame; wavelengths must be log-uniform."""
+    """One CHARIS-pipeline ``*_cube.fits`` file per frame; wavelengths must be log-uniform.
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np, astropy.units as u
+    >>> from kpifs.io.layouts import write_charis_exposures
+    >>> wl = 1.15956 * np.exp(np.arange(3) * 0.03) * u.um
+    >>> paths = write_charis_exposures(tempfile.mkdtemp(), np.ones((2, 3, 8, 8)),
+    ...                                np.ones((2, 3, 8, 8)), wl, 16.2 * u.mas)
+    >>> [p.name for p in paths]
+    ['CRSA00000000_cube.fits', 'CRSA00000001_cube.fits']
+    """
     wl_nm = u.Quantity(wavelengths, u.um).to_value(u.nm)
     n = len(wl_nm)
     dlog = np.log(wl_nm[-1] / wl_nm[0]) / (n - 1) if n > 1 else 0.0
@@ -97,7 +118,17 @@ def write_charis_exposures(outdir, cube, ivar, wavelengths, pixscale, *, prefix=
 
 def write_sphere_cube(outdir, cube, wavelengths, pixscale, *, prefix="", cards=None,
                       overwrite=False, exptime=None, obj="SIMULATED", angles=None):
-    """SPHERE-IFS community-pipeline layout: wave-first 4-D cube plus wavelength file (nm)."""
+    """SPHERE-IFS community-pipeline layout: wave-first 4-D cube plus wavelength file (nm).
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np, astropy.units as u
+    >>> from kpifs.io.layouts import write_sphere_cube
+    >>> paths = write_sphere_cube(tempfile.mkdtemp(), np.ones((2, 3, 8, 8)),
+    ...                           [1.0, 1.1, 1.2] * u.um, 7.46 * u.mas)
+    >>> [p.name for p in paths]
+    ['science_cube.fits', 'wavelength.fits', 'parallactic_angles.fits']
+    """
     outdir = Path(outdir)
     cube = np.asarray(cube)
     names = [outdir / f"{prefix}science_cube.fits", outdir / f"{prefix}wavelength.fits",
@@ -120,6 +151,15 @@ def write_observation(obs, outdir, *, layout="plain", overwrite=False):
     """Write a `~kpifs.simulate.SimulatedObservation` (target and calibrator) to *outdir*.
 
     Returns a dict ``{"target": [paths], "calibrator": [paths]}``.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from kpifs.io import write_observation
+    >>> from kpifs.simulate import simulate_scene
+    >>> files = write_observation(simulate_scene("paper", n_frames=1, npup=32), tempfile.mkdtemp())
+    >>> [p.name for p in files["target"]]
+    ['target.fits']
     """
     if layout not in LAYOUTS:
         raise KpifsError(f"unknown layout {layout!r}: use one of {LAYOUTS}")

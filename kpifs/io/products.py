@@ -28,7 +28,16 @@ def _image(data, name, wcs_header, bunit=None, comment=None):
 
 
 def detection_hdulist(result, *, header=None, inputs=()):
-    """Build the products of a `~kpifs.detect.DetectionResult` as an HDUList."""
+    """Build the products of a `~kpifs.detect.DetectionResult` as an HDUList.
+
+    Examples
+    --------
+    >>> from kpifs.detect.pipeline import _example_result
+    >>> from kpifs.io.products import detection_hdulist
+    >>> hdul = detection_hdulist(_example_result())
+    >>> hdul[0].header["CONTENT"], "CANDIDATES" in hdul
+    ('KPIFS-DETECTION', True)
+    """
     from .. import __version__
     hdr = fits.Header() if header is None else _strip(header)
     hdr["KPIFSVER"] = (__version__, "kpifs version")
@@ -79,8 +88,7 @@ def detection_hdulist(result, *, header=None, inputs=()):
     curves.name = "CURVES"
     hdus.append(curves)
     cand = result.candidates.copy()
-    cand.meta = {"TEST": cand.meta.get("test", result.test),
-                 "THRESH": float(cand.meta.get("threshold", result.threshold))}
+    cand.meta = {"TEST": result.test, "THRESH": float(result.threshold)}
     ch = fits.table_to_hdu(cand)
     ch.name = "CANDIDATES"
     hdus.append(ch)
@@ -102,13 +110,33 @@ def _strip(header):
 
 
 def write_detection(result, path, *, header=None, inputs=(), overwrite=False):
-    """Write detection products atomically (never over an input)."""
+    """Write detection products atomically (never over an input).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from kpifs.detect.pipeline import _example_result
+    >>> from kpifs.io.products import write_detection
+    >>> write_detection(_example_result(), tempfile.mkdtemp() + "/det.fits").name
+    'det.fits'
+    """
     return write_hdulist(detection_hdulist(result, header=header, inputs=inputs), path,
                          overwrite=overwrite, inputs=inputs)
 
 
 def read_detection(path):
-    """Read back products: a dict of arrays and tables keyed by extension name."""
+    """Read back products: a dict of arrays and tables keyed by extension name.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from kpifs.detect.pipeline import _example_result
+    >>> from kpifs.io.products import read_detection, write_detection
+    >>> path = write_detection(_example_result(), tempfile.mkdtemp() + "/det.fits")
+    >>> products = read_detection(path)
+    >>> products["header"]["TEST"], products["DETECTION"].ndim
+    ('B', 2)
+    """
     out = {}
     with fits.open(path) as hdul:
         out["header"] = hdul[0].header.copy()

@@ -15,7 +15,18 @@ INSTRUMENTS = ("auto", "charis", "sphere", "generic")
 
 
 def detect_instrument(path):
-    """``'charis'``, ``'sphere'`` or ``'generic'`` from a file's headers and layout."""
+    """``'charis'``, ``'sphere'`` or ``'generic'`` from a file's headers and layout.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from kpifs.io import detect_instrument, write_observation
+    >>> from kpifs.simulate import simulate_scene
+    >>> obs = simulate_scene("charis", n_frames=1, npup=32, shape=(32, 32))
+    >>> files = write_observation(obs, tempfile.mkdtemp(), layout="charis")
+    >>> detect_instrument(files["target"][0])
+    'charis'
+    """
     hdul = _open_fits(path)
     try:
         if is_charis(hdul):
