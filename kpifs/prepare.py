@@ -12,8 +12,8 @@ import numpy as np
 
 from .exceptions import KpifsError, KpifsWarning
 
-__all__ = ["super_gaussian", "find_centres", "fill_bad_pixels", "cut_out", "window_weights",
-           "CENTROID_METHODS"]
+__all__ = ["super_gaussian", "window_at", "find_centres", "fill_bad_pixels", "cut_out",
+           "window_weights", "CENTROID_METHODS"]
 
 log = logging.getLogger(__name__)
 
@@ -30,6 +30,33 @@ def super_gaussian(r, radius, order=4):
     0.3679
     """
     return np.exp(-(np.asarray(r, float) / radius) ** order)
+
+
+def window_at(separation, pixscale, window):
+    """The extraction window's value at a companion's separation.
+
+    A companion at that separation keeps this fraction of its flux in the
+    windowed image, so its kernel-phase signal is that of contrast ``c * w``.
+
+    Parameters
+    ----------
+    separation : float or array
+        Separation(s) from the star in mas.
+    pixscale : float or `~astropy.units.Quantity`
+        Pixel scale (mas).
+    window : tuple or None
+        ``(radius in pixels, order)``; None means no window (1).
+
+    Examples
+    --------
+    >>> from kpifs.prepare import window_at
+    >>> round(float(window_at(100.0, 10.42, (16.0, 4))), 3)
+    0.879
+    """
+    if window is None:
+        return np.ones_like(np.asarray(separation, float))
+    ps = float(getattr(pixscale, "value", pixscale))
+    return super_gaussian(np.asarray(separation, float) / ps, window[0], window[1])
 
 
 def _peak_positions(data):

@@ -12,6 +12,7 @@ from scipy import optimize
 
 from ..exceptions import KpifsError
 from ..kernel import MAS
+from ..prepare import window_at
 
 __all__ = ["fit_binary"]
 
@@ -64,9 +65,7 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
     ps = None if pixscale is None else u.Quantity(pixscale, u.mas).value
 
     def wfac(a, b):
-        if window is None or ps is None:
-            return 1.0
-        return float(np.exp(-(np.hypot(a, b) / ps / window[0]) ** window[1]))
+        return float(window_at(np.hypot(a, b), ps, window if ps is not None else None))
 
     def model(params):
         a, b = params[:2]

@@ -28,6 +28,7 @@ from astropy.table import QTable
 from .._utils import as_rng, to_quantity
 from ..exceptions import KpifsError
 from ..kernel import MAS
+from ..prepare import window_at
 from scipy import stats
 
 from .stats import binary_pfa, binary_statistic, check_probability
@@ -106,13 +107,6 @@ class DetectionGrid:
         return (self.x.tobytes(), self.y.tobytes(), self.min_sep, self.max_sep)
 
 
-def _window_factor(sep_mas, window, pixscale_mas):
-    if window is None:
-        return np.ones_like(sep_mas)
-    radius, order = window
-    return np.exp(-(sep_mas / pixscale_mas / radius) ** order)
-
-
 class DetectionModel:
     """Signatures, their norms and fast maps for one kernel model, covariance and grid.
 
@@ -157,7 +151,7 @@ class DetectionModel:
         self.pixscale = None if pixscale is None else to_quantity(pixscale, u.mas).value
         self.window = window if (window is not None and pixscale is not None) else None
         self._check_grid()
-        self._wfac = _window_factor(grid.sep, self.window, self.pixscale)
+        self._wfac = window_at(grid.sep, self.pixscale, self.window)
         kern = kernel_model.kernel
         # L_i = K^T W_i^T maps whitened data to uv space: g_i = L_i y_i
         self._lift = np.einsum("kj,wik->wji", kern, w)              # (q, nuv, p)

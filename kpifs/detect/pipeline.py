@@ -11,6 +11,7 @@ from ..calibrate import calibrate
 from ..covariance import empirical_covariance, whiten, whitening_matrix
 from ..exceptions import KpifsError, KpifsWarning
 from ..kernel import MAS
+from ..prepare import window_at
 from .fit import fit_binary
 from .limits import (energy_lambda, limit_binary, limit_energy, limit_np, radial_curves,
                      spectrum_shape)
@@ -268,12 +269,9 @@ def _sequential_search(model, kp, w, kpd, window, *, threshold, form, cal, spect
 
 
 def _wfac(row, kpd, window, fitted=True):
-    if window is None:
-        return 1.0
     x = row["fit_x" if fitted else "x"].to_value(u.mas)
     y = row["fit_y" if fitted else "y"].to_value(u.mas)
-    return float(np.exp(-(np.hypot(x, y) / kpd.pixscale.to_value(u.mas) / window[0])
-                        ** window[1]))
+    return float(window_at(np.hypot(x, y), kpd.pixscale, window))
 
 
 def _refine(cands, kp, w, kpd, window):
