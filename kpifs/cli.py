@@ -176,7 +176,6 @@ def cmd_extract(args):
 
 
 def cmd_info(args):
-    from astropy.io import fits
     from .io import read_cube
     from .io.cube import _open_fits
     from .kernel import KernelModel
@@ -198,7 +197,6 @@ def cmd_info(args):
             with read_cube([path], instrument=args.instrument, wavelengths=wl,
                            pixscale=ps) as cube:
                 _info_cube(cube, args)
-        del fits
     return 0
 
 

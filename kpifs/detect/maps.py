@@ -162,7 +162,6 @@ class DetectionModel:
     def _check_grid(self):
         g = self.grid
         far = float(np.max(g.sep[g.valid]))
-        uv = self.kernel_model.uv.value
         lam_min = self.wavelengths.to_value(u.m).min()
         # signatures are periodic with the uv grid: beyond lambda / (2 step) positions alias
         step = self.kernel_model.pupil.step
@@ -178,7 +177,6 @@ class DetectionModel:
                 raise KpifsError(f"the grid reaches {far:.0f} mas, beyond the extraction "
                                  f"window (radius {self.window[0] * self.pixscale:.0f} mas): "
                                  f"reduce the maximum separation to < {edge:.0f} mas")
-        del uv
 
     def _axis_trig(self, lam):
         uv = self.kernel_model.uv.value
