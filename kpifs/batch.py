@@ -239,7 +239,7 @@ def _run_entry(entry, options, out):
     from .kernel import load_kernel_model
     wl = None
     if entry.wavelengths:
-        from .cli import parse_wavelengths
+        from .commands import parse_wavelengths
         wl = parse_wavelengths(entry.wavelengths)
     ps = None if entry.pixscale is None else to_quantity(entry.pixscale, u.mas,
                                                          name="pixel scale")
