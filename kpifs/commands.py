@@ -65,7 +65,7 @@ def _extract(cube, km, args):
             cube.data, km, wavelengths=cube.wavelengths, pixscale=cube.pixscale,
             mask=cube.mask, window_size=args.window, window_radius=args.window_radius,
             centroid=args.centroid, bad_pixels=args.bad_pixels, on_nyquist=args.nyquist,
-            header=cube.header, source=cube.name)
+            header=cube.header, source=cube.name, progress=not args.quiet)
 
 
 def cmd_extract(args):

@@ -65,7 +65,7 @@ def run_demo(outdir, *, frames=200, seed=1, overwrite=False, progress=True, draw
         with read_cube(files[role]) as cube:
             kpds[role] = extract_kernel_phases(cube.data, km, wavelengths=cube.wavelengths,
                                                pixscale=cube.pixscale, header=cube.header,
-                                               source=cube.name)
+                                               source=cube.name, progress=progress)
         kpds[role].write(outdir / f"{role}_kp.fits", overwrite=overwrite,
                          inputs=[str(f) for f in files[role]])
 

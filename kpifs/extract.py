@@ -190,7 +190,7 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, centres=None, m
                           window_size=None, window_radius=None, window_order=4,
                           centroid="com", bad_pixels="fill", on_nyquist="drop",
                           batch_size=256, header=None,
-                          source="<array>", keep_phases=True):
+                          source="<array>", keep_phases=True, progress=False):
     """Kernel phases of every frame and channel of an IFS cube.
 
     Parameters
@@ -233,6 +233,8 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, centres=None, m
         Name of the input, used in messages and provenance.
     keep_phases : bool
         Keep raw Fourier phases and amplitudes in the result.
+    progress : bool
+        Show a progress bar over the channels (tqdm).
 
     Returns
     -------
@@ -297,7 +299,11 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, centres=None, m
     n_clipped = 0
     bmask = None if mask is None else np.broadcast_to(mask, cube.shape)
     # wavelength outermost: each DFT matrix is built (or fetched) once per call
-    for iw in range(nwave):
+    channels = range(nwave)
+    if progress:
+        from tqdm.auto import tqdm
+        channels = tqdm(channels, desc=f"extracting {source}"[:40], unit="channel")
+    for iw in channels:
         mat = km.dft_matrix(wl[iw], ps, (ws, ws))
         lam = wl[iw].to_value(u.m)
         for f0 in range(0, nframe, batch_size):
