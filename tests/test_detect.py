@@ -307,3 +307,19 @@ def test_detect_rejects_bad_covariance_and_channels(subaru_model):
         detect(t, calibrator=c)
     with pytest.raises(KpifsError, match="unknown test"):
         detect(t, test="Z")
+
+
+def test_fit_errors_account_for_correlated_channels():
+    """Two identical channels with fully correlated noise carry one channel's information:
+    the sandwich errors are sqrt(2) times the independent-channel errors."""
+    from kpifs.detect.fit import fit_binary
+    km = KernelModel.from_pupil(make_pupil("subaru", step=0.6 * u.m))
+    wl = [1.6, 1.6] * u.um
+    kp = km.binary_kernel_phases([60, -30] * u.mas, [5e-3, 5e-3], wl)
+    w = np.stack([np.eye(km.n_kp) * 1e3] * 2)
+    ind = fit_binary(kp, w, km, wl, (58.0, -28.0), [4e-3, 4e-3])
+    rows = np.repeat(np.eye(km.n_kp)[:, None, :], 2, axis=1)     # R^T R: channels identical
+    cor = fit_binary(kp, w, km, wl, (58.0, -28.0), [4e-3, 4e-3], noise_rows=rows)
+    assert cor["x"] == pytest.approx(60, abs=1e-3)
+    assert cor["x_err"] / ind["x_err"] == pytest.approx(np.sqrt(2), rel=1e-3)
+    assert cor["y_err"] / ind["y_err"] == pytest.approx(np.sqrt(2), rel=1e-3)

@@ -18,7 +18,7 @@ __all__ = ["fit_binary"]
 
 
 def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pixscale=None,
-               window=None, bounds_mas=None):
+               window=None, bounds_mas=None, noise_rows=None):
     """Fit position and per-channel contrasts of a companion.
 
     Parameters
@@ -37,6 +37,11 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
         that contrasts are true ones.
     bounds_mas : float, optional
         Half-width of the box (mas) around *start* the position may move in.
+    noise_rows : ndarray, shape (nrow, q, p), optional
+        Whitened covariance rows (``R_w^T R_w`` = covariance of the whitened
+        data across channels). With them the uncertainties are the sandwich
+        estimate ``(J^T J)^-1 (R_w J)^T (R_w J) (J^T J)^-1``, which accounts for
+        correlations between channels; without, ``(J^T J)^-1``.
 
     Returns
     -------
@@ -89,6 +94,9 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
     res = optimize.least_squares(resid, x0, bounds=(lo, hi), x_scale=scale, method="trf")
     jac = res.jac
     cov = np.linalg.pinv(jac.T @ jac)
+    if noise_rows is not None:
+        rj = np.asarray(noise_rows, float).reshape(len(noise_rows), -1) @ jac
+        cov = cov @ (rj.T @ rj) @ cov
     err = np.sqrt(np.clip(np.diag(cov), 0, None))
     dof = int(np.count_nonzero(np.abs(whitening).sum(axis=2))) - (q + 2)
     return {"x": res.x[0], "y": res.x[1], "x_err": err[0], "y_err": err[1],

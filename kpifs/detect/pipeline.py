@@ -237,7 +237,7 @@ def _sequential_search(model, kp, w, kpd, window, *, threshold, form, cal, spect
             break
         row = tab[:1]
         if fit:
-            _refine(row, residual, w, kpd, window)
+            _refine(row, residual, w, kpd, window, cal["noise_rows"])
             r = row[0]
             model_kp = kpd.kernel_model.binary_kernel_phases(
                 [r["fit_x"].to_value(u.mas), r["fit_y"].to_value(u.mas)] * u.mas,
@@ -274,7 +274,7 @@ def _wfac(row, kpd, window, fitted=True):
     return float(window_at(np.hypot(x, y), kpd.pixscale, window))
 
 
-def _refine(cands, kp, w, kpd, window):
+def _refine(cands, kp, w, kpd, window, noise_rows=None):
     q = kp.shape[0]
     cols = {k: [] for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err", "fit_contrast",
                             "fit_contrast_err", "fit_chi2")}
@@ -283,7 +283,7 @@ def _refine(cands, kp, w, kpd, window):
         r = fit_binary(kp, w, kpd.kernel_model, kpd.wavelengths,
                        (row["x"].to_value(u.mas), row["y"].to_value(u.mas)),
                        np.asarray(row["contrast"]), pixscale=kpd.pixscale, window=window,
-                       bounds_mas=step)
+                       bounds_mas=step, noise_rows=noise_rows)
         cols["fit_x"].append(r["x"])
         cols["fit_y"].append(r["y"])
         cols["fit_x_err"].append(r["x_err"])
