@@ -323,3 +323,27 @@ def test_fit_errors_account_for_correlated_channels():
     assert cor["x"] == pytest.approx(60, abs=1e-3)
     assert cor["x_err"] / ind["x_err"] == pytest.approx(np.sqrt(2), rel=1e-3)
     assert cor["y_err"] / ind["y_err"] == pytest.approx(np.sqrt(2), rel=1e-3)
+
+
+def test_correlated_binary_limit_closed_form():
+    """Two channels with fully correlated noise: T_B = 2 max(z + mu, 0)^2, so at P_D = 0.5
+    the limit is sqrt(xi / 2) / ||s||."""
+    xi = 9.0
+    corr = np.ones((1, 1, 2, 2))
+    lim = limit_binary(np.full((2, 1, 1), 4.0), xi, 0.5, correlation=corr)
+    assert lim[0, 0] == pytest.approx(np.sqrt(xi / 2) / 2, rel=5e-3)
+    # with independent channels the same threshold needs less signal
+    assert limit_binary(np.full((2, 1, 1), 4.0), xi, 0.5)[0, 0] < lim[0, 0]
+
+
+def test_correlated_energy_limit_matches_chi2_when_white():
+    from kpifs.detect.limits import limit_energy_correlated
+    rng = np.random.default_rng(4)
+    p, n = 50, 40000
+    noise = rng.standard_normal((n, p))
+    x = np.zeros((p, 3))
+    x[0, 0], x[:, 1], x[3, 2] = 1.0, 1 / np.sqrt(p), 1.0        # unit-norm signals
+    energy = np.sum(noise ** 2, axis=1)
+    thr = np.quantile(energy, 0.99)
+    lim = limit_energy_correlated(noise @ x, np.ones(3), energy, thr, 0.5)
+    np.testing.assert_allclose(lim, np.sqrt(energy_lambda(0.01, 0.5, p)), rtol=0.03)

@@ -11,10 +11,11 @@ is the mean contrast over channels) the whitened signal at a position is
   ``z_i ~ N(c a_i ||s_i||, 1)`` and ``xi`` the (grid-search) threshold, found by
   bisection with a fixed set of Monte-Carlo draws.
 
-The binary and energy limits model the channels as independent; with strongly
-correlated channels (achromatic aberrations) the binary limit, which uses the
-threshold calibrated with the correlations, is approximate and the energy
-limit optimistic. The Neyman-Pearson limit is exact at a known position.
+When the data carry covariance rows (calibrated with kpifs), the binary and
+energy limits are computed with the channels' correlations (per-position
+correlation of the ``z_i``; energy from the same noise draws as its
+threshold); otherwise the channels are taken as independent. The
+Neyman-Pearson limit is exact at a known position.
 
 Limits are always quoted with their ``(P_FA, P_D)``; `pfa_to_sigma`,
 `sigma_to_pfa` and `chi2_ratio_sigma` translate to the "n sigma" other tools
@@ -29,7 +30,8 @@ from ..exceptions import KpifsError
 from .stats import check_probability, energy_threshold
 
 __all__ = ["spectrum_shape", "limit_np", "energy_lambda", "limit_energy", "limit_binary",
-           "radial_curves", "pfa_to_sigma", "sigma_to_pfa", "chi2_ratio_sigma"]
+           "limit_energy_correlated", "radial_curves", "pfa_to_sigma", "sigma_to_pfa",
+           "chi2_ratio_sigma"]
 
 
 def spectrum_shape(spectrum, n_channels):
@@ -107,7 +109,8 @@ def limit_energy(norm2, pfa, pd, dof, spectrum=None):
         return np.sqrt(energy_lambda(pfa, pd, dof)) / _norm_a(norm2, a)
 
 
-def limit_binary(norm2, threshold, pd, *, form="B", spectrum=None, n_draws=4096, seed=0):
+def limit_binary(norm2, threshold, pd, *, form="B", spectrum=None, n_draws=4096, seed=0,
+                 correlation=None):
     """Binary-test limit map for a detection *threshold* on the (local) statistic.
 
     Solves ``P(T_B > threshold) = P_D`` for the contrast at every position by
@@ -116,7 +119,9 @@ def limit_binary(norm2, threshold, pd, *, form="B", spectrum=None, n_draws=4096,
     function of position; quasi-random draws make ``P_D`` accurate to ~1e-3);
     with more channels the statistic, a sum of many independent terms, is
     taken as Gaussian with its exact mean and variance (truncated-normal
-    moments of ``max(z_i, 0)``).
+    moments of ``max(z_i, 0)``). With *correlation* (an array (ny, nx, q, q),
+    the covariance of the ``z_i`` at each position, e.g. from the covariance
+    rows), the draws are correlated accordingly at every position.
 
     Examples
     --------
@@ -131,39 +136,101 @@ def limit_binary(norm2, threshold, pd, *, form="B", spectrum=None, n_draws=4096,
     shape = norm2.shape[1:]
     m = (a[:, None] * np.sqrt(norm2.reshape(q, -1))).T           # (npos, q) signal per unit c
     power = 2 if form == "B" else 1
+    if correlation is not None:
+        return _limit_binary_correlated(m, correlation.reshape(-1, q, q), threshold, pd,
+                                        power, n_draws, seed).reshape(shape)
     if q > 8:
-        def pdet(c, mm):
-            mean, var = _clipped_moments(c[:, None] * mm, power)
+        def pdet(c, idx):
+            mean, var = _clipped_moments(c[:, None] * m[idx], power)
             return stats.norm.sf((threshold - mean.sum(1)) / np.sqrt(var.sum(1)))
     else:
-        from scipy.stats import qmc
-        n_pow2 = 1 << int(np.ceil(np.log2(max(n_draws, 2))))
-        u01 = qmc.Sobol(d=q, scramble=True, seed=seed).random(n_pow2)
-        z = stats.norm.ppf(np.clip(u01, 1e-12, 1 - 1e-12))
+        z = _qmc_normal(n_draws, q, seed)
 
-        def pdet(c, mm):
+        def pdet(c, idx):
             out = np.empty(len(c))
             for s in range(0, len(c), 256):
-                mu = c[s:s + 256, None] * mm[s:s + 256]               # (n, q)
+                mu = c[s:s + 256, None] * m[idx[s:s + 256]]           # (n, q)
                 t = np.sum(np.clip(z[None] + mu[:, None, :], 0, None) ** power, axis=2)
                 out[s:s + 256] = np.mean(t > threshold, axis=1)
             return out
 
-    ok = np.all(np.isfinite(m), axis=1) & (m.sum(axis=1) > 0)
-    lo = np.zeros(len(m))
-    hi = np.where(ok, (np.sqrt(threshold) + 6) / np.where(ok, m.sum(axis=1) / np.sqrt(q), 1),
-                  np.nan)
+    total = m.sum(axis=1)
+    ok = np.all(np.isfinite(m), axis=1) & (total > 0)
+    hi = np.where(ok, (np.sqrt(threshold) + 6) / np.where(ok, total / np.sqrt(q), 1), np.nan)
+    return _bisect(pdet, pd, hi).reshape(shape)
+
+
+def _qmc_normal(n, d, seed):
+    from scipy.stats import qmc
+    n_pow2 = 1 << int(np.ceil(np.log2(max(n, 2))))
+    u01 = qmc.Sobol(d=d, scramble=True, seed=seed).random(n_pow2)
+    return stats.norm.ppf(np.clip(u01, 1e-12, 1 - 1e-12))
+
+
+def _bisect(pdet, pd, hi, n_iter=40):
+    """Smallest c with pdet(c, idx) >= pd, for every position at once."""
+    ok = np.isfinite(hi) & (hi > 0)
     idx = np.flatnonzero(ok)
-    for _ in range(40):
+    lo = np.zeros(len(hi))
+    hi = np.where(ok, hi, np.nan)
+    for _ in range(n_iter):
         mid = 0.5 * (lo[idx] + hi[idx])
-        above = pdet(mid, m[idx]) >= pd
+        above = pdet(mid, idx) >= pd
         hi[idx] = np.where(above, mid, hi[idx])
         lo[idx] = np.where(above, lo[idx], mid)
         if np.all(hi[idx] - lo[idx] <= 1e-3 * hi[idx]):
             break
-    out = np.full(len(m), np.nan)
+    out = np.full(len(hi), np.nan)
     out[idx] = 0.5 * (lo[idx] + hi[idx])
-    return out.reshape(shape)
+    return out
+
+
+def _limit_binary_correlated(m, corr, threshold, pd, power, n_draws, seed):
+    """Binary limit with channel correlations: z = L eps at each position.
+
+    Positions are taken in chunks; each chunk's correlated draws are built once
+    and reused by every step of its bisection.
+    """
+    npos, q = m.shape
+    eps = _qmc_normal(min(n_draws, 1024), q, seed)                      # (N, q)
+    good = np.all(np.isfinite(corr.reshape(npos, -1)), axis=1) & np.all(np.isfinite(m), axis=1)
+    out = np.full(npos, np.nan)
+    total = np.where(good, m.sum(axis=1), np.nan)
+    hi_all = (np.sqrt(threshold) * np.sqrt(q) + 6 * q) / np.where(total > 0, total, np.nan)
+    jitter = 1e-9 * np.eye(q)
+    todo = np.flatnonzero(good)
+    for a in range(0, len(todo), 128):
+        sl = todo[a:a + 128]
+        z = np.einsum("kij,nj->kni", np.linalg.cholesky(corr[sl] + jitter), eps)
+
+        def pdet(c, idx, z=z, sl=sl):
+            t = np.sum(np.clip(z[idx] + (c[:, None] * m[sl[idx]])[:, None, :], 0, None)
+                       ** power, axis=2)
+            return np.mean(t > threshold, axis=1)
+
+        out[sl] = _bisect(pdet, pd, hi_all[sl])
+    return out
+
+
+def limit_energy_correlated(signal_proj, signal_norm2, noise_energy, threshold, pd):
+    """Energy-detector limit when the noise has channel correlations.
+
+    With noise draws ``n = a R_w`` (``a`` standard normal), ``T_E(c) = ||n||^2 +
+    2 c n.x + c^2 ||x||^2`` for the unit-contrast signal ``x``: *noise_energy*
+    holds ``||n||^2`` per draw (N,), *signal_proj* ``n.x`` per draw and position
+    (N, npos), *signal_norm2* ``||x||^2`` per position; *threshold* is the
+    energy threshold from the same draws.
+    """
+    pd = check_probability(pd, "P_D")
+
+    def pdet(c, idx):
+        t = (noise_energy[:, None] + 2 * c[None, :] * signal_proj[:, idx]
+             + c[None, :] ** 2 * signal_norm2[idx][None, :])
+        return np.mean(t > threshold, axis=0)
+
+    hi = 2 * (np.sqrt(threshold) + 10) / np.sqrt(np.where(signal_norm2 > 0, signal_norm2,
+                                                          np.nan))
+    return _bisect(pdet, pd, hi)
 
 
 def _clipped_moments(mu, power):

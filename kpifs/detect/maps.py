@@ -288,6 +288,24 @@ class DetectionModel:
             out[i] = sig / norm[:, None]
         return out
 
+    def row_projections(self, noise_rows, *, chunk=512):
+        """Whitened noise rows projected on the unit signatures at every valid position.
+
+        Returns ``(rows_idx, Z)``: the flat indices of the valid positions and
+        ``Z`` of shape (npos, nrow, q) with ``Z[k, r, i] = u_i(pos_k) . R_w[r, i]``,
+        so that ``Z[k]^T Z[k]`` is the covariance of ``(z_1 ... z_q)`` at position
+        ``k`` (channel correlations included).
+        """
+        rows = np.flatnonzero(self.grid.valid.ravel())
+        nr = len(noise_rows)
+        q = len(self.wavelengths)
+        out = np.empty((len(rows), nr, q))
+        for a in range(0, len(rows), chunk):
+            unit = self._unit_signatures(rows[a:a + chunk]).astype(float)    # (q, n, p)
+            for i in range(q):
+                out[a:a + chunk, :, i] = (noise_rows[:, i, :] @ unit[i].T).T
+        return rows, out
+
     def _half_positions(self):
         """Valid positions, split into a half and its mirror image when the grid allows."""
         g = self.grid

@@ -13,8 +13,8 @@ from ..exceptions import KpifsError, KpifsWarning
 from ..kernel import MAS
 from ..prepare import window_at
 from .fit import fit_binary
-from .limits import (energy_lambda, limit_binary, limit_energy, limit_np, radial_curves,
-                     spectrum_shape)
+from .limits import (energy_lambda, limit_binary, limit_energy, limit_energy_correlated,
+                     limit_np, radial_curves, spectrum_shape)
 from .maps import DetectionGrid, DetectionModel
 from .stats import TESTS, check_probability, energy_threshold
 from scipy import stats
@@ -187,21 +187,24 @@ def detect(kpd, *, calibrator=None, test="B", pfa=1e-3, pd=0.5, grid=None, spect
     dof = int(rank.sum())
     t_e = float(np.sum(y ** 2))
     energy = {"statistic": t_e, "dof": dof, "pfa": float(stats.chi2.sf(t_e, dof)),
-              "threshold": float(energy_threshold(pfa, dof))}
+              "threshold": float(energy_threshold(pfa, dof)), "pd": pd}
+    te = None
     if rows is not None:   # correlated channels: the energy's law from the same null model
-        rng = np.random.default_rng(seed)
-        flat = rows.reshape(len(rows), -1)
-        te = np.concatenate([np.sum((rng.standard_normal((min(2000, n_draws - a), len(rows)))
-                                     @ flat) ** 2, axis=1) for a in range(0, n_draws, 2000)])
-        energy["pfa"] = float((np.sum(te >= t_e) + 1) / (len(te) + 1))
-        energy["threshold"] = float(np.quantile(te, 1 - pfa)) if pfa * len(te) >= 10 \
-            else energy["threshold"]
-    limits = {"NP": limit_np(model.norm2, pfa, pd, a),
-              "E": limit_energy(model.norm2, pfa, pd, dof, a)}
+        te = _energy_null(rows, n_draws, seed)
+        energy["pfa"] = float((np.sum(te["energy"] >= t_e) + 1) / (len(te["energy"]) + 1))
+        if pfa * len(te["energy"]) >= 10:
+            energy["threshold"] = float(np.quantile(te["energy"], 1 - pfa))
+    limits = {"NP": limit_np(model.norm2, pfa, pd, a)}
+    corr = None
+    if rows is None:
+        limits["E"] = limit_energy(model.norm2, pfa, pd, dof, a)
+    else:
+        corr, limits["E"] = _correlated_inputs(model, rows, a, energy, te, seed)
     for f in ("B", "B-paper"):
         thr_f = threshold if f == form else model.global_threshold(
             pfa, form=f, n_draws=n_draws, seed=seed, noise_rows=rows)
-        limits[f] = limit_binary(model.norm2, thr_f, pd, form=f, spectrum=a, seed=seed)
+        limits[f] = limit_binary(model.norm2, thr_f, pd, form=f, spectrum=a, seed=seed,
+                                 correlation=corr)
     # the NP reference uses the local threshold; with the grid search its own global one
     if form == "NP":
         limits["NP"] = (threshold - stats.norm.isf(pd)) / np.sqrt(
@@ -222,6 +225,32 @@ def detect(kpd, *, calibrator=None, test="B", pfa=1e-3, pd=0.5, grid=None, spect
                            contrast_err=np.where(valid, cerr, np.nan), limits=limits,
                            curves=curves, candidates=cands, threshold=threshold,
                            wavelengths=kpd.wavelengths, energy=energy, meta=meta)
+
+
+def _energy_null(rows, n_draws, seed):
+    """Noise draws ``n = a R_w`` from the covariance rows: coefficients and energies."""
+    rng = np.random.default_rng(seed)
+    coef = rng.standard_normal((n_draws, len(rows)))
+    gram = rows.reshape(len(rows), -1) @ rows.reshape(len(rows), -1).T      # (nrow, nrow)
+    energy = np.sum((coef @ gram) * coef, axis=1)
+    return {"coef": coef, "energy": energy}
+
+
+def _correlated_inputs(model, rows, a, energy, te, seed):
+    """Per-position z covariance (for the binary limit) and the energy limit, both
+    with the channel correlations carried by the covariance rows."""
+    shape = model.grid.shape
+    q = len(model.wavelengths)
+    idx, z = model.row_projections(rows)                              # (npos, nrow, q)
+    corr = np.full((shape[0] * shape[1], q, q), np.nan)
+    corr[idx] = np.einsum("kri,krj->kij", z, z)
+    amp = a[None, :] * np.sqrt(model.norm2.reshape(q, -1)[:, idx].T)     # (npos, q)
+    n = min(4096, len(te["energy"]))      # enough draws for P_D, far from the tail
+    proj = te["coef"][:n] @ np.einsum("kri,ki->rk", z, amp)             # (N, npos)
+    lim = np.full(shape[0] * shape[1], np.nan)
+    lim[idx] = limit_energy_correlated(proj, np.sum(amp ** 2, axis=1), te["energy"][:n],
+                                       energy["threshold"], energy["pd"])
+    return corr.reshape(shape + (q, q)), lim.reshape(shape)
 
 
 def _sequential_search(model, kp, w, kpd, window, *, threshold, form, cal, spectrum, fit,

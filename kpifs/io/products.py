@@ -57,9 +57,8 @@ def detection_hdulist(result, *, header=None, inputs=()):
         hdr[f"WAVE{i}"] = (float(w), f"[um] wavelength of channel {i}")
     for i, a in enumerate(result.meta.get("spectrum", []), 1):
         hdr[f"SPEC{i}"] = (float(a), "companion spectrum shape used for limits")
-    hdr["LIMCHAN"] = ("independent", "B/E limits assume independent channels")
     hdr["NULLCHAN"] = (result.meta.get("null_channels", "independent"),
-                       "channel correlation in the null model")
+                       "channel correlations in the null model and the B/E limits")
     cals = result.meta.get("calibrators", [])
     hdr["CALIB"] = (len(cals) > 0, "calibrated with a calibrator star")
     for i, c in enumerate(cals, 1):
