@@ -220,6 +220,18 @@ def limit_energy_correlated(signal_proj, signal_norm2, noise_energy, threshold, 
     holds ``||n||^2`` per draw (N,), *signal_proj* ``n.x`` per draw and position
     (N, npos), *signal_norm2* ``||x||^2`` per position; *threshold* is the
     energy threshold from the same draws.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.limits import limit_energy_correlated
+    >>> noise = np.random.default_rng(0).standard_normal((20000, 30))
+    >>> energy = np.sum(noise ** 2, axis=1)
+    >>> x = np.eye(30)[:, :1]                       # one unit-norm signal direction
+    >>> lim = limit_energy_correlated(noise @ x, np.ones(1), energy,
+    ...                               np.quantile(energy, 0.99), 0.5)
+    >>> bool(abs(lim[0] - 4.66) < 0.2)             # sqrt(lambda) of ncx2 with 30 dof
+    True
     """
     pd = check_probability(pd, "P_D")
 

@@ -58,7 +58,7 @@ def detection_hdulist(result, *, header=None, inputs=()):
     for i, a in enumerate(result.meta.get("spectrum", []), 1):
         hdr[f"SPEC{i}"] = (float(a), "companion spectrum shape used for limits")
     hdr["NULLCHAN"] = (result.meta.get("null_channels", "independent"),
-                       "channel correlations in the null model and the B/E limits")
+                       "channel model: null, B/E limits")
     cals = result.meta.get("calibrators", [])
     hdr["CALIB"] = (len(cals) > 0, "calibrated with a calibrator star")
     for i, c in enumerate(cals, 1):
