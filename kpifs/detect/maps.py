@@ -37,7 +37,10 @@ __all__ = ["DetectionGrid", "DetectionModel"]
 
 log = logging.getLogger(__name__)
 
+# Monte-Carlo calibrations, most recent last; bounded so that a long-running
+# process (a batch worker) does not accumulate them
 _CALIBRATIONS = {}
+_MAX_CALIBRATIONS = 32
 
 
 class DetectionGrid:
@@ -338,6 +341,7 @@ class DetectionModel:
             raise KpifsError(f"unknown map test {form!r}: 'B', 'B-paper' or 'NP'")
         key = self._key(form, n_draws, seed, spectrum, noise_rows)
         if key in _CALIBRATIONS:
+            _CALIBRATIONS[key] = _CALIBRATIONS.pop(key)        # most recently used
             return _CALIBRATIONS[key]
         rng = as_rng(seed)
         q, p = len(self.wavelengths), self.kernel_model.n_kp
@@ -383,6 +387,8 @@ class DetectionModel:
             maxima[a:b] = best
         maxima.sort()
         _CALIBRATIONS[key] = maxima
+        while len(_CALIBRATIONS) > _MAX_CALIBRATIONS:
+            _CALIBRATIONS.pop(next(iter(_CALIBRATIONS)))
         return maxima
 
     def global_threshold(self, pfa, **kwargs):
