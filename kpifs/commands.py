@@ -190,8 +190,11 @@ def _info_cube(cube, args):
               "refuses (--nyquist raise)")
     else:
         print("  Nyquist: every channel is sampled well enough for every uv point")
-    print(f"  next: kpifs extract {cube.source[0]} --pupil {args.pupil} [--calibrator CAL] "
-          f"-o kp.fits")
+    given = [f"--{opt} {getattr(args, opt)}" for opt in ("instrument", "wavelengths", "pixscale")
+             if getattr(args, opt) not in (None, "auto")]
+    files = cube.source[0] if len(cube.source) == 1 else f"{cube.source[0]} ..."
+    print(f"  next: kpifs extract {files} {' '.join(given + [f'--pupil {args.pupil}'])} "
+          f"[--calibrator CAL] -o kp.fits")
 
 
 def cmd_simulate(args):
