@@ -254,7 +254,21 @@ class DetectionModel:
         companion of the given spectrum shape and unknown amplitude,
         ``sum_i a_i s_i^T y_i / ||s_a||`` (N(0, 1) under H0).
         """
-        z = self.z_maps(y)
+        return self._statistic(self.dot_maps(y), form, spectrum)
+
+    def maps(self, y, form="B", spectrum=None):
+        """Statistic, per-channel contrasts and their errors from one projection.
+
+        Returns ``(statistic, contrast, contrast_err)`` as `local_statistic` and
+        `contrast_maps` would, computing ``s_i^T y_i`` once.
+        """
+        d = self.dot_maps(y)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return self._statistic(d, form, spectrum), d / self.norm2, 1 / np.sqrt(self.norm2)
+
+    def _statistic(self, dot, form, spectrum):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            z = dot / np.sqrt(self.norm2)
         if form == "NP":
             t = np.sum(self._mf_weights(spectrum) * z, axis=-3)
         else:
@@ -427,8 +441,7 @@ class DetectionModel:
         stronger one are dropped (side lobes).
         """
         from scipy.ndimage import maximum_filter
-        t = self.local_statistic(y, form, spectrum)
-        c, err = self.contrast_maps(y)
+        t, c, err = self.maps(y, form, spectrum)
         step = max(abs(self.grid.step[0]), abs(self.grid.step[1]))
         if min_distance is None:
             diam = float(np.max(np.hypot(*self.kernel_model.uv.value.T)))

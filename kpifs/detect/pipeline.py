@@ -178,8 +178,7 @@ def detect(kpd, *, calibrator=None, test="B", pfa=1e-3, pd=0.5, grid=None, spect
                else None, noise_rows=rows)
     model.calibrate(progress=progress, **cal)
     threshold = model.global_threshold(pfa, **cal)
-    t = model.local_statistic(y, form, spectrum)
-    c, cerr = model.contrast_maps(y)
+    t, c, cerr = model.maps(y, form, spectrum)
     valid = grid.valid
     pglob = np.where(valid, model.global_pfa(t, **cal), np.nan)
     ploc = np.where(valid, model.local_pfa(t, form), np.nan)
