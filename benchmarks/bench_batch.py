@@ -11,9 +11,10 @@ from pathlib import Path
 
 import astropy.units as u
 
-from kpifs.batch import BatchEntry, BatchOptions, run_batch
+from kpifs.batch import BatchEntry, run_batch
 from kpifs.io.layouts import write_observation
 from kpifs.simulate import simulate_scene
+from kpifs.workflow import DetectOptions, ExtractOptions
 
 
 def main(argv=None):
@@ -28,11 +29,12 @@ def main(argv=None):
         files = write_observation(obs, root / f"obs{i}")
         entries.append(BatchEntry(name=f"obs{i}", target=[str(files["target"][0])],
                                   calibrators=[[str(files["calibrator"][0])]]))
-    opts = BatchOptions(draws=10000, step=0.6)
+    opts = dict(extract_options=ExtractOptions(step=0.6 * u.m),
+                detect_options=DetectOptions(draws=10000))
     rates = {}
     for workers in (1, 2):
         t0 = time.perf_counter()
-        table = run_batch(entries, root / f"out{workers}", options=opts, n_workers=workers,
+        table = run_batch(entries, root / f"out{workers}", **opts, n_workers=workers,
                           progress=False)
         dt = time.perf_counter() - t0
         assert all(table["status"] == "ok"), table

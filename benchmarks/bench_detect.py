@@ -14,7 +14,8 @@ import numpy as np
 import astropy.units as u
 
 from kpifs import KernelModel, make_pupil
-from kpifs.detect import DetectionGrid, DetectionModel
+from kpifs.data import DetectionGrid
+from kpifs.detect import DetectionModel, NullCalibration
 from kpifs.kernel import MAS
 
 
@@ -68,7 +69,7 @@ def main(argv=None):
     grid3 = DetectionGrid.from_separation(200 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
     dm3 = DetectionModel(km3, [1.52, 1.60, 1.68] * u.um, w3, grid3)
     t0 = time.perf_counter()
-    dm3.calibrate(form="B", n_draws=30000, seed=1)
+    NullCalibration(dm3, form="B", n_draws=30000, seed=1).draws
     t_cal = time.perf_counter() - t0
 
     print(f"precompute (norms of all signatures, once per covariance): {t_pre:.2f} s")

@@ -19,7 +19,7 @@ km = KernelModel.from_pupil(make_pupil("subaru"))
 cube = simulate_psf("subaru", wl, pixscale=10.42 * u.mas, shape=(64, 64),
                     companions=[([80, 60] * u.mas, 1e-2)])
 kpd = extract_kernel_phases(cube, km, wavelengths=wl, pixscale=10.42 * u.mas)
-w = np.exp(-((100 / 10.42) / kpd.meta["window_radius"]) ** 4)
+w = kpd.window.at(100.0, 10.42)   # the window's attenuation at the companion
 model = km.binary_kernel_phases([80, 60] * u.mas, 1e-2 * w, wl)
 
 fig, ax = plt.subplots(figsize=(8, 4))

@@ -2,25 +2,36 @@
 
 The pipeline runs pupil model -> kernel model -> extraction -> calibration
 -> detection. Each stage is one module; this package re-exports the main
-public objects.
+public objects. They are loaded on first use, so that ``import kpifs`` (and
+the command line's start) stays fast.
 """
-try:
-    from ._version import version as __version__
-except ImportError:  # pragma: no cover - only in a source tree never installed
-    __version__ = "0.0.0"
+import importlib
 
-from .exceptions import KpifsError, KpifsWarning  # noqa: F401
-from .pupil import PupilModel, make_pupil  # noqa: F401
-from .kernel import KernelModel  # noqa: F401
-from .extract import KernelPhaseData, extract_kernel_phases  # noqa: F401
+from ._meta import VERSION as __version__
 
-__all__ = [
-    "__version__",
-    "KpifsError",
-    "KpifsWarning",
-    "PupilModel",
-    "make_pupil",
-    "KernelModel",
-    "KernelPhaseData",
-    "extract_kernel_phases",
-]
+#: public name -> module that defines it
+_PUBLIC = {
+    "KpifsError": "exceptions",
+    "KpifsWarning": "exceptions",
+    "PupilModel": "pupil",
+    "make_pupil": "pupil",
+    "KernelModel": "kernel",
+    "ExtractionWindow": "window",
+    "KernelPhaseData": "data",
+    "DetectionResult": "data",
+    "extract_kernel_phases": "extract",
+}
+
+__all__ = ["__version__", *_PUBLIC]
+
+
+def __getattr__(name):
+    if name in _PUBLIC:
+        value = getattr(importlib.import_module(f".{_PUBLIC[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_PUBLIC))

@@ -1,12 +1,15 @@
-"""Small private helpers shared by several stages (units, safe FITS writing)."""
+"""Small private helpers shared by every stage: units, random generators, the one
+atomic writer and the one progress helper."""
 import os
 import re
+import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 from astropy import units as u
 
+from ._meta import VERSION
 from .exceptions import KpifsError
 
 __all__ = []
@@ -18,7 +21,7 @@ def to_quantity(value, unit, *, name="value"):
     """Return *value* as a `~astropy.units.Quantity` in *unit*.
 
     Accepts a Quantity, a plain number (taken to be in *unit*) or a string such
-    as ``"10.42mas"`` / ``"1.6um"`` / ``"0.38 m"``.
+    as ``"10.42mas"`` / ``"1.6um"`` / ``"0.38 m"`` (comma-separated for several).
     """
     if isinstance(value, str):
         parts = [p for p in value.split(",") if p.strip()]
@@ -29,7 +32,11 @@ def to_quantity(value, unit, *, name="value"):
             raise KpifsError(f"cannot read {name} {value!r}: expected a number with a unit, "
                              f"e.g. '1.6um' or '10.42mas'")
         number, unit_str = m.groups()
-        value = float(number) * (u.Unit(unit_str) if unit_str else u.Unit(unit))
+        try:
+            value = float(number) * (u.Unit(unit_str) if unit_str else u.Unit(unit))
+        except ValueError:
+            raise KpifsError(f"cannot read {name} {value!r}: unknown unit {unit_str!r}") \
+                from None
     try:
         q = u.Quantity(value, unit)
     except u.UnitConversionError as exc:
@@ -45,7 +52,7 @@ def as_rng(seed):
 
 
 def check_output_path(path, *, overwrite=False):
-    """Refuse an existing output (unless *overwrite*) and a directory."""
+    """Refuse an existing output (unless *overwrite*), a directory and a missing folder."""
     path = Path(path)
     if path.is_dir():
         raise KpifsError(f"{path}: is a directory, expected an output file name")
@@ -56,11 +63,19 @@ def check_output_path(path, *, overwrite=False):
     return path
 
 
-def write_hdulist(hdul, path, *, overwrite=False, inputs=()):
-    """Write *hdul* to *path* atomically (temporary name, then rename).
+def _new_file_mode():
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
 
-    An existing *path* is replaced only with ``overwrite=True``; an input file is
-    never overwritten, even then.
+
+def atomic_write(path, write, *, overwrite=False, inputs=()):
+    """Write a file through ``write(temporary_path)``, then rename it to *path*.
+
+    The one way kpifs writes an output: an existing *path* is replaced only
+    with ``overwrite=True``, an input file never (even then), nothing is left
+    behind when *write* fails, and the file gets the permissions of any new
+    file (the umask's).
     """
     path = check_output_path(path, overwrite=overwrite)
     for inp in inputs:
@@ -72,14 +87,42 @@ def write_hdulist(hdul, path, *, overwrite=False, inputs=()):
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
-        hdul.writeto(tmp, overwrite=True, checksum=True)
-        # mkstemp makes the file private; give it the permissions of any new file
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
+        write(tmp)
+        os.chmod(tmp, _new_file_mode())
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.remove(tmp)
         raise
     return path
+
+
+def write_hdulist(hdul, path, *, overwrite=False, inputs=()):
+    """Write *hdul* to *path* atomically, with CHECKSUM/DATASUM cards."""
+    return atomic_write(path, lambda tmp: hdul.writeto(tmp, overwrite=True, checksum=True),
+                        overwrite=overwrite, inputs=inputs)
+
+
+def write_table(table, path, *, overwrite=False, format="ascii.ecsv"):
+    """Write an astropy table atomically (ECSV by default)."""
+    return atomic_write(path, lambda tmp: table.write(tmp, format=format, overwrite=True),
+                        overwrite=overwrite)
+
+
+def progress(iterable, *, desc=None, unit="it", total=None, enabled=True):
+    """*iterable* with a tqdm progress bar on stderr, or unchanged.
+
+    The bar is shown only when *enabled* and stderr is a terminal, so logs
+    and pipes get no bar updates.
+    """
+    if not enabled or not getattr(sys.stderr, "isatty", lambda: False)():
+        return iterable
+    from tqdm.auto import tqdm   # deferred: tqdm is only needed when a bar is shown
+    return tqdm(iterable, desc=desc, unit=unit, total=total)
+
+
+def version_cards(header, what):
+    """Add the kpifs version card and a HISTORY line saying *what* was done."""
+    header["KPIFSVER"] = (VERSION, "kpifs version")
+    header.add_history(f"kpifs {VERSION}: {what}")
+    return header

@@ -6,7 +6,9 @@ star(s). Entries come from a manifest (CSV or ECSV; columns ``name``,
 ``pixscale``; several files in one cell are separated by ``;``, several
 calibrator stars by ``|``) or from a glob with one calibrator rule.
 
-Each entry writes ``OUTDIR/<name>/calibrated_kp.fits`` and
+Each entry is reduced by `kpifs.workflow.process_observation` with the same
+`~kpifs.workflow.ExtractOptions` and `~kpifs.workflow.DetectOptions` as the
+command line, and writes ``OUTDIR/<name>/calibrated_kp.fits`` and
 ``OUTDIR/<name>/detection.fits``; ``OUTDIR/summary.ecsv`` lists every entry
 with its status, candidates and limits. An entry whose ``detection.fits``
 exists is skipped (a rerun resumes), unless ``overwrite=True``. A failure is
@@ -15,23 +17,26 @@ recorded for its entry and does not stop the others.
 Dask is an optional dependency (``pip install kpifs[batch]``), imported only
 when a batch runs.
 """
+import dataclasses
 import glob
 import logging
 import time
 import traceback
 import warnings
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from astropy import units as u
 from astropy.table import Table
 
-from ._utils import to_quantity
+from ._utils import progress as progress_bar
+from ._utils import write_table
+from .data import DetectionResult
 from .exceptions import KpifsError
+from .workflow import DetectOptions, ExtractOptions, process_observation
 
-__all__ = ["BatchEntry", "BatchOptions", "read_manifest", "entries_from_glob",
-           "process_entry", "run_batch"]
+__all__ = ["BatchEntry", "read_manifest", "entries_from_glob", "process_entry", "run_batch"]
 
 log = logging.getLogger(__name__)
 
@@ -54,29 +59,6 @@ class BatchEntry:
     instrument: str = "auto"
     wavelengths: str = None
     pixscale: str = None
-
-
-@dataclass
-class BatchOptions:
-    """Options shared by every entry (see `~kpifs.detect.detect`).
-
-    Examples
-    --------
-    >>> from kpifs.batch import BatchOptions
-    >>> BatchOptions(pfa=1e-4).test
-    'B'
-    """
-
-    test: str = "B"
-    pfa: float = 1e-3
-    pd: float = 0.5
-    draws: int = 20000
-    seed: int = 0
-    pupil: str = None
-    step: float = 0.38
-    window: int = None
-    overwrite: bool = False
-    extra: dict = field(default_factory=dict)
 
 
 def _split(cell, sep=";"):
@@ -161,7 +143,16 @@ def entries_from_glob(pattern, calibrator):
             for f in files]
 
 
-def process_entry(entry, options, outdir):
+def _entry_options(entry, extract_options):
+    """The entry's own reading options (manifest columns) over the shared ones."""
+    changes = {k: getattr(entry, k) for k in ("wavelengths", "pixscale")
+               if getattr(entry, k) is not None}
+    if entry.instrument not in (None, "auto"):
+        changes["instrument"] = entry.instrument
+    return dataclasses.replace(extract_options, **changes)
+
+
+def process_entry(entry, extract_options, detect_options, outdir, *, overwrite=False):
     """Extraction, calibration and detection of one entry; never raises.
 
     Returns a dict: ``name``, ``status`` ('ok', 'skipped' or 'failed'),
@@ -171,9 +162,10 @@ def process_entry(entry, options, outdir):
     Examples
     --------
     >>> import tempfile
-    >>> from kpifs.batch import BatchEntry, BatchOptions, process_entry
-    >>> row = process_entry(BatchEntry("x", ["missing.fits"], [["cal.fits"]]), BatchOptions(),
-    ...                     tempfile.mkdtemp())
+    >>> from kpifs.batch import BatchEntry, process_entry
+    >>> from kpifs.workflow import DetectOptions, ExtractOptions
+    >>> row = process_entry(BatchEntry("x", ["missing.fits"], [["cal.fits"]]),
+    ...                     ExtractOptions(), DetectOptions(), tempfile.mkdtemp())
     >>> row["status"], "missing.fits" in row["message"]
     ('failed', True)
     """
@@ -184,29 +176,24 @@ def process_entry(entry, options, outdir):
            "best_pfa_global": np.nan, "best_contrast": np.nan, "limit_median": np.nan,
            "seconds": 0.0}
     det_path = out / "detection.fits"
-    if det_path.exists() and not options.overwrite:
+    if det_path.exists() and not overwrite:
         row.update(status="skipped", message="done earlier (detection.fits exists)")
         try:
-            _summarise_products(det_path, row)
+            _summarise(DetectionResult.read(det_path), row)
         except Exception as exc:  # a damaged earlier product: say so, keep going
             row.update(status="failed", message=f"earlier detection.fits unreadable: {exc}")
         return row
     try:
+        if not entry.calibrators:
+            raise KpifsError(f"{entry.name}: no calibrator")
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            res = _run_entry(entry, options, out)
+            res = process_observation(entry.target, entry.calibrators, out,
+                                      extract_options=_entry_options(entry, extract_options),
+                                      detect_options=detect_options, overwrite=True)["result"]
         row["message"] = "; ".join(sorted({str(w.message)[:160] for w in caught}))
-        row.update(status="ok", n_candidates=len(res.candidates),
-                   limit_median=float(np.nanmedian(res.limit)))
-        if len(res.candidates):
-            best = res.candidates[0]
-            row.update(best_x=float(best["x"].to_value(u.mas)),
-                       best_y=float(best["y"].to_value(u.mas)),
-                       best_separation=float(best["separation"].to_value(u.mas)),
-                       best_pfa_global=float(best["pfa_global"]),
-                       best_contrast=float(np.mean(best["fit_contrast"]
-                                                   if "fit_contrast" in best.colnames
-                                                   else best["contrast"])))
+        row["status"] = "ok"
+        _summarise(res, row)
     except Exception as exc:  # one entry's failure must not stop the batch
         row["message"] = f"{type(exc).__name__}: {exc}"
         if not isinstance(exc, (KpifsError, OSError)):
@@ -215,11 +202,10 @@ def process_entry(entry, options, outdir):
     return row
 
 
-def _summarise_products(path, row):
-    from .io.products import read_detection
-    d = read_detection(path)
-    cand = d["CANDIDATES"]
-    row.update(n_candidates=len(cand), limit_median=float(np.nanmedian(d["LIMIT"])))
+def _summarise(result, row):
+    """Fill *row* with a detection result's strongest candidate and median limit."""
+    cand = result.candidates
+    row.update(n_candidates=len(cand), limit_median=float(np.nanmedian(result.limit)))
     if len(cand):
         best = cand[0]
         key = "fit_contrast" if "fit_contrast" in cand.colnames else "contrast"
@@ -230,54 +216,33 @@ def _summarise_products(path, row):
                    best_contrast=float(np.mean(best[key])))
 
 
-def _run_entry(entry, options, out):
-    from .calibrate import calibrate
-    from .detect import detect
-    from .extract import extract_kernel_phases
-    from .io import read_cube
-    from .io.products import write_detection
-    from .kernel import load_kernel_model
-    wl = None
-    if entry.wavelengths:
-        from .commands import parse_wavelengths
-        wl = parse_wavelengths(entry.wavelengths)
-    ps = None if entry.pixscale is None else to_quantity(entry.pixscale, u.mas,
-                                                         name="pixel scale")
-    if not entry.calibrators:
-        raise KpifsError(f"{entry.name}: no calibrator")
-
-    def extract(files, km=None):
-        with read_cube(files, instrument=entry.instrument, wavelengths=wl,
-                       pixscale=ps) as cube:
-            if km is None:
-                pupil = options.pupil or {"charis": "subaru", "sphere": "vlt"}.get(
-                    cube.instrument, "subaru")
-                km = load_kernel_model(pupil, step=options.step * u.m)
-            return extract_kernel_phases(cube.data, km, wavelengths=cube.wavelengths,
-                                         pixscale=cube.pixscale, window_size=options.window,
-                                         header=cube.header, source=cube.name), km
-
-    target, km = extract(entry.target)
-    cals = [extract(files, km)[0] for files in entry.calibrators]
-    cal = calibrate(target, cals)
-    out.mkdir(parents=True, exist_ok=True)
-    cal.write(out / "calibrated_kp.fits", overwrite=True, inputs=entry.target)
-    res = detect(cal, test=options.test, pfa=options.pfa, pd=options.pd,
-                 n_draws=options.draws, seed=options.seed)
-    write_detection(res, out / "detection.fits", header=cal.header,
-                    inputs=[str(out / "calibrated_kp.fits")], overwrite=True)
-    return res
+def _plain(options):
+    """Options as a dict of plain values (for the summary's metadata)."""
+    out = {}
+    for k, v in dataclasses.asdict(options).items():
+        if isinstance(v, u.Quantity):
+            v = str(v)
+        elif isinstance(v, np.ndarray):
+            v = v.tolist()
+        if isinstance(v, (int, float, str, bool, list, type(None))):
+            out[k] = v
+    return out
 
 
-def run_batch(entries, outdir, *, options=None, scheduler=None, n_workers=2,
-              processes=True, progress=True):
+def run_batch(entries, outdir, *, extract_options=None, detect_options=None, overwrite=False,
+              scheduler=None, n_workers=2, processes=True, progress=True):
     """Process *entries* on Dask; write and return the summary table.
 
     Parameters
     ----------
     entries : list of `BatchEntry`
     outdir : str or Path
-    options : `BatchOptions`
+    extract_options : `~kpifs.workflow.ExtractOptions`
+        How every entry's cubes are reduced (as ``kpifs extract`` would).
+    detect_options : `~kpifs.workflow.DetectOptions`
+        How every entry is searched (as ``kpifs detect`` would).
+    overwrite : bool
+        Redo entries already done (default: skip them, resuming a run).
     scheduler : str, optional
         Address of a running Dask scheduler; default a local cluster of
         *n_workers* single-threaded workers.
@@ -286,7 +251,7 @@ def run_batch(entries, outdir, *, options=None, scheduler=None, n_workers=2,
         tests, one thread (entries then run one at a time: recording each
         entry's warnings is process-wide in Python).
     progress : bool
-        A tqdm progress bar over finished entries.
+        A progress bar over finished entries (on a terminal).
 
     Returns
     -------
@@ -307,7 +272,8 @@ def run_batch(entries, outdir, *, options=None, scheduler=None, n_workers=2,
         from dask.distributed import Client, LocalCluster, as_completed
     except ImportError:
         raise KpifsError("kpifs batch needs Dask: pip install 'kpifs[batch]'") from None
-    options = options or BatchOptions()
+    xo = extract_options or ExtractOptions()
+    do = detect_options or DetectOptions()
     outdir = Path(outdir)
     if outdir.exists() and not outdir.is_dir():
         raise KpifsError(f"{outdir}: exists and is not a directory")
@@ -324,16 +290,10 @@ def run_batch(entries, outdir, *, options=None, scheduler=None, n_workers=2,
         client = Client(scheduler)
     rows = []
     try:
-        futures = [client.submit(process_entry, e, options, str(outdir), key=f"kpifs-{e.name}",
-                                 pure=False) for e in entries]
-        done = as_completed(futures)
-        if progress:
-            try:
-                from tqdm.auto import tqdm
-                done = tqdm(done, total=len(futures), desc="batch", unit="entry")
-            except ImportError:
-                pass
-        for fut in done:
+        futures = [client.submit(process_entry, e, xo, do, str(outdir), overwrite=overwrite,
+                                 key=f"kpifs-{e.name}", pure=False) for e in entries]
+        for fut in progress_bar(as_completed(futures), total=len(futures), desc="batch",
+                                unit="entry", enabled=progress):
             rows.append(fut.result())
     finally:
         client.close()
@@ -342,8 +302,7 @@ def run_batch(entries, outdir, *, options=None, scheduler=None, n_workers=2,
     order = {n: i for i, n in enumerate(names)}
     rows.sort(key=lambda r: order[r["name"]])
     table = Table(rows=[[r[k] for k in rows[0]] for r in rows], names=list(rows[0]))
-    table.meta.update({"options": {k: v for k, v in asdict(options).items()
-                                   if isinstance(v, (int, float, str, bool, type(None)))},
+    table.meta.update({"extract_options": _plain(xo), "detect_options": _plain(do),
                        "n_entries": len(rows)})
     for col in ("best_x", "best_y", "best_separation"):
         table[col].unit = u.mas
@@ -352,10 +311,4 @@ def run_batch(entries, outdir, *, options=None, scheduler=None, n_workers=2,
 
 
 def _write_summary(table, path):
-    import os
-    import tempfile
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".ecsv")
-    os.close(fd)
-    table.write(tmp, format="ascii.ecsv", overwrite=True)
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, path)
+    write_table(table, path, overwrite=True)

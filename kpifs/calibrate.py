@@ -6,13 +6,14 @@ mean(calibrator)`` per channel, with covariance
 one frame, estimated from the frames; ``N`` the numbers of frames).
 """
 import logging
+import warnings
 
 import numpy as np
 from astropy import units as u
 
 from .covariance import calibrated_covariance, empirical_covariance, hartlap_factor
-from .exceptions import KpifsError
-from .extract import KernelPhaseData
+from .data import KernelPhaseData
+from .exceptions import KpifsError, KpifsWarning
 
 __all__ = ["calibrate", "check_compatible"]
 
@@ -144,7 +145,8 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True
     log.info("calibrated %s (%d frames) with %d calibrator(s)", _name(target), n_t,
              len(calibrators))
     return KernelPhaseData((t_mean - c_mean)[None], target.wavelengths, target.pixscale,
-                           target.kernel_model, covariance=cov, joint_covariance=jcov,
+                           target.kernel_model, window=target.window, covariance=cov,
+                           joint_covariance=jcov,
                            covariance_rows=rows, header=target.header,
                            bandwidth=target.bandwidth, meta=meta)
 
@@ -158,8 +160,6 @@ def _effective_hartlap(covs, frames, dim, source):
     ``nu / (nu - p - 1)`` (`~kpifs.covariance.hartlap_factor` with ``N - 1 = nu``).
     Shrunk covariances (frames <= p) are not debiased.
     """
-    import warnings
-    from .exceptions import KpifsWarning
     m = len(covs) - 1
     if any(n <= dim + 2 for n in frames):
         return 1.0

@@ -22,7 +22,7 @@ from astropy import units as u
 
 from ._utils import to_quantity
 from .exceptions import KpifsError, KpifsWarning
-from .prepare import cut_out, window_weights
+from .prepare import cut_out
 
 __all__ = ["empirical_covariance", "ledoit_wolf", "hartlap_factor", "propagated_covariance",
            "whitening_matrix", "whiten", "calibrated_covariance"]
@@ -286,7 +286,7 @@ def whiten(kp, w):
 
 
 def propagated_covariance(images, variance, kernel_model, *, wavelengths, pixscale, centres,
-                          window_size, window_radius, window_order=4):
+                          window):
     """Photon and read noise propagated through the linear extraction, for one frame.
 
     To first order ``dphi_b = Im(dV_b / V_b)`` with ``dV = M (w dI)``; with
@@ -303,8 +303,8 @@ def propagated_covariance(images, variance, kernel_model, *, wavelengths, pixsca
         As for `~kpifs.extract_kernel_phases`.
     centres : array-like, shape (nwave, 2) or (2,)
         Star centres ``(x, y)``.
-    window_size, window_radius, window_order
-        The extraction's window (``kpd.meta`` holds them).
+    window : `~kpifs.window.ExtractionWindow`
+        The extraction's window (``kpd.window``).
 
     Returns
     -------
@@ -313,15 +313,15 @@ def propagated_covariance(images, variance, kernel_model, *, wavelengths, pixsca
     Examples
     --------
     >>> import astropy.units as u
-    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs import ExtractionWindow, KernelModel, make_pupil
     >>> from kpifs.covariance import propagated_covariance
     >>> from kpifs.simulate import simulate_psf
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     >>> img = 1e6 * simulate_psf("subaru", [1.6] * u.um, pixscale=10.42 * u.mas,
     ...                          shape=(32, 32), npup=48)
     >>> cov = propagated_covariance(img, img + 100, km, wavelengths=[1.6] * u.um,
-    ...                             pixscale=10.42 * u.mas, centres=(16, 16), window_size=32,
-    ...                             window_radius=12.8)
+    ...                             pixscale=10.42 * u.mas, centres=(16, 16),
+    ...                             window=ExtractionWindow(32, 12.8))
     >>> cov.shape
     (1, 44, 44)
     """
@@ -334,14 +334,14 @@ def propagated_covariance(images, variance, kernel_model, *, wavelengths, pixsca
                          f"(nwave={len(wl)}, ny, nx)")
     centres = np.broadcast_to(np.asarray(centres, float), (len(wl), 2))
     km = kernel_model
-    ws = int(window_size)
+    ws = window.size
     out = np.empty((len(wl), km.n_kp, km.n_kp))
     for i in range(len(wl)):
         img = np.nan_to_num(images[i:i + 1])
         var = np.nan_to_num(variance[i:i + 1], nan=0.0, posinf=0.0)
         cut, delta = cut_out(img, centres[i:i + 1], ws)
         vcut, _ = cut_out(var, centres[i:i + 1], ws)
-        w = window_weights(delta, ws, window_radius, window_order)[0].ravel()
+        w = window.weights(delta)[0].ravel()
         mat = km.dft_matrix(wl[i], ps, (ws, ws))
         iw = cut[0].ravel() * w
         ri = mat @ iw

@@ -2,7 +2,9 @@
 
 simulate (CHARIS pipeline layout: target with a companion, calibrator) -> read
 with the CHARIS reader -> extract kernel phases (22 channels) -> calibrate ->
-detect (GLR binary test, calibrated grid search) -> detection FITS and figures.
+detect (GLR binary test, calibrated grid search) -> detection FITS and figures,
+all through `kpifs.workflow.process_observation`, as ``kpifs batch`` and the
+``extract``/``detect`` commands would.
 """
 import logging
 from pathlib import Path
@@ -11,8 +13,12 @@ import numpy as np
 from astropy import units as u
 
 from .exceptions import KpifsError
+from .io.layouts import write_observation
+from .plotting import save_detection_plots
+from .simulate import simulate_scene
+from .workflow import DetectOptions, ExtractOptions, process_observation
 
-__all__ = ["run_demo", "DEMO_SCENE"]
+__all__ = ["run_demo", "DEMO_SCENE", "DEMO_STEP"]
 
 log = logging.getLogger(__name__)
 
@@ -29,23 +35,23 @@ DEMO_STEP = 0.8 * u.m
 
 
 def run_demo(outdir, *, frames=200, seed=1, overwrite=False, progress=True, draws=20000):
-    """Run the demonstration; returns the `~kpifs.detect.DetectionResult`.
+    """Run the demonstration; returns the `~kpifs.data.DetectionResult`.
 
     Writes in *outdir*: ``charis/target/*_cube.fits`` and
     ``charis/calibrator/*_cube.fits`` (simulated), ``target_kp.fits`` and
     ``calibrator_kp.fits`` (KPFITS), ``calibrated_kp.fits``, ``detection.fits``
     and ``figures/*.png``.
-    """
-    from .calibrate import calibrate
-    from .detect import detect
-    from .extract import extract_kernel_phases
-    from .io import read_cube, write_observation
-    from .io.products import write_detection
-    from .kernel import KernelModel
-    from .plotting import save_detection_plots
-    from .pupil import make_pupil
-    from .simulate import simulate_scene
 
+    Examples
+    --------
+    >>> import tempfile, warnings
+    >>> from kpifs.demo import run_demo
+    >>> with warnings.catch_warnings():
+    ...     warnings.simplefilter("ignore")    # 20 frames: kpifs warns the null is optimistic
+    ...     res = run_demo(tempfile.mkdtemp(), frames=20, draws=500, progress=False)
+    >>> res.test, len(res.wavelengths)
+    ('B', 22)
+    """
     outdir = Path(outdir)
     if outdir.exists() and not outdir.is_dir():
         raise KpifsError(f"{outdir}: exists and is not a directory")
@@ -54,36 +60,25 @@ def run_demo(outdir, *, frames=200, seed=1, overwrite=False, progress=True, draw
     outdir.mkdir(parents=True, exist_ok=True)
     say = print if progress else (lambda *a, **k: None)
 
-    say(f"[1/5] simulating {frames} CHARIS exposures of a target and of a calibrator")
+    say(f"[1/4] simulating {frames} CHARIS exposures of a target and of a calibrator")
     obs = simulate_scene("charis", n_frames=frames, seed=seed, progress=progress, **DEMO_SCENE)
     files = write_observation(obs, outdir / "charis", layout="charis", overwrite=overwrite)
 
-    say("[2/5] reading the cubes and extracting kernel phases")
-    km = KernelModel.from_pupil(make_pupil("subaru", step=DEMO_STEP))
-    kpds = {}
-    for role in ("target", "calibrator"):
-        with read_cube(files[role]) as cube:
-            kpds[role] = extract_kernel_phases(cube.data, km, wavelengths=cube.wavelengths,
-                                               pixscale=cube.pixscale, header=cube.header,
-                                               source=cube.name, progress=progress)
-        kpds[role].write(outdir / f"{role}_kp.fits", overwrite=overwrite,
-                         inputs=[str(f) for f in files[role]])
+    say(f"[2/4] reading, extracting, calibrating and searching (GLR test, {draws} "
+        f"Monte-Carlo draws)")
+    out = process_observation(files["target"], [files["calibrator"]], outdir,
+                              extract_options=ExtractOptions(step=DEMO_STEP),
+                              detect_options=DetectOptions(test="B", pfa=1e-3, pd=0.5,
+                                                           draws=draws, seed=seed),
+                              overwrite=overwrite, keep_stars=True, progress=progress)
+    res = out["result"]
 
-    say("[3/5] calibrating the target with the calibrator")
-    cal = calibrate(kpds["target"], kpds["calibrator"])
-    cal.write(outdir / "calibrated_kp.fits", overwrite=overwrite,
-              inputs=[str(f) for f in files["target"]])
-
-    say(f"[4/5] searching for companions (GLR test, {draws} Monte-Carlo draws)")
-    res = detect(cal, test="B", pfa=1e-3, pd=0.5, n_draws=draws, seed=seed, progress=progress)
-    write_detection(res, outdir / "detection.fits", header=cal.header,
-                    inputs=[str(outdir / "calibrated_kp.fits")], overwrite=overwrite)
-
-    say("[5/5] drawing figures")
+    say("[3/4] drawing figures")
     truth = tuple(obs.params.companion_offset.to_value(u.mas))
     save_detection_plots(res, outdir / "figures", truth=truth,
                          truth_spectrum=obs.params.contrasts)
-    say(f"truth: companion at ({truth[0]:.0f}, {truth[1]:.0f}) mas, mean contrast "
+
+    say(f"[4/4] truth: companion at ({truth[0]:.0f}, {truth[1]:.0f}) mas, mean contrast "
         f"{obs.params.contrasts.mean():.1e}")
     for row in res.candidates:
         x, dx = row["fit_x"].to_value(u.mas), row["fit_x_err"].to_value(u.mas)

@@ -16,10 +16,11 @@ import warnings
 import numpy as np
 from astropy import units as u
 from astropy.io import fits
-from astropy.table import Table
 
+from ._registry import io_methods, register
 from ._utils import to_quantity, write_hdulist
 from .exceptions import KpifsError, KpifsWarning
+from .io.kpfits import has_kernel_model, model_hdulist, read_model_parts
 from .pupil import PupilModel, make_pupil
 
 __all__ = ["KernelModel", "nyquist_usable", "load_kernel_model"]
@@ -338,76 +339,42 @@ class KernelModel:
         return phi @ self.kernel.T
 
     # --- FITS -------------------------------------------------------------
-    def to_hdus(self):
-        """The KPFITS model extensions: APERTURE, UV-PLANE, KER-MAT, BLM-MAT."""
-        ap = Table([self.pupil.xy.value[:, 0], self.pupil.xy.value[:, 1],
-                    self.pupil.transmission], names=("XXC", "YYC", "TRM"))
-        ap["XXC"].unit = ap["YYC"].unit = "m"
-        hap = fits.BinTableHDU(ap, name="APERTURE")
-        hap.header["PUPNAME"] = (self.pupil.name[:60], "pupil model name")
-        if self.pupil.step is not None:
-            hap.header["STEP"] = (self.pupil.step.to_value(u.m), "[m] grid step")
-        uvt = Table([self._uv[:, 0], self._uv[:, 1], self.redundancy], names=("UUC", "VVC", "RED"))
-        uvt["UUC"].unit = uvt["VVC"].unit = "m"
-        huv = fits.BinTableHDU(uvt, name="UV-PLANE")
-        hk = fits.ImageHDU(self.kernel, name="KER-MAT")
-        hk.header["RANK"] = (self.rank, "rank of the phase-transfer matrix")
-        hb = fits.ImageHDU(self.blm, name="BLM-MAT")
-        hb.header["COMMENT"] = "baseline-mapping matrix A; phase transfer = A / RED"
-        return [hap, huv, hk, hb]
-
     @classmethod
     def from_hdulist(cls, hdul, *, source="<memory>"):
-        """Read the model extensions of a KPFITS file (see `to_hdus`)."""
-        try:
-            ap = hdul["APERTURE"].data
-            uvt = hdul["UV-PLANE"].data
-            kmat = np.array(hdul["KER-MAT"].data, float)
-        except KeyError as exc:
-            raise KpifsError(f"{source}: not a kernel model: missing extension {exc}") from None
-        trm = np.array(ap["TRM"], float) if "TRM" in ap.names else np.ones(len(ap))
-        step = hdul["APERTURE"].header.get("STEP")
-        pup = PupilModel(np.column_stack([ap["XXC"], ap["YYC"]]), trm,
-                         step=step, name=hdul["APERTURE"].header.get("PUPNAME", source))
-        uv = np.column_stack([uvt["UUC"], uvt["VVC"]])
-        red = np.array(uvt["RED"], float)
-        if "BLM-MAT" in hdul:
-            blm = np.array(hdul["BLM-MAT"].data, float)
-        else:  # rebuild A from the aperture (files of other tools may omit it)
-            blm = cls.from_pupil(pup).blm
-            if blm.shape[0] != len(uv):
-                raise KpifsError(f"{source}: no BLM-MAT and the aperture does not reproduce "
-                                 f"the {len(uv)} uv points")
-        if kmat.shape[1] != len(uv):
-            raise KpifsError(f"{source}: KER-MAT has {kmat.shape[1]} columns but UV-PLANE "
-                             f"has {len(uv)} rows")
-        rank = hdul["KER-MAT"].header.get("RANK")
-        return cls(pup, uv, red, blm, kmat, rank=rank, meta={"source": str(source)})
+        """Build the model from the KPFITS model extensions of an open file."""
+        return cls.from_parts(read_model_parts(hdul, source=source), source=source)
 
     @classmethod
-    def read(cls, path):
-        """Read a kernel model from a FITS file (KPFITS model extensions)."""
-        try:
-            with fits.open(path, memmap=False) as hdul:
-                return cls.from_hdulist(hdul, source=path)
-        except (OSError, TypeError) as exc:
-            raise KpifsError(f"{path}: cannot read kernel model: {exc}") from None
+    def from_parts(cls, parts, *, source="<memory>"):
+        """Build the model from the arrays of `kpifs.io.kpfits.read_model_parts`."""
+        pup = PupilModel(parts["xy"], parts["transmission"], step=parts["step"],
+                         name=parts["name"])
+        blm = parts["blm"]
+        if blm is None:  # rebuild A from the aperture (files of other tools may omit it)
+            blm = cls.from_pupil(pup).blm
+            if blm.shape[0] != len(parts["uv"]):
+                raise KpifsError(f"{source}: no BLM-MAT and the aperture does not reproduce "
+                                 f"the {len(parts['uv'])} uv points")
+        return cls(pup, parts["uv"], parts["redundancy"], blm, parts["kernel"],
+                   rank=parts["rank"], meta={"source": str(source)})
 
-    def write(self, path, *, overwrite=False):
-        """Write the model to FITS (KPFITS1 layout, model extensions only)."""
-        from . import __version__
-        hdr = fits.Header()
-        hdr["CONTENT"] = ("KPFITS1", "kernel-phase FITS exchange format")
-        hdr["PROCSOFT"] = (f"kpifs {__version__}", "software that wrote this file")
-        hdr["KPIFSVER"] = (__version__, "kpifs version")
-        hdr["NSUB"] = (self.pupil.n_sub, "number of sub-apertures")
-        hdr["NUV"] = (self.n_uv, "number of uv points")
-        hdr["NKP"] = (self.n_kp, "number of kernel phases")
-        if "diameter_m" in self.pupil.meta:
-            hdr["DIAM"] = (self.pupil.meta["diameter_m"], "[m] pupil diameter")
-        hdr["HISTORY"] = f"kpifs {__version__}: kernel model of pupil {self.pupil.name}"
-        hdul = fits.HDUList([fits.PrimaryHDU(header=hdr), *self.to_hdus()])
-        return write_hdulist(hdul, path, overwrite=overwrite)
+    _io_format = "kpfits-model"
+    read, write = io_methods("KernelModel")
+
+
+def _read_model(path):
+    try:
+        with fits.open(path, memmap=False) as hdul:
+            return KernelModel.from_hdulist(hdul, source=path)
+    except (OSError, TypeError) as exc:
+        raise KpifsError(f"{path}: cannot read kernel model: {exc}") from None
+
+
+def _write_model(model, path, *, overwrite=False):
+    return write_hdulist(model_hdulist(model), path, overwrite=overwrite)
+
+
+register(KernelModel, "kpfits-model", reader=_read_model, writer=_write_model)
 
 
 def load_kernel_model(pupil="subaru", *, pupil_scale=None, **pupil_options):
@@ -428,14 +395,6 @@ def load_kernel_model(pupil="subaru", *, pupil_scale=None, **pupil_options):
     if isinstance(pupil, PupilModel):
         return KernelModel.from_pupil(pupil)
     key = str(pupil)
-    if key.lower().endswith((".fits", ".fit", ".fits.gz")):
-        try:
-            with fits.open(key) as hdul:
-                is_model = "KER-MAT" in hdul
-        except FileNotFoundError:
-            raise KpifsError(f"{key}: pupil file not found") from None
-        except OSError as exc:
-            raise KpifsError(f"{key}: cannot read: {exc}") from None
-        if is_model:
-            return KernelModel.read(key)
+    if key.lower().endswith((".fits", ".fit", ".fits.gz")) and has_kernel_model(key):
+        return KernelModel.read(key)
     return KernelModel.from_pupil(make_pupil(pupil, pupil_scale=pupil_scale, **pupil_options))

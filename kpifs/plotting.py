@@ -1,14 +1,30 @@
 """Figures: detection map with candidates, contrast curves, candidate spectrum, ROC curves.
 
 Every function takes an optional matplotlib ``ax`` and returns the figure, so
-figures can be composed or saved by the caller; `save_detection_plots` writes
-the standard set as PNG files.
+figures can be composed or saved by the caller; `save_detection_plots` and
+`save_roc_plots` write the standard sets as PNG files (atomically, like every
+kpifs output). matplotlib is imported when a figure is drawn, not before.
 """
+from pathlib import Path
+
 import numpy as np
 from astropy import units as u
 
+from ._utils import atomic_write
+
 __all__ = ["plot_detection_map", "plot_contrast_curves", "plot_candidate_spectrum",
-           "plot_roc", "save_detection_plots"]
+           "plot_roc", "save_detection_plots", "save_roc_plots"]
+
+
+def _save(fig, path, *, dpi=100):
+    """Write *fig* as PNG at *path* atomically and close it."""
+    import matplotlib.pyplot as plt
+    fig.tight_layout()
+    try:
+        atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=dpi, format="png"), overwrite=True)
+    finally:
+        plt.close(fig)
+    return Path(path)
 
 
 def _axes(ax, figsize=(5.5, 4.5)):
@@ -139,20 +155,40 @@ def save_detection_plots(result, outdir, *, truth=None, truth_spectrum=None):
     >>> [p.name for p in save_detection_plots(_example_result(), tempfile.mkdtemp())]
     ['detection_map.png', 'contrast_curves.png', 'candidate_spectrum.png']
     """
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from pathlib import Path
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for name, fig in (("detection_map", plot_detection_map(result, truth=truth)),
-                      ("contrast_curves", plot_contrast_curves(result)),
-                      ("candidate_spectrum", plot_candidate_spectrum(result,
-                                                                     truth=truth_spectrum))):
-        p = outdir / f"{name}.png"
-        fig.tight_layout()
-        fig.savefig(p, dpi=100)
-        plt.close(fig)
-        paths.append(p)
+    return [_save(fig, outdir / f"{name}.png") for name, fig in (
+        ("detection_map", plot_detection_map(result, truth=truth)),
+        ("contrast_curves", plot_contrast_curves(result)),
+        ("candidate_spectrum", plot_candidate_spectrum(result, truth=truth_spectrum)))]
+
+
+def save_roc_plots(curves, outdir):
+    """Write roc.png (every test, one panel per channel set) and roc_np_channels.png.
+
+    *curves* is the second output of `~kpifs.detect.roc.paper_experiment`:
+    ``{channel set: {test: (pfa, pd), 'test theory': (pfa, pd)}}``.
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np
+    >>> from kpifs.plotting import save_roc_plots
+    >>> c = (np.logspace(-3, 0, 5), np.linspace(0.5, 1, 5))
+    >>> [p.name for p in save_roc_plots({"all": {"NP": c, "NP theory": c}}, tempfile.mkdtemp())]
+    ['roc.png', 'roc_np_channels.png']
+    """
+    import matplotlib.pyplot as plt
+    outdir = Path(outdir)
+    names = list(curves)
+    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 4), squeeze=False)
+    for ax, name in zip(axes[0], names):
+        c = curves[name]
+        plot_roc({k: v for k, v in c.items() if "theory" not in k}, ax=ax,
+                 theory={k.split()[0]: v for k, v in c.items() if "theory" in k},
+                 title=f"channels: {name}")
+    paths = [_save(fig, outdir / "roc.png", dpi=90)]
+    fig, ax = plt.subplots(figsize=(5, 4))
+    plot_roc({n: curves[n]["NP"] for n in names}, ax=ax,
+             theory={n: curves[n]["NP theory"] for n in names}, title="NP: channel sets")
+    paths.append(_save(fig, outdir / "roc_np_channels.png", dpi=90))
     return paths

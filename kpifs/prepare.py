@@ -1,4 +1,4 @@
-"""Slice preparation: star centres and apodising windows.
+"""Slice preparation: star centres, bad pixels and cut-outs (the window is `kpifs.window`).
 
 Centres are in pixel coordinates ``(x, y)`` (0-based, x along columns), the
 convention of photutils. The kernel phases are insensitive to a centring
@@ -12,51 +12,11 @@ import numpy as np
 
 from .exceptions import KpifsError, KpifsWarning
 
-__all__ = ["super_gaussian", "window_at", "find_centres", "fill_bad_pixels", "cut_out",
-           "window_weights", "CENTROID_METHODS"]
+__all__ = ["find_centres", "fill_bad_pixels", "cut_out", "CENTROID_METHODS"]
 
 log = logging.getLogger(__name__)
 
 CENTROID_METHODS = ("com", "peak", "quadratic", "2dg")
-
-
-def super_gaussian(r, radius, order=4):
-    """Super-Gaussian window ``exp(-(r / radius) ** order)``.
-
-    Examples
-    --------
-    >>> from kpifs.prepare import super_gaussian
-    >>> round(float(super_gaussian(10.0, 10.0)), 4)
-    0.3679
-    """
-    return np.exp(-(np.asarray(r, float) / radius) ** order)
-
-
-def window_at(separation, pixscale, window):
-    """The extraction window's value at a companion's separation.
-
-    A companion at that separation keeps this fraction of its flux in the
-    windowed image, so its kernel-phase signal is that of contrast ``c * w``.
-
-    Parameters
-    ----------
-    separation : float or array
-        Separation(s) from the star in mas.
-    pixscale : float or `~astropy.units.Quantity`
-        Pixel scale (mas).
-    window : tuple or None
-        ``(radius in pixels, order)``; None means no window (1).
-
-    Examples
-    --------
-    >>> from kpifs.prepare import window_at
-    >>> round(float(window_at(100.0, 10.42, (16.0, 4))), 3)
-    0.879
-    """
-    if window is None:
-        return np.ones_like(np.asarray(separation, float))
-    ps = float(getattr(pixscale, "value", pixscale))
-    return super_gaussian(np.asarray(separation, float) / ps, window[0], window[1])
 
 
 def _peak_positions(data):
@@ -229,24 +189,3 @@ def cut_out(sl, centres, ws):
     yy = (lo_y + h)[:, None, None] + off[None, :, None]
     xx = (lo_x + h)[:, None, None] + off[None, None, :]
     return padded[np.arange(nb)[:, None, None], yy, xx], delta
-
-
-def window_weights(delta, ws, radius, order=4):
-    """Super-Gaussian windows for ``ws x ws`` cut-outs whose stars sit at ``delta``.
-
-    Returns shape (n, ws, ws), or (1, ws, ws) when every ``delta`` is the same.
-
-    Examples
-    --------
-    >>> from kpifs.prepare import window_weights
-    >>> w = window_weights([[0.0, 0.0]], 8, 3.0)
-    >>> w.shape, float(w[0, 4, 4])
-    ((1, 8, 8), 1.0)
-    """
-    delta = np.asarray(delta, float)
-    off = np.arange(ws) - ws // 2
-    if np.all(delta == delta[0]):
-        delta = delta[:1]          # one window serves every frame
-    dy = off[None, :, None] - delta[:, 1][:, None, None]
-    dx = off[None, None, :] - delta[:, 0][:, None, None]
-    return super_gaussian(np.hypot(dx, dy), radius, order)

@@ -21,6 +21,7 @@ import numpy as np
 from astropy import units as u
 
 from ._utils import as_rng, to_quantity
+from ._utils import progress as progress_bar
 from .exceptions import KpifsError
 from .kernel import MAS
 from .pupil import TELESCOPES, pupil_image
@@ -304,7 +305,7 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
     seed : int
         Seed of the random generator (aberrations, jitter, noise).
     progress : bool
-        Show a progress bar (needs tqdm).
+        Show a progress bar (on a terminal).
 
     Returns
     -------
@@ -343,13 +344,8 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
     off = tuple(params.companion_offset.to_value(u.mas) * MAS)
     shape = tuple(params.shape)
     out = {}
-    iterator = range(2 * nf)
-    if progress:
-        try:
-            from tqdm.auto import tqdm
-            iterator = tqdm(iterator, desc="simulating frames", unit="frame")
-        except ImportError:
-            pass
+    iterator = progress_bar(range(2 * nf), desc="simulating frames", unit="frame",
+                            enabled=progress)
     screens_rms = params.wavefront_rms.to_value(u.m)
     cubes = {k: np.empty((nf, nw) + shape, np.float32) for k in ("target", "calibrator")}
     for n in iterator:

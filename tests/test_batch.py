@@ -9,10 +9,11 @@ from astropy.table import Table
 
 pytest.importorskip("dask.distributed")
 
-from kpifs.batch import BatchOptions, read_manifest, run_batch  # noqa: E402
+from kpifs.batch import read_manifest, run_batch  # noqa: E402
 from kpifs.cli import main  # noqa: E402
 from kpifs.io.layouts import write_observation  # noqa: E402
 from kpifs.simulate import simulate_scene  # noqa: E402
+from kpifs.workflow import DetectOptions, ExtractOptions  # noqa: E402
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning",
                                         "ignore::ResourceWarning",
@@ -43,8 +44,9 @@ def archive(tmp_path_factory):
 
 def test_batch_local_cluster_and_resume(archive, tmp_path):
     entries = read_manifest(archive / "archive.csv")
-    opts = BatchOptions(draws=3000, step=0.8, pfa=1e-2)
-    table = run_batch(entries, tmp_path, options=opts, n_workers=2, processes=False,
+    opts = dict(extract_options=ExtractOptions(step=0.8 * u.m),
+                detect_options=DetectOptions(draws=3000, pfa=1e-2))
+    table = run_batch(entries, tmp_path, **opts, n_workers=2, processes=False,
                       progress=False)
     status = dict(zip(table["name"], table["status"]))
     assert status == {"star_a": "ok", "star_b": "ok", "broken": "failed"}
@@ -57,7 +59,7 @@ def test_batch_local_cluster_and_resume(archive, tmp_path):
     summary = Table.read(tmp_path / "summary.ecsv")
     assert len(summary) == 3
     # a rerun skips what is done, keeps its results, and retries the failure
-    again = run_batch(entries, tmp_path, options=opts, n_workers=1, processes=False,
+    again = run_batch(entries, tmp_path, **opts, n_workers=1, processes=False,
                       progress=False)
     st = dict(zip(again["name"], again["status"]))
     assert st == {"star_a": "skipped", "star_b": "skipped", "broken": "failed"}

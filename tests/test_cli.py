@@ -223,11 +223,12 @@ def test_every_public_object_has_a_runnable_example():
     """Docstring examples are run by pytest-doctestplus; this checks none is missing."""
     import importlib
     import inspect
-    mods = ["kpifs", "kpifs.pupil", "kpifs.kernel", "kpifs.prepare", "kpifs.extract",
-            "kpifs.simulate", "kpifs.io", "kpifs.io.layouts", "kpifs.io.products",
-            "kpifs.io.kpfits", "kpifs.calibrate", "kpifs.covariance", "kpifs.detect",
-            "kpifs.detect.stats", "kpifs.detect.limits", "kpifs.detect.fit",
-            "kpifs.detect.roc", "kpifs.plotting", "kpifs.batch"]
+    mods = ["kpifs", "kpifs.pupil", "kpifs.kernel", "kpifs.window", "kpifs.data",
+            "kpifs.prepare", "kpifs.extract", "kpifs.simulate", "kpifs.io", "kpifs.io.wavelengths",
+            "kpifs.io.layouts", "kpifs.io.products", "kpifs.io.kpfits", "kpifs.calibrate",
+            "kpifs.covariance", "kpifs.detect", "kpifs.detect.stats", "kpifs.detect.limits",
+            "kpifs.detect.fit", "kpifs.detect.null", "kpifs.detect.maps", "kpifs.detect.roc",
+            "kpifs.plotting", "kpifs.workflow", "kpifs.batch", "kpifs.demo", "kpifs.cli"]
     missing = []
     for m in mods:
         mod = importlib.import_module(m)

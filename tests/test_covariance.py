@@ -137,8 +137,7 @@ def test_propagated_matches_empirical(psf, noise_kp):
     var = psf * PHOTONS + READ ** 2
     cov = propagated_covariance(psf * PHOTONS, var, a.kernel_model, wavelengths=WL,
                                 pixscale=PIX, centres=(20, 20),
-                                window_size=a.meta["window_size"],
-                                window_radius=a.meta["window_radius"])
+                                window=a.window)
     emp = empirical_covariance(a.kp)
     ratio = np.diagonal(emp, axis1=1, axis2=2) / np.diagonal(cov, axis1=1, axis2=2)
     # each empirical variance from 3000 frames has a relative error of sqrt(2/3000) = 2.6 %

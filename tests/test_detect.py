@@ -5,7 +5,9 @@ from astropy.io import fits
 from scipy import stats
 
 from kpifs import KernelModel, KernelPhaseData, KpifsError, make_pupil
-from kpifs.detect import DetectionGrid, DetectionModel, detect
+from kpifs.calibrate import calibrate
+from kpifs.data import DetectionGrid
+from kpifs.detect import DetectionModel, NullCalibration, detect
 from kpifs.detect.limits import (chi2_ratio_sigma, energy_lambda, limit_binary, limit_energy,
                                  limit_np, pfa_to_sigma, sigma_to_pfa)
 from kpifs.detect.stats import (auc, binary_pfa, binary_threshold, energy_pd, energy_threshold,
@@ -115,7 +117,7 @@ def small_model():
 def test_grid_search_threshold_controls_global_false_alarms(small_model, form):
     """The MC-calibrated sup threshold gives the nominal global P_FA on fresh data, computed
     through the separable map (an independent code path from the calibration)."""
-    thr = small_model.global_threshold(0.01, form=form, n_draws=20000, seed=1)
+    thr = NullCalibration(small_model, form=form, n_draws=20000, seed=1).threshold(0.01)
     n = 6000
     y = np.random.default_rng(77).standard_normal((n, 3, small_model.kernel_model.n_kp))
     t = small_model.local_statistic(y, form)
@@ -130,8 +132,8 @@ def test_grid_search_with_correlated_channels(small_model):
     p = small_model.kernel_model.n_kp
     common = rng.standard_normal((400, 1, p))
     rows = (0.9 * common + np.sqrt(1 - 0.81) * rng.standard_normal((400, 3, p))) / 20
-    thr_corr = small_model.global_threshold(0.01, n_draws=20000, seed=2, noise_rows=rows)
-    thr_ind = small_model.global_threshold(0.01, n_draws=20000, seed=2)
+    thr_corr = NullCalibration(small_model, n_draws=20000, seed=2, noise_rows=rows).threshold(0.01)
+    thr_ind = NullCalibration(small_model, n_draws=20000, seed=2).threshold(0.01)
     assert thr_corr > 1.3 * thr_ind
     # fresh correlated data: nominal rate
     n = 4000
@@ -190,7 +192,7 @@ def _files_to_kp(tmp_path, seed, contrasts, n_frames):
 def test_injected_companion_recovered(tmp_path):
     contrasts = np.array([1.3, 1.0, 0.7]) * 6.31e-4
     obs, kp = _files_to_kp(tmp_path, 21, contrasts, 400)
-    res = detect(kp["target"], calibrator=kp["calibrator"], pfa=1e-3, n_draws=10000, seed=4)
+    res = detect(calibrate(kp["target"], kp["calibrator"]), pfa=1e-3, n_draws=10000, seed=4)
     assert len(res.candidates) >= 1
     best = res.candidates[0]
     step = abs(res.grid.step[0])
@@ -205,7 +207,7 @@ def test_injected_companion_recovered(tmp_path):
 @pytest.mark.slow
 def test_no_candidate_without_companion(tmp_path):
     _, kp = _files_to_kp(tmp_path, 22, 0.0, 400)
-    res = detect(kp["target"], calibrator=kp["calibrator"], pfa=1e-3, n_draws=10000, seed=4)
+    res = detect(calibrate(kp["target"], kp["calibrator"]), pfa=1e-3, n_draws=10000, seed=4)
     assert len(res.candidates) == 0
     assert np.nanmin(res.pfa_global) > 1e-3
 
@@ -304,7 +306,7 @@ def test_detect_rejects_bad_covariance_and_channels(subaru_model):
     c = KernelPhaseData(np.zeros((5, 2, subaru_model.n_kp)), WL3[:2], 10.42 * u.mas,
                         subaru_model)
     with pytest.raises(KpifsError, match="has channels"):
-        detect(t, calibrator=c)
+        calibrate(t, c)
     with pytest.raises(KpifsError, match="unknown test"):
         detect(t, test="Z")
 

@@ -2,8 +2,9 @@ import numpy as np
 import pytest
 import astropy.units as u
 
-from kpifs import KernelModel, KpifsError, KpifsWarning, extract_kernel_phases, make_pupil
-from kpifs.extract import DEFAULT_WINDOW_RADIUS
+from kpifs import (ExtractionWindow, KernelModel, KpifsError, KpifsWarning, extract_kernel_phases,
+                   make_pupil)
+from kpifs.window import DEFAULT_WINDOW_RADIUS
 from kpifs.kernel import MAS
 from kpifs.pupil import pupil_image
 from kpifs.simulate import phase_screens, simulate_psf
@@ -46,7 +47,7 @@ def test_single_pixel_dft_sign(subaru_model):
     img[0, 16 - 2, 16 + 3] = 0.5
     with pytest.warns(KpifsWarning, match="closer to the image edge"):
         kpd = extract_kernel_phases(img, subaru_model, wavelengths=[2.0] * u.um, pixscale=PIX,
-                                    centres=(16, 16), window_radius=1e6)
+                                    centres=(16, 16), window=ExtractionWindow(32, 1e6))
     uv = subaru_model.uv.value
     theta = 2 * np.pi * (3 * uv[:, 0] - 2 * uv[:, 1]) * PIX.value * MAS / 2e-6
     expected = np.angle(1 + 0.5 * np.exp(-1j * theta))
@@ -125,13 +126,12 @@ def test_dft_matrix_cached(paper_wavelengths):
 @pytest.mark.parametrize("mutate, kwargs, match", [
     (lambda c: c.__setitem__((0, 1), np.nan), {}, "empty"),
     (lambda c: c.__setitem__((0, 0), 0.0), {}, "empty"),
-    (None, dict(window_size=64), "larger than"),
+    (None, dict(window=ExtractionWindow(64, 25.6)), "larger than"),
     (None, dict(centres=(50.0, 20.0)), "outside"),
     (None, dict(wavelengths=[-1.5, 1.6, 1.68] * u.um), "> 0"),
     (None, dict(wavelengths=[] * u.um), "no wavelengths"),
     (None, dict(wavelengths=[1.6, 1.7] * u.um), "3 channels"),
     (None, dict(pixscale=0 * u.mas), "pixel scale"),
-    (None, dict(window_radius=-3), "radius"),
 ])
 def test_bad_input(subaru_model, paper_wavelengths, mutate, kwargs, match):
     cube = simulate_psf("subaru", paper_wavelengths, pixscale=PIX, shape=(40, 40))[None]

@@ -4,6 +4,7 @@ import astropy.units as u
 from astropy.io import fits
 
 from kpifs import KpifsError, extract_kernel_phases
+from kpifs import ExtractionWindow
 from kpifs.io import read_charis, read_cube, read_sphere, read_wavelength_file, write_observation
 from kpifs.io.cube import FrameStack
 from kpifs.simulate import simulate_scene
@@ -165,7 +166,8 @@ def test_extraction_from_charis_reader(charis_files):
     with read_cube(files["calibrator"]) as cube:
         with pytest.warns(Warning, match="Nyquist"):
             kpd = extract_kernel_phases(cube.data, "subaru", wavelengths=cube.wavelengths,
-                                        pixscale=cube.pixscale, window_size=64,
+                                        pixscale=cube.pixscale,
+                                        window=ExtractionWindow.default(cube.shape, size=64),
                                         source=cube.name)
     assert kpd.shape[:2] == (3, 22) and np.all(np.isfinite(kpd.kp))
     # the 12 dead spaxels per slice were filled, not propagated

@@ -53,9 +53,10 @@ def test_phase_transfer_sign_matches_optics():
     opd = phi * lam / (2 * np.pi)
     cube = simulate_psf("subaru", [1.6] * u.um, pixscale=5 * u.mas, shape=(256, 256),
                         npup=npup, opd=opd)
-    from kpifs import extract_kernel_phases
+    from kpifs import ExtractionWindow, extract_kernel_phases
     kpd = extract_kernel_phases(cube, km, wavelengths=[1.6] * u.um, pixscale=5 * u.mas,
-                                centres=(128, 128), window_radius=110)
+                                centres=(128, 128), window=ExtractionWindow.default(
+                                    cube.shape, radius=110))
     xy = km.pupil.xy.value
     ix = np.clip(np.rint(xy[:, 0] / dx + (npup - 1) / 2).astype(int), 0, npup - 1)
     iy = np.clip(np.rint(xy[:, 1] / dx + (npup - 1) / 2).astype(int), 0, npup - 1)
@@ -104,7 +105,8 @@ def test_fits_round_trip(tmp_path, subaru_model):
 
 def test_read_foreign_model_without_unit_rows(tmp_path, subaru_model):
     """Files of other tools: integer redundancies, non-normalised kernel rows, no BLM-MAT."""
-    hdus = subaru_model.to_hdus()[:3]
+    from kpifs.io.kpfits import model_hdus
+    hdus = model_hdus(subaru_model)[:3]
     hdus[1].data["RED"] = np.round(hdus[1].data["RED"])
     hdus[2].data = hdus[2].data * 3.0
     del hdus[2].header["RANK"]

@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 
 from kpifs import KpifsError, KpifsWarning
-from kpifs.prepare import cut_out, fill_bad_pixels, find_centres, window_weights
+from kpifs.prepare import cut_out, fill_bad_pixels, find_centres
+from kpifs.window import ExtractionWindow
 
 
 def gaussian_images(centres, shape=(32, 32), sigma=1.6):
@@ -68,6 +69,25 @@ def test_cut_out_and_windows():
     assert cut[0, 2, 2] == imgs[0, 5, 4]
     assert cut[1, 0, 0] == 0 and cut[1, 2, 2] == imgs[1, 1, 1]   # outside the image: 0
     np.testing.assert_allclose(delta, [[0.3, 0.0], [0.0, 0.0]], atol=1e-12)
-    w = window_weights(delta, 4, 2.0)
+    w = ExtractionWindow(4, 2.0).weights(delta)
     assert w.shape == (2, 4, 4)
     assert w[1, 2, 2] == 1.0 and w[0, 2, 2] < 1.0
+
+
+def test_extraction_window_checks_and_header_round_trip():
+    from astropy.io import fits
+    from kpifs import KpifsError
+    with pytest.raises(KpifsError, match="radius"):
+        ExtractionWindow(40, -3)
+    with pytest.raises(KpifsError, match="too small"):
+        ExtractionWindow(2, 1.0)
+    with pytest.raises(KpifsError, match="larger than the 32x32 image"):
+        ExtractionWindow.default((32, 32), size=40)
+    win = ExtractionWindow.default((201, 201), radius=20.5, order=6)
+    assert (win.size, win.radius, win.order) == (64, 20.5, 6.0)
+    hdr = win.to_header(fits.Header())
+    assert "[pix]" in hdr.comments["WINRAD"]
+    assert ExtractionWindow.from_header(hdr) == win
+    assert ExtractionWindow.from_header(fits.Header()) is None
+    # the attenuation at the radius is 1/e, for any pixel scale
+    assert float(win.at(20.5 * 16.2, 16.2)) == pytest.approx(np.exp(-1))

@@ -12,7 +12,6 @@ from scipy import optimize
 
 from ..exceptions import KpifsError
 from ..kernel import MAS
-from ..prepare import window_at
 
 __all__ = ["fit_binary"]
 
@@ -33,7 +32,8 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
     contrast0 : array-like (q,)
         Starting contrasts.
     pixscale, window
-        The extraction window ``(radius in pixels, order)`` and pixel scale, so
+        The pixel scale and the extraction window
+        (`~kpifs.window.ExtractionWindow`), so
         that contrasts are true ones.
     bounds_mas : float, optional
         Half-width of the box (mas) around *start* the position may move in.
@@ -70,7 +70,9 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
     ps = None if pixscale is None else u.Quantity(pixscale, u.mas).value
 
     def wfac(a, b):
-        return float(window_at(np.hypot(a, b), ps, window if ps is not None else None))
+        if ps is None or window is None:
+            return 1.0
+        return float(window.at(np.hypot(a, b), ps))
 
     def model(params):
         a, b = params[:2]

@@ -263,7 +263,7 @@ def radial_curves(limits, grid, *, bin_width=None):
     ----------
     limits : dict
         ``{test name: map (ny, nx)}``.
-    grid : `~kpifs.detect.DetectionGrid`
+    grid : `~kpifs.data.DetectionGrid`
     bin_width : float, optional
         Width of separation bins in mas (default: the grid step).
 
@@ -276,7 +276,7 @@ def radial_curves(limits, grid, *, bin_width=None):
     Examples
     --------
     >>> import numpy as np, astropy.units as u
-    >>> from kpifs.detect import DetectionGrid
+    >>> from kpifs.data import DetectionGrid
     >>> from kpifs.detect.limits import radial_curves
     >>> g = DetectionGrid.from_separation(50 * u.mas, 10 * u.mas)
     >>> tab = radial_curves({"NP": g.sep * 1e-5}, g)

@@ -1,62 +1,27 @@
 """`detect`: from calibrated kernel phases to maps, candidates, spectra and limits."""
 import logging
 import warnings
-from dataclasses import dataclass, field
 
 import numpy as np
 from astropy import units as u
-from astropy.table import QTable
+from astropy.table import vstack
+from scipy import stats
 
-from ..calibrate import calibrate
 from ..covariance import empirical_covariance, whiten, whitening_matrix
+from ..data import DetectionGrid, DetectionResult, KernelPhaseData
 from ..exceptions import KpifsError, KpifsWarning
-from ..kernel import MAS
-from ..prepare import window_at
+from ..kernel import MAS, KernelModel
+from ..pupil import make_pupil
 from .fit import fit_binary
 from .limits import (energy_lambda, limit_binary, limit_energy, limit_energy_correlated,
                      limit_np, radial_curves, spectrum_shape)
-from .maps import DetectionGrid, DetectionModel
+from .maps import DetectionModel
+from .null import NullCalibration, energy_null
 from .stats import TESTS, check_probability, energy_threshold
-from scipy import stats
 
-__all__ = ["detect", "DetectionResult", "default_grid"]
+__all__ = ["detect", "default_grid"]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class DetectionResult:
-    """Everything `detect` found: maps (ny, nx) on `grid`, tables and provenance.
-
-    Examples
-    --------
-    >>> from kpifs.detect.pipeline import _example_result
-    >>> res = _example_result()
-    >>> res.statistic.shape == res.grid.shape, res.limit is res.limits["B"]
-    (True, True)
-    """
-
-    grid: DetectionGrid
-    test: str
-    pfa: float
-    pd: float
-    statistic: np.ndarray
-    pfa_local: np.ndarray
-    pfa_global: np.ndarray
-    contrast: np.ndarray
-    contrast_err: np.ndarray
-    limits: dict
-    curves: QTable
-    candidates: QTable
-    threshold: float
-    wavelengths: u.Quantity
-    energy: dict = field(default_factory=dict)
-    meta: dict = field(default_factory=dict)
-
-    @property
-    def limit(self):
-        """The detection-limit map of the chosen test."""
-        return self.limits[self.test]
 
 
 def default_grid(kpd, *, step=None, max_sep=None, min_sep=None):
@@ -66,11 +31,11 @@ def default_grid(kpd, *, step=None, max_sep=None, min_sep=None):
     Examples
     --------
     >>> import numpy as np, astropy.units as u
-    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs import ExtractionWindow, KernelModel, KernelPhaseData, make_pupil
     >>> from kpifs.detect import default_grid
     >>> km = KernelModel.from_pupil(make_pupil("subaru"))
     >>> kpd = KernelPhaseData(np.zeros((1, 1, km.n_kp)), [1.6] * u.um, 10.42 * u.mas, km,
-    ...                       meta={"window_radius": 16.0})
+    ...                       window=ExtractionWindow(40, 16.0))
     >>> g = default_grid(kpd)
     >>> g.shape, round(float(g.max_sep))
     ((31, 31), 167)
@@ -82,17 +47,15 @@ def default_grid(kpd, *, step=None, max_sep=None, min_sep=None):
     limit = np.inf
     if km.pupil.step is not None:
         limit = 0.95 * lam_min / (2 * km.pupil.step.to_value(u.m)) / MAS
-    if "window_radius" in kpd.meta:
-        limit = min(limit, kpd.meta["window_radius"] * kpd.pixscale.to_value(u.mas))
+    if kpd.window is not None:
+        limit = min(limit, kpd.window.radius * kpd.pixscale.to_value(u.mas))
     step = res / 4 if step is None else u.Quantity(step, u.mas).value
     max_sep = limit if max_sep is None else u.Quantity(max_sep, u.mas).value
     min_sep = res / 2 if min_sep is None else u.Quantity(min_sep, u.mas).value
     return DetectionGrid.from_separation(max_sep * u.mas, step * u.mas, min_sep=min_sep * u.mas)
 
 
-def _prepare(kpd, calibrator, shrinkage):
-    if calibrator is not None:
-        kpd = calibrate(kpd, calibrator, shrinkage=shrinkage)
+def _prepare(kpd, shrinkage):
     if kpd.n_frame > 1:
         warnings.warn(f"{kpd.meta.get('source', 'data')}: not calibrated; using the mean of "
                       f"{kpd.n_frame} frames with their covariance / N", KpifsWarning,
@@ -105,7 +68,7 @@ def _prepare(kpd, calibrator, shrinkage):
     return kpd.kp[0], kpd.covariance, kpd
 
 
-def detect(kpd, *, calibrator=None, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
+def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
            n_draws=30000, seed=0, shrinkage="auto", fit=True, max_candidates=5,
            progress=False):
     """Search calibrated kernel phases for a companion.
@@ -113,10 +76,9 @@ def detect(kpd, *, calibrator=None, test="B", pfa=1e-3, pd=0.5, grid=None, spect
     Parameters
     ----------
     kpd : `~kpifs.KernelPhaseData`
-        Calibrated data (one frame with a covariance), or frames of the target
-        (then *calibrator* is subtracted first, or, without one, the frames'
-        mean is used uncalibrated, with a warning).
-    calibrator : `~kpifs.KernelPhaseData` or list, optional
+        Calibrated data (one frame with a covariance, from
+        `~kpifs.calibrate.calibrate`), or frames of the target (their mean is
+        then used uncalibrated, with a warning).
     test : {'B', 'B-paper', 'NP', 'E'}
         ``'B'``: the GLR binary test ``sum_i max(z_i, 0)^2``; ``'B-paper'``: the
         seed paper's ``sum_i max(z_i, 0)``; ``'NP'``: the matched filter for the
@@ -126,7 +88,7 @@ def detect(kpd, *, calibrator=None, test="B", pfa=1e-3, pd=0.5, grid=None, spect
     pfa, pd : float
         False-alarm probability (global, over the grid) and detection
         probability for candidates and limits.
-    grid : `~kpifs.detect.DetectionGrid`, optional
+    grid : `~kpifs.data.DetectionGrid`, optional
         Default `default_grid`.
     spectrum : array-like, optional
         Companion spectrum shape (per channel, any scale) for limits and the
@@ -155,7 +117,7 @@ def detect(kpd, *, calibrator=None, test="B", pfa=1e-3, pd=0.5, grid=None, spect
         raise KpifsError(f"unknown test {test!r}: use one of {TESTS}")
     pfa = check_probability(pfa, "P_FA")
     pd = check_probability(pd, "P_D")
-    kp, cov, kpd = _prepare(kpd, calibrator, shrinkage)
+    kp, cov, kpd = _prepare(kpd, shrinkage)
     q, p = kp.shape
     a = spectrum_shape(spectrum, q)
     w, rank = whitening_matrix(cov, return_rank=True, source="covariance of the data")
@@ -163,9 +125,7 @@ def detect(kpd, *, calibrator=None, test="B", pfa=1e-3, pd=0.5, grid=None, spect
     y = whiten(kp, w)
     if grid is None:
         grid = default_grid(kpd)
-    window = None
-    if "window_radius" in kpd.meta:
-        window = (float(kpd.meta["window_radius"]), float(kpd.meta.get("window_order", 4)))
+    window = kpd.window
     model = DetectionModel(kpd.kernel_model, kpd.wavelengths, w, grid, pixscale=kpd.pixscale,
                            window=window, dof=rank)
     form = "B" if test == "E" else test
@@ -174,13 +134,13 @@ def detect(kpd, *, calibrator=None, test="B", pfa=1e-3, pd=0.5, grid=None, spect
         rows = whiten(kpd.covariance_rows, w)
     else:
         log.info("no covariance rows: channels taken as independent in the null model")
-    cal = dict(form=form, n_draws=n_draws, seed=seed, spectrum=spectrum if form == "NP"
-               else None, noise_rows=rows)
-    model.calibrate(progress=progress, **cal)
-    threshold = model.global_threshold(pfa, **cal)
+    null = NullCalibration(model, form=form, n_draws=n_draws, seed=seed,
+                           spectrum=spectrum if form == "NP" else None, noise_rows=rows,
+                           progress=progress)
+    threshold = null.threshold(pfa)
     t, c, cerr = model.maps(y, form, spectrum)
     valid = grid.valid
-    pglob = np.where(valid, model.global_pfa(t, **cal), np.nan)
+    pglob = np.where(valid, null.pfa(t), np.nan)
     ploc = np.where(valid, model.local_pfa(t, form), np.nan)
 
     dof = int(rank.sum())
@@ -189,7 +149,7 @@ def detect(kpd, *, calibrator=None, test="B", pfa=1e-3, pd=0.5, grid=None, spect
               "threshold": float(energy_threshold(pfa, dof)), "pd": pd}
     te = None
     if rows is not None:   # correlated channels: the energy's law from the same null model
-        te = _energy_null(rows, n_draws, seed)
+        te = energy_null(rows, n_draws, seed)
         energy["pfa"] = float((np.sum(te["energy"] >= t_e) + 1) / (len(te["energy"]) + 1))
         if pfa * len(te["energy"]) >= 10:
             energy["threshold"] = float(np.quantile(te["energy"], 1 - pfa))
@@ -200,8 +160,8 @@ def detect(kpd, *, calibrator=None, test="B", pfa=1e-3, pd=0.5, grid=None, spect
     else:
         corr, limits["E"] = _correlated_inputs(model, rows, a, energy, te, seed)
     for f in ("B", "B-paper"):
-        thr_f = threshold if f == form else model.global_threshold(
-            pfa, form=f, n_draws=n_draws, seed=seed, noise_rows=rows)
+        thr_f = threshold if f == form else NullCalibration(
+            model, form=f, n_draws=n_draws, seed=seed, noise_rows=rows).threshold(pfa)
         limits[f] = limit_binary(model.norm2, thr_f, pd, form=f, spectrum=a, seed=seed,
                                  correlation=corr)
     # the NP reference uses the local threshold; with the grid search its own global one
@@ -210,8 +170,8 @@ def detect(kpd, *, calibrator=None, test="B", pfa=1e-3, pd=0.5, grid=None, spect
             np.tensordot(a ** 2, model.norm2, axes=(0, 0)))
     limits = {k: np.where(valid, v, np.nan) for k, v in limits.items()}
     curves = radial_curves(limits, grid)
-    cands = _sequential_search(model, kp, w, kpd, window, threshold=threshold, form=form,
-                               cal=cal, spectrum=spectrum, fit=fit, max_candidates=max_candidates)
+    cands = _sequential_search(model, kp, w, kpd, threshold=threshold, null=null,
+                               spectrum=spectrum, fit=fit, max_candidates=max_candidates)
     meta = {"test": test, "pfa": pfa, "pd": pd, "n_draws": n_draws, "seed": seed,
             "calibrators": kpd.meta.get("calibrators", []),
             "source": kpd.meta.get("source", ""), "spectrum": a.tolist(),
@@ -223,16 +183,8 @@ def detect(kpd, *, calibrator=None, test="B", pfa=1e-3, pd=0.5, grid=None, spect
                            pfa_global=pglob, contrast=np.where(valid, c, np.nan),
                            contrast_err=np.where(valid, cerr, np.nan), limits=limits,
                            curves=curves, candidates=cands, threshold=threshold,
-                           wavelengths=kpd.wavelengths, energy=energy, meta=meta)
-
-
-def _energy_null(rows, n_draws, seed):
-    """Noise draws ``n = a R_w`` from the covariance rows: coefficients and energies."""
-    rng = np.random.default_rng(seed)
-    coef = rng.standard_normal((n_draws, len(rows)))
-    gram = rows.reshape(len(rows), -1) @ rows.reshape(len(rows), -1).T      # (nrow, nrow)
-    energy = np.sum((coef @ gram) * coef, axis=1)
-    return {"coef": coef, "energy": energy}
+                           wavelengths=kpd.wavelengths, energy=energy, meta=meta,
+                           header=kpd.header)
 
 
 def _correlated_inputs(model, rows, a, energy, te, seed):
@@ -252,36 +204,32 @@ def _correlated_inputs(model, rows, a, energy, te, seed):
     return corr.reshape(shape + (q, q)), lim.reshape(shape)
 
 
-def _sequential_search(model, kp, w, kpd, window, *, threshold, form, cal, spectrum, fit,
-                       max_candidates):
+def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max_candidates):
     """Strongest peak above threshold, fitted and subtracted, until none is left."""
     rows = []
     residual = kp.copy()
+    form = null.form
     for _ in range(max_candidates):
-        tab = model.candidates(whiten(residual, w), threshold=threshold, form=form,
-                               n_draws=cal["n_draws"], seed=cal["seed"], spectrum=spectrum,
-                               noise_rows=cal["noise_rows"])
+        tab = model.candidates(whiten(residual, w), threshold=threshold, form=form, null=null,
+                               spectrum=spectrum)
         if not len(tab):
             break
         row = tab[:1]
         if fit:
-            _refine(row, residual, w, kpd, window, cal["noise_rows"])
+            _refine(row, residual, w, kpd, null.noise_rows)
             r = row[0]
-            model_kp = kpd.kernel_model.binary_kernel_phases(
-                [r["fit_x"].to_value(u.mas), r["fit_y"].to_value(u.mas)] * u.mas,
-                np.asarray(r["fit_contrast"]) * _wfac(r, kpd, window), kpd.wavelengths)
+            x, y, c = r["fit_x"], r["fit_y"], np.asarray(r["fit_contrast"])
         else:
             r = row[0]
-            model_kp = kpd.kernel_model.binary_kernel_phases(
-                [r["x"].to_value(u.mas), r["y"].to_value(u.mas)] * u.mas,
-                np.asarray(r["contrast"]) * _wfac(r, kpd, window, fitted=False),
-                kpd.wavelengths)
-        residual = residual - model_kp
+            x, y, c = r["x"], r["y"], np.asarray(r["contrast"])
+        x, y = x.to_value(u.mas), y.to_value(u.mas)
+        att = 1.0 if kpd.window is None else float(kpd.window.at(np.hypot(x, y), kpd.pixscale))
+        residual = residual - kpd.kernel_model.binary_kernel_phases([x, y] * u.mas, c * att,
+                                                                    kpd.wavelengths)
         rows.append(row)
     if not rows:
-        empty = model.candidates(whiten(kp, w), threshold=np.inf, form=form,
-                                 n_draws=cal["n_draws"], seed=cal["seed"], spectrum=spectrum,
-                                 noise_rows=cal["noise_rows"])
+        empty = model.candidates(whiten(kp, w), threshold=np.inf, form=form, null=null,
+                                 spectrum=spectrum)
         if fit:
             for col in ("fit_x", "fit_y", "fit_x_err", "fit_y_err"):
                 empty[col] = [] * u.mas
@@ -290,19 +238,12 @@ def _sequential_search(model, kp, w, kpd, window, *, threshold, form, cal, spect
             empty["fit_contrast_err"] = np.zeros((0, q))
             empty["fit_chi2"] = np.zeros(0)
         return empty
-    from astropy.table import vstack
     out = vstack(rows)
     out.meta = rows[0].meta
     return out
 
 
-def _wfac(row, kpd, window, fitted=True):
-    x = row["fit_x" if fitted else "x"].to_value(u.mas)
-    y = row["fit_y" if fitted else "y"].to_value(u.mas)
-    return float(window_at(np.hypot(x, y), kpd.pixscale, window))
-
-
-def _refine(cands, kp, w, kpd, window, noise_rows=None):
+def _refine(cands, kp, w, kpd, noise_rows=None):
     q = kp.shape[0]
     cols = {k: [] for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err", "fit_contrast",
                             "fit_contrast_err", "fit_chi2")}
@@ -310,7 +251,7 @@ def _refine(cands, kp, w, kpd, window, noise_rows=None):
     for row in cands:
         r = fit_binary(kp, w, kpd.kernel_model, kpd.wavelengths,
                        (row["x"].to_value(u.mas), row["y"].to_value(u.mas)),
-                       np.asarray(row["contrast"]), pixscale=kpd.pixscale, window=window,
+                       np.asarray(row["contrast"]), pixscale=kpd.pixscale, window=kpd.window,
                        bounds_mas=step, noise_rows=noise_rows)
         cols["fit_x"].append(r["x"])
         cols["fit_y"].append(r["y"])
@@ -336,9 +277,6 @@ def _example_result():
     at (60, -40) mas in white noise of 1e-3 rad, searched out to 100 mas.
     """
     if "result" not in _EXAMPLE:
-        from ..extract import KernelPhaseData
-        from ..kernel import KernelModel
-        from ..pupil import make_pupil
         km = KernelModel.from_pupil(make_pupil("subaru", step=0.6 * u.m))
         wl = [1.6, 1.7] * u.um
         rng = np.random.default_rng(1)

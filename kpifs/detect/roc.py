@@ -18,7 +18,6 @@ from scipy import stats
 from ..covariance import empirical_covariance
 from ..extract import extract_kernel_phases
 from ..kernel import KernelModel
-from ..prepare import window_at
 from ..pupil import make_pupil
 from ..simulate import simulate_scene
 from .stats import TESTS, auc, monte_carlo_roc, roc_curve
@@ -127,8 +126,7 @@ def paper_experiment(*, preset="paper", n_frames=1000, n_draws=30000, seed=0, pf
     km = kpd.kernel_model
     cov = empirical_covariance(kpd.kp, source="simulated calibrator")
     w, bases = _bases(cov)
-    window = (kpd.meta["window_radius"], kpd.meta["window_order"])
-    wfac = float(window_at(np.hypot(*p.companion_offset.to_value(u.mas)), p.pixscale, window))
+    wfac = float(kpd.window.at(np.hypot(*p.companion_offset.to_value(u.mas)), p.pixscale))
     x = whitened_signal(km, w, p.wavelengths, p.companion_offset, p.contrasts,
                         window_factor=wfac)
     q = len(p.wavelengths)

@@ -1,11 +1,18 @@
-"""Reading and writing files: instrument cubes, kernel-phase data (KPFITS), products."""
-from .cube import IFSCube, read_generic, read_wavelength_file  # noqa: F401
+"""Files: instrument cubes, wavelength arguments, KPFITS kernel-phase files, products.
+
+This layer knows file layouts, not the science: readers return an `IFSCube`
+(or plain arrays and headers), writers take objects and only read the
+attributes they write. The containers of `kpifs.data` and `kpifs.kernel`
+connect the KPFITS and detection-product layouts to astropy's I/O registry.
+"""
+from .cube import IFSCube, read_generic  # noqa: F401
+from .wavelengths import check_wavelengths, parse_wavelengths, read_wavelength_file  # noqa
 from .charis import read_charis  # noqa: F401
 from .sphere import read_sphere  # noqa: F401
 from .readers import read_cube, detect_instrument  # noqa: F401
-from .kpfits import read_kpfits, write_kpfits  # noqa: F401
+from .kpfits import write_kpfits  # noqa: F401
 from .layouts import write_observation  # noqa: F401
 
 __all__ = ["IFSCube", "read_cube", "detect_instrument", "read_charis", "read_sphere",
-           "read_generic", "read_wavelength_file", "read_kpfits", "write_kpfits",
-           "write_observation"]
+           "read_generic", "parse_wavelengths", "check_wavelengths", "read_wavelength_file",
+           "write_kpfits", "write_observation"]

@@ -14,7 +14,8 @@ from astropy import units as u
 
 from .._utils import to_quantity
 from ..exceptions import KpifsError
-from .cube import FrameStack, IFSCube, _open_fits
+from .cube import FrameStack, IFSCube, open_fits
+from .wavelengths import check_wavelengths, parse_wavelengths
 
 __all__ = ["read_charis", "is_charis", "charis_wavelengths", "CHARIS_PIXSCALE"]
 
@@ -55,16 +56,20 @@ def charis_wavelengths(header, nlam_cube, *, source="CHARIS cube"):
         if abs(wl[-1] - lmax) > 0.005 * lmax:
             raise KpifsError(f"{source}: LAM_MAX = {lmax} nm disagrees with LAM_MIN * "
                              f"exp((NLAM-1) * DLOGLAM) = {wl[-1]:.2f} nm")
-    return (wl * u.nm).to(u.um)
+    return check_wavelengths((wl * u.nm).to(u.um), source=source)
 
 
-def read_charis(paths, *, pixscale=None):
+def read_charis(paths, *, wavelengths=None, pixscale=None):
     """Read one or many CHARIS pipeline cubes as one `~kpifs.io.IFSCube`.
 
     Parameters
     ----------
     paths : str or list of str
         ``*_cube.fits`` files, one exposure each; they become the frames.
+    wavelengths : optional
+        Channel wavelengths, in any form `~kpifs.io.parse_wavelengths`
+        accepts, replacing the headers' ``LAM_MIN``/``DLOGLAM`` grid (for
+        files whose headers lack it or are wrong).
     pixscale : `~astropy.units.Quantity`, optional
         Lenslet scale; default `CHARIS_PIXSCALE` (16.2 mas).
 
@@ -89,16 +94,23 @@ def read_charis(paths, *, pixscale=None):
         raise KpifsError("no CHARIS files given")
     ps = to_quantity(pixscale if pixscale is not None else CHARIS_PIXSCALE, u.mas,
                      name="pixel scale")
+    given = parse_wavelengths(wavelengths, source="CHARIS wavelengths")
     files, data, bad, angles = [], [], [], []
     wl = header = None
     try:
         for path in paths:
-            hdul = _open_fits(path)
+            hdul = open_fits(path)
             files.append(hdul)
             if len(hdul) < 2 or hdul[1].data is None or hdul[1].data.ndim != 3:
                 raise KpifsError(f"{path}: not a CHARIS pipeline cube (no 3-D cube in HDU 1)")
             cube = hdul[1].data
-            this_wl = charis_wavelengths(hdul[0].header, cube.shape[0], source=path)
+            if given is not None:
+                if len(given) != cube.shape[0]:
+                    raise KpifsError(f"{path}: {len(given)} wavelength(s) given but the cube "
+                                     f"has {cube.shape[0]} channel(s)")
+                this_wl = given
+            else:
+                this_wl = charis_wavelengths(hdul[0].header, cube.shape[0], source=path)
             if wl is None:
                 wl, header = this_wl, hdul[0].header.copy()
             elif len(this_wl) != len(wl) or not np.allclose(this_wl, wl, rtol=1e-5):

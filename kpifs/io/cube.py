@@ -9,8 +9,9 @@ from astropy.io import fits
 
 from .._utils import to_quantity
 from ..exceptions import KpifsError
+from .wavelengths import check_wavelengths, parse_wavelengths
 
-__all__ = ["IFSCube", "read_generic", "read_wavelength_file", "FrameStack"]
+__all__ = ["IFSCube", "read_generic", "FrameStack", "open_fits"]
 
 log = logging.getLogger(__name__)
 
@@ -134,7 +135,8 @@ class FrameStack:
         return np.concatenate(out)
 
 
-def _open_fits(path):
+def open_fits(path):
+    """Open a FITS file memory-mapped, refusing directories, missing and unreadable files."""
     path = Path(path)
     if path.is_dir():
         raise KpifsError(f"{path}: is a directory, expected a FITS file")
@@ -155,10 +157,12 @@ def _open_fits(path):
     return hdul
 
 
-def _header_wavelengths(hdr):
+def _header_wavelengths(hdr, path):
     keys = sorted((k for k in hdr if k.startswith("KPWL") and k[4:].isdigit()),
                   key=lambda k: int(k[4:]))
-    return [hdr[k] for k in keys] * u.um if keys else None
+    if not keys:
+        return None
+    return check_wavelengths([hdr[k] for k in keys] * u.um, source=f"{path}: KPWLn cards")
 
 
 def read_generic(path, *, wavelengths=None, pixscale=None):
@@ -180,7 +184,7 @@ def read_generic(path, *, wavelengths=None, pixscale=None):
     ...     print(c.shape)
     (1, 3, 16, 16)
     """
-    hdul = _open_fits(path)
+    hdul = open_fits(path)
     try:
         cube = _generic_from_hdul(hdul, path, wavelengths, pixscale)
     except BaseException:
@@ -200,11 +204,13 @@ def _generic_from_hdul(hdul, path, wavelengths, pixscale):
     if hdu is not hdul[0]:
         hdr.update({k: v for k, v in hdu.header.items() if k not in hdr and k not in
                     ("XTENSION", "PCOUNT", "GCOUNT")})
-    wl = wavelengths if wavelengths is not None else _header_wavelengths(hdr)
+    if wavelengths is not None:
+        wl = parse_wavelengths(wavelengths, source=f"{path}: wavelengths")
+    else:
+        wl = _header_wavelengths(hdr, path)
     if wl is None:
         raise KpifsError(f"{path}: no wavelengths: give them (--wavelengths 1.52um,1.60um or a "
                          f"file)")
-    wl = np.atleast_1d(to_quantity(wl, u.um, name="wavelengths"))
     if data.ndim == 2:
         data = data[None, None]
     elif data.ndim == 3:
@@ -221,62 +227,3 @@ def _generic_from_hdul(hdul, path, wavelengths, pixscale):
     ps = to_quantity(ps, u.mas, name="pixel scale")
     return IFSCube(data=data, wavelengths=wl, pixscale=ps, header=hdr, instrument="generic",
                    source=[str(path)])
-
-
-def read_wavelength_file(path, *, unit=None):
-    """Wavelengths from a text file (one per line) or a FITS file (first data array).
-
-    The unit comes from *unit*, from ``BUNIT``/``CUNIT1`` in a FITS header, or
-    is inferred from the values (0.3-30 means um, 300-30000 means nm) and logged.
-
-    Examples
-    --------
-    >>> import tempfile, numpy as np
-    >>> from kpifs.io import read_wavelength_file
-    >>> path = tempfile.mkdtemp() + "/wl.txt"
-    >>> np.savetxt(path, [1159.56, 1199.70])          # nm, recognised from the values
-    >>> read_wavelength_file(path)
-    <Quantity [1.15956, 1.1997 ] um>
-    """
-    path = Path(path)
-    if path.is_dir():
-        raise KpifsError(f"{path}: is a directory, expected a wavelength file")
-    hdr_unit = None
-    try:
-        if path.suffix.lower() in (".fits", ".fit") or path.name.lower().endswith(".fits.gz"):
-            with fits.open(path) as hdul:
-                hdu = next((h for h in hdul if h.data is not None), None)
-                if hdu is None:
-                    raise KpifsError(f"{path}: no data in the wavelength file")
-                values = np.array(hdu.data, float).ravel()
-                hdr_unit = hdu.header.get("BUNIT") or hdu.header.get("CUNIT1")
-        else:
-            values = np.loadtxt(path, ndmin=2, comments="#")[:, 0]
-    except (OSError, ValueError) as exc:
-        raise KpifsError(f"{path}: cannot read wavelengths: {exc}") from None
-    return _wavelength_quantity(values, unit or hdr_unit, source=path)
-
-
-def _wavelength_quantity(values, unit=None, *, source="wavelengths"):
-    values = np.atleast_1d(np.asarray(values, float))
-    if values.size == 0 or not np.all(np.isfinite(values)) or np.any(values <= 0):
-        raise KpifsError(f"{source}: wavelengths must be finite and > 0")
-    if unit:
-        try:
-            return (values * u.Unit(str(unit).replace("microns", "um").replace("micron", "um"))
-                    ).to(u.um)
-        except (ValueError, u.UnitConversionError) as exc:
-            raise KpifsError(f"{source}: wavelength unit {unit!r} not understood: {exc}") \
-                from None
-    med = float(np.median(values))
-    if 0.3 <= med <= 30:
-        unit = u.um
-    elif 300 <= med <= 30000:
-        unit = u.nm
-    elif 3e-7 <= med <= 3e-5:
-        unit = u.m
-    else:
-        raise KpifsError(f"{source}: cannot tell the unit of wavelengths around {med:g} "
-                         f"(expected um, nm or m)")
-    log.info("%s: wavelengths taken to be in %s", source, unit)
-    return (values * unit).to(u.um)

@@ -1,4 +1,4 @@
-"""Kernel-phase data in the KPFITS1 layout used by the kernel-phase community.
+"""The KPFITS1 layout of the kernel-phase community: kernel models and kernel-phase data.
 
 Primary header ``CONTENT = 'KPFITS1'`` with ``PSCALE`` (mas), ``DIAM`` (m),
 ``PROCSOFT``, ``CALFLAG``; the input cube's header cards are kept. Extensions:
@@ -6,16 +6,26 @@ APERTURE, UV-PLANE, KER-MAT, BLM-MAT (the model), KP-DATA
 ``(nframe, nwave, nkp)`` in rad, optional KP-SIGM and KP-COV, CWAVEL (table of
 wavelengths and bandwidths in m), DETPA (deg), and optional CVIS-DATA
 ``(2, nframe, nwave, nuv)`` holding the raw Fourier phases and amplitudes.
+
+This module knows the layout, not the science: it turns objects into HDUs
+(reading only the attributes it writes) and files into plain arrays and
+headers. The containers (`~kpifs.kernel.KernelModel`,
+`~kpifs.data.KernelPhaseData`) connect these functions to astropy's unified
+I/O registry, so that ``KernelPhaseData.read(path)`` works.
 """
+from pathlib import Path
+
 import numpy as np
 from astropy import units as u
 from astropy.io import fits
 from astropy.table import Table
 
+from .._meta import VERSION
 from .._utils import write_hdulist
 from ..exceptions import KpifsError
 
-__all__ = ["kpd_to_hdulist", "write_kpfits", "read_kpfits"]
+__all__ = ["model_hdus", "model_hdulist", "read_model_parts", "kpd_to_hdulist",
+           "write_kpfits", "read_kpfits_parts", "has_kernel_model"]
 
 # cards of an input header that describe its data array and must not be copied
 _STRUCTURAL = {"SIMPLE", "BITPIX", "NAXIS", "EXTEND", "BSCALE", "BZERO", "PCOUNT", "GCOUNT",
@@ -38,7 +48,7 @@ def _clean_header(header):
     return out
 
 
-def _card(value, comment):
+def card(value, comment):
     """A (value, comment) pair that fits one 80-character card (long paths keep their end)."""
     value = str(value)
     if len(value) > 66:
@@ -46,8 +56,125 @@ def _card(value, comment):
     return (value, comment) if len(value) + len(comment) < 64 else (value, "")
 
 
+# --- kernel models ----------------------------------------------------------------
+def model_hdus(model):
+    """The model extensions APERTURE, UV-PLANE, KER-MAT, BLM-MAT of a kernel model.
+
+    Examples
+    --------
+    >>> import astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.io.kpfits import model_hdus
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> [h.name for h in model_hdus(km)]
+    ['APERTURE', 'UV-PLANE', 'KER-MAT', 'BLM-MAT']
+    """
+    pupil = model.pupil
+    xy = pupil.xy.to_value(u.m)
+    ap = Table([xy[:, 0], xy[:, 1], pupil.transmission], names=("XXC", "YYC", "TRM"))
+    ap["XXC"].unit = ap["YYC"].unit = "m"
+    hap = fits.BinTableHDU(ap, name="APERTURE")
+    hap.header["PUPNAME"] = (pupil.name[:60], "pupil model name")
+    if pupil.step is not None:
+        hap.header["STEP"] = (pupil.step.to_value(u.m), "[m] grid step")
+    uv = model.uv.to_value(u.m)
+    uvt = Table([uv[:, 0], uv[:, 1], model.redundancy], names=("UUC", "VVC", "RED"))
+    uvt["UUC"].unit = uvt["VVC"].unit = "m"
+    huv = fits.BinTableHDU(uvt, name="UV-PLANE")
+    hk = fits.ImageHDU(model.kernel, name="KER-MAT")
+    hk.header["RANK"] = (model.rank, "rank of the phase-transfer matrix")
+    hb = fits.ImageHDU(model.blm, name="BLM-MAT")
+    hb.header["COMMENT"] = "baseline-mapping matrix A; phase transfer = A / RED"
+    return [hap, huv, hk, hb]
+
+
+def model_hdulist(model):
+    """A kernel model alone as a KPFITS1 file (primary header and model extensions).
+
+    Examples
+    --------
+    >>> import astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.io.kpfits import model_hdulist
+    >>> hdul = model_hdulist(KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m)))
+    >>> hdul[0].header["CONTENT"], hdul[0].header["NKP"]
+    ('KPFITS1', 44)
+    """
+    hdr = fits.Header()
+    hdr["CONTENT"] = ("KPFITS1", "kernel-phase FITS exchange format")
+    hdr["PROCSOFT"] = (f"kpifs {VERSION}", "software that wrote this file")
+    hdr["KPIFSVER"] = (VERSION, "kpifs version")
+    hdr["NSUB"] = (model.pupil.n_sub, "number of sub-apertures")
+    hdr["NUV"] = (model.n_uv, "number of uv points")
+    hdr["NKP"] = (model.n_kp, "number of kernel phases")
+    if "diameter_m" in model.pupil.meta:
+        hdr["DIAM"] = (model.pupil.meta["diameter_m"], "[m] pupil diameter")
+    hdr["HISTORY"] = f"kpifs {VERSION}: kernel model of pupil {model.pupil.name}"
+    return fits.HDUList([fits.PrimaryHDU(header=hdr), *model_hdus(model)])
+
+
+def read_model_parts(hdul, *, source="<memory>"):
+    """The model extensions of an open KPFITS file as plain arrays.
+
+    Returns a dict: ``xy`` (nsub, 2) and ``transmission`` of the sub-apertures,
+    ``step`` (m or None), ``name``, ``uv`` (nuv, 2) m, ``redundancy``, ``blm``
+    (nuv, nsub) or None when the file has no BLM-MAT, ``kernel`` (nkp, nuv) and
+    ``rank`` (or None).
+
+    Examples
+    --------
+    >>> import astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.io.kpfits import model_hdulist, read_model_parts
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> parts = read_model_parts(model_hdulist(km))
+    >>> parts["kernel"].shape == (km.n_kp, km.n_uv), parts["name"]
+    (True, 'subaru')
+    """
+    try:
+        ap = hdul["APERTURE"].data
+        uvt = hdul["UV-PLANE"].data
+        kmat = np.array(hdul["KER-MAT"].data, float)
+    except KeyError as exc:
+        raise KpifsError(f"{source}: not a kernel model: missing extension {exc}") from None
+    trm = np.array(ap["TRM"], float) if "TRM" in ap.names else np.ones(len(ap))
+    uv = np.column_stack([uvt["UUC"], uvt["VVC"]]).astype(float)
+    if kmat.ndim != 2 or kmat.shape[1] != len(uv):
+        raise KpifsError(f"{source}: KER-MAT has shape {kmat.shape} but UV-PLANE has "
+                         f"{len(uv)} rows")
+    return {"xy": np.column_stack([ap["XXC"], ap["YYC"]]).astype(float), "transmission": trm,
+            "step": hdul["APERTURE"].header.get("STEP"),
+            "name": hdul["APERTURE"].header.get("PUPNAME", str(source)),
+            "uv": uv, "redundancy": np.array(uvt["RED"], float),
+            "blm": np.array(hdul["BLM-MAT"].data, float) if "BLM-MAT" in hdul else None,
+            "kernel": kmat, "rank": hdul["KER-MAT"].header.get("RANK")}
+
+
+def has_kernel_model(path):
+    """True when the FITS file *path* holds a KER-MAT extension (a kernel model).
+
+    Examples
+    --------
+    >>> import tempfile, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.io.kpfits import has_kernel_model
+    >>> path = tempfile.mkdtemp() + "/model.fits"
+    >>> _ = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m)).write(path)
+    >>> has_kernel_model(path)
+    True
+    """
+    try:
+        with fits.open(path) as hdul:
+            return "KER-MAT" in hdul
+    except FileNotFoundError:
+        raise KpifsError(f"{path}: file not found") from None
+    except OSError as exc:
+        raise KpifsError(f"{path}: cannot read: {exc}") from None
+
+
+# --- kernel-phase data --------------------------------------------------------------
 def kpd_to_hdulist(kpd, *, inputs=(), history=()):
-    """Return *kpd* (`~kpifs.KernelPhaseData`) as a KPFITS1 `~astropy.io.fits.HDUList`.
+    """Return kernel-phase data (`~kpifs.KernelPhaseData`) as a KPFITS1 HDUList.
 
     Examples
     --------
@@ -60,35 +187,31 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
     >>> [h.name for h in hdul][:6]
     ['PRIMARY', 'APERTURE', 'UV-PLANE', 'KER-MAT', 'BLM-MAT', 'KP-DATA']
     """
-    from .. import __version__
     km = kpd.kernel_model
     hdr = _clean_header(kpd.header)
     hdr["CONTENT"] = ("KPFITS1", "kernel-phase FITS exchange format")
     hdr["PSCALE"] = (float(kpd.pixscale.to_value(u.mas)), "[mas] pixel scale")
     if "diameter_m" in km.pupil.meta:
         hdr["DIAM"] = (float(km.pupil.meta["diameter_m"]), "[m] pupil diameter")
-    hdr["PROCSOFT"] = (f"kpifs {__version__}", "software that wrote this file")
-    hdr["KPIFSVER"] = (__version__, "kpifs version")
+    hdr["PROCSOFT"] = (f"kpifs {VERSION}", "software that wrote this file")
+    hdr["KPIFSVER"] = (VERSION, "kpifs version")
     hdr["CALFLAG"] = (bool(kpd.meta.get("calibrated", False)), "calibrator subtracted")
     hdr["NKP"] = (kpd.n_kp, "number of kernel phases")
     hdr["NUV"] = (km.n_uv, "number of uv points")
-    for key, val in (("WINSIZE", kpd.meta.get("window_size")),
-                     ("WINRAD", kpd.meta.get("window_radius")),
-                     ("WINORD", kpd.meta.get("window_order"))):
-        if val is not None:
-            hdr[key] = (val, "extraction window (pixels)")
+    if kpd.window is not None:
+        kpd.window.to_header(hdr)
     for i, name in enumerate(inputs, 1):
-        hdr[f"KPIN{i}"] = _card(name, "input file")
+        hdr[f"KPIN{i}"] = card(name, "input file")
     for i, name in enumerate(kpd.meta.get("calibrators", []), 1):
-        hdr[f"KPCAL{i}"] = _card(name, "calibrator")
+        hdr[f"KPCAL{i}"] = card(name, "calibrator")
     if kpd.meta.get("calibrated"):
         hdr["NFRTGT"] = (int(kpd.meta.get("n_target_frames", 0)), "target frames averaged")
-        hdr.add_history(f"kpifs {__version__}: calibrated with "
+        hdr.add_history(f"kpifs {VERSION}: calibrated with "
                         f"{len(kpd.meta.get('calibrators', []))} calibrator(s)")
     for line in history:
         hdr.add_history(line)
-    hdr.add_history(f"kpifs {__version__}: kernel phases of {kpd.meta.get('source', '?')}")
-    hdus = [fits.PrimaryHDU(header=hdr), *km.to_hdus()]
+    hdr.add_history(f"kpifs {VERSION}: kernel phases of {kpd.meta.get('source', '?')}")
+    hdus = [fits.PrimaryHDU(header=hdr), *model_hdus(km)]
     kd = fits.ImageHDU(kpd.kp.astype(np.float64), name="KP-DATA")
     kd.header["BUNIT"] = "rad"
     hdus.append(kd)
@@ -127,7 +250,7 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
 
 
 def write_kpfits(kpd, path, *, overwrite=False, inputs=(), history=()):
-    """Write *kpd* to *path* (atomically; never over an input).
+    """Write kernel-phase data to *path* in the KPFITS1 layout (atomically; never over an input).
 
     Examples
     --------
@@ -144,30 +267,51 @@ def write_kpfits(kpd, path, *, overwrite=False, inputs=(), history=()):
                          overwrite=overwrite, inputs=inputs)
 
 
-def read_kpfits(path):
-    """Read a KPFITS1 file into `~kpifs.KernelPhaseData`.
+def is_kpfits(origin, path, fileobj, *args, **kwargs):
+    """Identifier for astropy's I/O registry: a FITS file with a KP-DATA extension."""
+    if path is not None and not str(path).lower().endswith((".fits", ".fit", ".fits.gz")):
+        return False
+    target = path if path is not None else fileobj
+    if target is None:
+        return False
+    try:
+        with fits.open(target) as hdul:
+            return "KP-DATA" in hdul
+    except Exception:  # anything unreadable is simply not this format
+        return False
+
+
+def read_kpfits_parts(path):
+    """Read a KPFITS1 file of kernel-phase data into plain arrays.
 
     Kernel rows need not be unit-normalised and redundancies may be integers
-    or floats (files written by other tools).
+    or floats (files written by other tools). Returns a dict with ``model``
+    (see `read_model_parts`), ``kp`` (nframe, nwave, nkp), ``wavelengths`` and
+    ``bandwidth`` (Quantity or None), ``pixscale`` (Quantity), ``covariance``,
+    ``joint_covariance``, ``covariance_rows``, ``detpa``, ``phases``,
+    ``amplitudes`` (arrays or None), ``header`` and ``meta``.
 
     Examples
     --------
     >>> import tempfile, numpy as np, astropy.units as u
     >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
-    >>> from kpifs.io import read_kpfits
+    >>> from kpifs.io.kpfits import read_kpfits_parts
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     >>> path = tempfile.mkdtemp() + "/kp.fits"
     >>> _ = KernelPhaseData(np.zeros((2, 1, km.n_kp)), [1.6] * u.um, 10 * u.mas, km).write(path)
-    >>> read_kpfits(path).shape
+    >>> read_kpfits_parts(path)["kp"].shape
     (2, 1, 44)
     """
-    from ..extract import KernelPhaseData
-    from ..kernel import KernelModel
+    path = str(path)
+    if Path(path).is_dir():
+        raise KpifsError(f"{path}: is a directory, expected a KPFITS file")
+    if not Path(path).exists():
+        raise KpifsError(f"{path}: file not found")
     try:
         with fits.open(path, memmap=False) as hdul:
             if "KP-DATA" not in hdul:
                 raise KpifsError(f"{path}: no KP-DATA extension: not kernel-phase data")
-            km = KernelModel.from_hdulist(hdul, source=path)
+            model = read_model_parts(hdul, source=path)
             hdr = hdul[0].header.copy()
             kp = np.array(hdul["KP-DATA"].data, float)
             if kp.ndim == 2:
@@ -191,19 +335,17 @@ def read_kpfits(path):
             if "CVIS-DATA" in hdul:
                 cv = np.array(hdul["CVIS-DATA"].data, float)
                 phases, amps = cv[0], cv[1]
-    except (OSError, TypeError, KeyError) as exc:
+    except (OSError, TypeError, KeyError, ValueError) as exc:
+        if isinstance(exc, KpifsError):
+            raise
         raise KpifsError(f"{path}: cannot read KPFITS: {exc}") from None
     if "PSCALE" not in hdr:
         raise KpifsError(f"{path}: no pixel scale (PSCALE) in the primary header")
     meta = {"source": str(path), "calibrated": bool(hdr.get("CALFLAG", False))}
-    for key, name in (("WINSIZE", "window_size"), ("WINRAD", "window_radius"),
-                      ("WINORD", "window_order")):
-        if key in hdr:
-            meta[name] = hdr[key]
     meta["calibrators"] = [hdr[k] for k in hdr if k.startswith("KPCAL") and k[5:].isdigit()]
     if cov is not None and cov.ndim == 4 and cov.shape[0] > 1 and not hdr.get("COVSHARE"):
         cov = cov.mean(axis=0)   # per-frame covariances from another tool: their mean
-    return KernelPhaseData(kp, wl.to(u.um), hdr["PSCALE"] * u.mas, km, phases=phases,
-                           amplitudes=amps, covariance=cov, joint_covariance=jcov,
-                           covariance_rows=rows, header=hdr,
-                           detpa=detpa, bandwidth=bw, meta=meta)
+    return {"model": model, "kp": kp, "wavelengths": wl.to(u.um), "bandwidth": bw,
+            "pixscale": hdr["PSCALE"] * u.mas, "covariance": cov, "joint_covariance": jcov,
+            "covariance_rows": rows, "detpa": detpa, "phases": phases, "amplitudes": amps,
+            "header": hdr, "meta": meta}

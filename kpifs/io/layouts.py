@@ -17,6 +17,7 @@ import numpy as np
 from astropy import units as u
 from astropy.io import fits
 
+from .._meta import VERSION
 from .._utils import check_output_path, write_hdulist
 from ..exceptions import KpifsError
 
@@ -27,7 +28,6 @@ LAYOUTS = ("plain", "charis", "sphere")
 
 
 def _base_header(cards, *, instrument, pixscale, exptime=None, obj="SIMULATED"):
-    from .. import __version__
     hdr = fits.Header()
     hdr["OBJECT"] = (obj, "target name")
     hdr["INSTRUME"] = (instrument.upper(), "instrument")
@@ -36,8 +36,8 @@ def _base_header(cards, *, instrument, pixscale, exptime=None, obj="SIMULATED"):
         hdr["EXPTIME"] = (float(exptime.to_value(u.s)), "[s] exposure time")
     for key, val in cards.items():
         hdr[key] = val
-    hdr["KPIFSVER"] = (__version__, "kpifs version")
-    hdr.add_history(f"simulated by kpifs {__version__}")
+    hdr["KPIFSVER"] = (VERSION, "kpifs version")
+    hdr.add_history(f"simulated by kpifs {VERSION}")
     return hdr
 
 

@@ -1,21 +1,20 @@
-"""Detection products on disk: one FITS file per search.
+"""kpifs detection products: maps, limits, curves and candidates in one FITS file.
 
-Extensions: DETECTION (the local statistic of the map test), PFA (global false-
-alarm probability of each position; PFA_LOCAL the local one), CONTRAST and
-CONTRAST_ERR ``(nwave, ny, nx)``, LIMIT (detection limit of the chosen test)
-and LIMIT_<TEST> for every test, CURVES (radial limits, a table), CANDIDATES
-(a table, sorted by significance, possibly empty). Images carry a WCS from map
-pixels to offsets in mas along image x and y; the primary header says which
-test, P_FA, P_D, calibrators, inputs and kpifs version.
+This module knows the layout; `~kpifs.data.DetectionResult` connects it to
+astropy's unified I/O registry (``DetectionResult.read(path)``).
 """
+from pathlib import Path
+
 import numpy as np
 from astropy.io import fits
 from astropy.table import QTable
 
+from .._meta import VERSION
 from .._utils import write_hdulist
-from .kpfits import _card
+from ..exceptions import KpifsError
+from .kpfits import card
 
-__all__ = ["detection_hdulist", "write_detection", "read_detection"]
+__all__ = ["detection_hdulist", "write_detection", "read_detection_parts"]
 
 
 def _image(data, name, wcs_header, bunit=None, comment=None):
@@ -28,7 +27,10 @@ def _image(data, name, wcs_header, bunit=None, comment=None):
 
 
 def detection_hdulist(result, *, header=None, inputs=()):
-    """Build the products of a `~kpifs.detect.DetectionResult` as an HDUList.
+    """Build the products of a `~kpifs.data.DetectionResult` as an HDUList.
+
+    *header* (default ``result.header``): the searched data's header, whose
+    cards the primary header keeps.
 
     Examples
     --------
@@ -38,9 +40,9 @@ def detection_hdulist(result, *, header=None, inputs=()):
     >>> hdul[0].header["CONTENT"], "CANDIDATES" in hdul
     ('KPIFS-DETECTION', True)
     """
-    from .. import __version__
+    header = result.header if header is None else header
     hdr = fits.Header() if header is None else _strip(header)
-    hdr["KPIFSVER"] = (__version__, "kpifs version")
+    hdr["KPIFSVER"] = (VERSION, "kpifs version")
     hdr["CONTENT"] = ("KPIFS-DETECTION", "kpifs detection products")
     hdr["TEST"] = (result.test, "detection test (B, B-paper, NP, E)")
     hdr["MAPTEST"] = ("B" if result.test == "E" else result.test, "test of the DETECTION map")
@@ -53,6 +55,11 @@ def detection_hdulist(result, *, header=None, inputs=()):
     hdr["ESTAT"] = (result.energy.get("statistic", np.nan), "energy-detector statistic")
     hdr["EDOF"] = (result.energy.get("dof", 0), "energy-detector degrees of freedom")
     hdr["EPFA"] = (result.energy.get("pfa", np.nan), "energy-detector P_FA of the data")
+    hdr["ETHRESH"] = (result.energy.get("threshold", np.nan),
+                      "energy-detector threshold at PFA")
+    hdr["GRIDMIN"] = (float(result.grid.min_sep), "[mas] smallest separation searched")
+    hdr["GRIDMAX"] = (float(result.grid.max_sep) if np.isfinite(result.grid.max_sep) else -1.0,
+                      "[mas] largest separation searched (-1: none)")
     for i, w in enumerate(result.wavelengths.to_value("um"), 1):
         hdr[f"WAVE{i}"] = (float(w), f"[um] wavelength of channel {i}")
     for i, a in enumerate(result.meta.get("spectrum", []), 1):
@@ -62,10 +69,10 @@ def detection_hdulist(result, *, header=None, inputs=()):
     cals = result.meta.get("calibrators", [])
     hdr["CALIB"] = (len(cals) > 0, "calibrated with a calibrator star")
     for i, c in enumerate(cals, 1):
-        hdr[f"KPCAL{i}"] = _card(c, "calibrator")
+        hdr[f"KPCAL{i}"] = card(c, "calibrator")
     for i, name in enumerate(inputs, 1):
-        hdr[f"KPIN{i}"] = _card(name, "input file")
-    hdr.add_history(f"kpifs {__version__}: {result.test} search, P_FA {result.pfa:g}, "
+        hdr[f"KPIN{i}"] = card(name, "input file")
+    hdr.add_history(f"kpifs {VERSION}: {result.test} search, P_FA {result.pfa:g}, "
                     f"P_D {result.pd:g}, {len(result.candidates)} candidate(s)")
     wcs_hdr = result.grid.wcs().to_header()
     q = len(result.wavelengths)
@@ -82,7 +89,9 @@ def detection_hdulist(result, *, header=None, inputs=()):
             _image(result.limit, "LIMIT", wcs_hdr,
                    comment=f"{result.test} limit at P_FA {result.pfa:g}, P_D {result.pd:g}")]
     for name, lim in result.limits.items():
-        hdus.append(_image(lim, f"LIMIT_{name.upper().replace('-', '_')}", wcs_hdr))
+        hdu = _image(lim, f"LIMIT_{name.upper().replace('-', '_')}", wcs_hdr)
+        hdu.header["LIMTEST"] = (name, "test of this limit map")
+        hdus.append(hdu)
     curves = fits.table_to_hdu(result.curves)
     curves.name = "CURVES"
     hdus.append(curves)
@@ -94,15 +103,25 @@ def detection_hdulist(result, *, header=None, inputs=()):
     return fits.HDUList(hdus)
 
 
+# cards the products write themselves: an inherited copy is dropped, so that the
+# products' own cards come in one order however often a result is written
+_PRODUCT_CARDS = {"KPIFSVER", "CONTENT", "TEST", "MAPTEST", "PFA", "PD", "THRESH", "NDRAWS",
+                  "MCSEED", "NCAND", "ESTAT", "EDOF", "EPFA", "ETHRESH", "GRIDMIN", "GRIDMAX",
+                  "NULLCHAN", "CALIB"}
+_PRODUCT_PREFIXES = ("WAVE", "SPEC", "KPCAL", "KPIN")
+
+
 def _strip(header):
     out = fits.Header()
-    skip = {"SIMPLE", "BITPIX", "EXTEND", "CHECKSUM", "DATASUM", "CONTENT", "PCOUNT",
-            "GCOUNT", "XTENSION", "END"}
-    for card in header.cards:
-        if card.keyword in skip or card.keyword.startswith("NAXIS"):
+    skip = {"SIMPLE", "BITPIX", "EXTEND", "CHECKSUM", "DATASUM", "PCOUNT", "GCOUNT",
+            "XTENSION", "END"} | _PRODUCT_CARDS
+    for c in header.cards:
+        key = c.keyword
+        if key in skip or key.startswith("NAXIS") or any(
+                key.startswith(p) and key[len(p):].isdigit() for p in _PRODUCT_PREFIXES):
             continue
         try:
-            out.append(card)
+            out.append(c)
         except (ValueError, fits.VerifyError):
             pass
     return out
@@ -123,22 +142,53 @@ def write_detection(result, path, *, header=None, inputs=(), overwrite=False):
                          overwrite=overwrite, inputs=inputs)
 
 
-def read_detection(path):
-    """Read back products: a dict of arrays and tables keyed by extension name.
+def is_detection(origin, path, fileobj, *args, **kwargs):
+    """Identifier for astropy's I/O registry: a FITS file with CONTENT = 'KPIFS-DETECTION'."""
+    target = path if path is not None else fileobj
+    if target is None:
+        return False
+    try:
+        with fits.open(target) as hdul:
+            return hdul[0].header.get("CONTENT") == "KPIFS-DETECTION"
+    except Exception:  # anything unreadable is simply not this format
+        return False
+
+
+def read_detection_parts(path):
+    """Read detection products: ``header``, ``images`` (by extension name),
+    ``limits`` (by test name) and ``tables`` (CURVES, CANDIDATES as QTable).
 
     Examples
     --------
     >>> import tempfile
     >>> from kpifs.detect.pipeline import _example_result
-    >>> from kpifs.io.products import read_detection, write_detection
+    >>> from kpifs.io.products import read_detection_parts, write_detection
     >>> path = write_detection(_example_result(), tempfile.mkdtemp() + "/det.fits")
-    >>> products = read_detection(path)
-    >>> products["header"]["TEST"], products["DETECTION"].ndim
-    ('B', 2)
+    >>> parts = read_detection_parts(path)
+    >>> parts["header"]["TEST"], parts["images"]["DETECTION"].ndim, sorted(parts["limits"])
+    ('B', 2, ['B', 'B-paper', 'E', 'NP'])
     """
-    out = {}
-    with fits.open(path) as hdul:
-        out["header"] = hdul[0].header.copy()
-        for h in hdul[1:]:
-            out[h.name] = QTable.read(h) if isinstance(h, fits.BinTableHDU) else np.array(h.data)
+    path = str(path)
+    if not Path(path).is_file():
+        raise KpifsError(f"{path}: file not found")
+    out = {"images": {}, "limits": {}, "tables": {}}
+    try:
+        with fits.open(path) as hdul:
+            out["header"] = hdul[0].header.copy()
+            if out["header"].get("CONTENT") != "KPIFS-DETECTION":
+                raise KpifsError(f"{path}: not kpifs detection products (CONTENT is not "
+                                 f"'KPIFS-DETECTION')")
+            for h in hdul[1:]:
+                if isinstance(h, fits.BinTableHDU):
+                    out["tables"][h.name] = QTable.read(h)
+                elif "LIMTEST" in h.header:
+                    out["limits"][h.header["LIMTEST"]] = np.array(h.data)
+                else:
+                    out["images"][h.name] = np.array(h.data)
+                    if h.name == "DETECTION":
+                        out["grid_header"] = h.header.copy()
+    except (OSError, ValueError, TypeError) as exc:
+        if isinstance(exc, KpifsError):
+            raise
+        raise KpifsError(f"{path}: cannot read detection products: {exc}") from None
     return out

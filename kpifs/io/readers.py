@@ -2,10 +2,14 @@
 import logging
 from pathlib import Path
 
+import numpy as np
+from astropy import units as u
+
 from ..exceptions import KpifsError
 from .charis import is_charis, read_charis
-from .cube import _open_fits, read_generic
+from .cube import FrameStack, IFSCube, open_fits, read_generic
 from .sphere import is_sphere, read_sphere
+from .wavelengths import parse_wavelengths
 
 __all__ = ["read_cube", "detect_instrument", "INSTRUMENTS"]
 
@@ -27,7 +31,7 @@ def detect_instrument(path):
     >>> detect_instrument(files["target"][0])
     'charis'
     """
-    hdul = _open_fits(path)
+    hdul = open_fits(path)
     try:
         if is_charis(hdul):
             return "charis"
@@ -51,7 +55,11 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
         ``NLAM``) and SPHERE-IFS products (``INSTRUME``, ``ESO SEQ ARM`` or the
         Data Center's ``ESO PRO REC1 ID``); anything else is read as a generic
         cube. The choice is logged and stored in ``cube.instrument``.
-    wavelengths, pixscale, angles
+    wavelengths
+        Any form `~kpifs.io.parse_wavelengths` accepts (a Quantity, values,
+        ``"1.52um,1.6um"`` or a text/FITS file); overrides the header, or
+        supplies what it lacks.
+    pixscale, angles
         Passed to the reader (override the header, or supply what it lacks).
 
     Examples
@@ -72,6 +80,7 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
         raise KpifsError("no input files")
     if instrument not in INSTRUMENTS:
         raise KpifsError(f"unknown instrument {instrument!r}: use one of {INSTRUMENTS}")
+    wavelengths = parse_wavelengths(wavelengths)     # once, whatever the number of files
     if instrument == "auto":
         kinds = {p: detect_instrument(p) for p in paths}
         if len(set(kinds.values())) > 1:
@@ -81,9 +90,7 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
         log.info("%s: read as %s", paths[0] if len(paths) == 1 else f"{len(paths)} files",
                  instrument)
     if instrument == "charis":
-        if wavelengths is not None:
-            log.warning("CHARIS wavelengths come from the headers; --wavelengths ignored")
-        return read_charis(paths, pixscale=pixscale)
+        return read_charis(paths, wavelengths=wavelengths, pixscale=pixscale)
     readers = {"sphere": lambda p: read_sphere(p, wavelengths=wavelengths, pixscale=pixscale,
                                                angles=angles),
                "generic": lambda p: read_generic(p, wavelengths=wavelengths,
@@ -102,8 +109,6 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
 
 
 def _concatenate(cubes):
-    import numpy as np
-    from .cube import FrameStack, IFSCube
     first = cubes[0]
     for c in cubes[1:]:
         if len(c.wavelengths) != len(first.wavelengths) or not np.allclose(
@@ -115,7 +120,6 @@ def _concatenate(cubes):
     files = [f for c in cubes for f in c._files]
     angles = None
     if all(c.angles is not None for c in cubes):
-        import astropy.units as u
         angles = np.concatenate([c.angles.to_value(u.deg) for c in cubes]) * u.deg
     return IFSCube(data=stack, wavelengths=first.wavelengths, pixscale=first.pixscale,
                    header=first.header, angles=angles, instrument=first.instrument,

@@ -15,7 +15,8 @@ from astropy.io import fits
 
 from .._utils import to_quantity
 from ..exceptions import KpifsError
-from .cube import IFSCube, _open_fits, _wavelength_quantity, read_wavelength_file
+from .cube import IFSCube, open_fits
+from .wavelengths import parse_wavelengths, read_wavelength_file
 
 __all__ = ["read_sphere", "is_sphere", "SPHERE_PIXSCALE"]
 
@@ -40,11 +41,8 @@ def is_sphere(hdul):
 
 def _find_wavelengths(path, hdr, nwave, wavelengths):
     if wavelengths is not None:
-        if isinstance(wavelengths, (str, Path)):
-            return read_wavelength_file(wavelengths, unit="um" if _is_dc(hdr) else None)
-        if isinstance(wavelengths, u.Quantity):
-            return to_quantity(wavelengths, u.um, name="wavelengths")
-        return _wavelength_quantity(wavelengths, source=path)
+        return parse_wavelengths(wavelengths, unit="um" if _is_dc(hdr) else None,
+                                 source=f"{path}: wavelengths")
     for name in _WAVE_NAMES:
         cand = Path(path).with_name(name)
         if cand.exists():
@@ -67,8 +65,9 @@ def read_sphere(path, *, wavelengths=None, pixscale=None, angles=None):
     path : str
         ``(nwave, nframe, ny, nx)`` or ``(nwave, ny, nx)`` FITS cube.
     wavelengths : str, array or `~astropy.units.Quantity`, optional
-        A wavelength file (FITS or text) or values; nm and um are told apart
-        from the values (or the header). Default: ``wavelength.fits`` beside
+        Any form `~kpifs.io.parse_wavelengths` accepts: a wavelength file
+        (FITS or text), a list such as ``"1.5um,1.6um"`` or values; nm and um
+        are told apart from the values (or the header). Default: ``wavelength.fits`` beside
         the cube, else the DRS limits in the header.
     pixscale : `~astropy.units.Quantity`, optional
         Default `SPHERE_PIXSCALE` (7.46 mas).
@@ -88,7 +87,7 @@ def read_sphere(path, *, wavelengths=None, pixscale=None, angles=None):
     ...     print(cube.shape, f"{cube.wavelengths[0]:.3f}")
     (2, 39, 32, 32) 0.957 um
     """
-    hdul = _open_fits(path)
+    hdul = open_fits(path)
     try:
         hdu = next((h for h in hdul if h.data is not None and h.is_image), None)
         if hdu is None:

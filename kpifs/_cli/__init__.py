@@ -1,0 +1,82 @@
+"""The ``kpifs`` command line (private: `kpifs.cli.main` is the public entry point).
+
+One small module per command (``kpifs._cli.extract`` runs ``kpifs extract``,
+and so on); each turns the parsed options into the workflow's option objects,
+calls `kpifs.workflow` and prints. The parser (`kpifs._cli._parser`) imports
+nothing heavy, and a command's module is imported only when that command
+runs, so ``kpifs --help`` and ``kpifs --version`` start fast.
+
+Exit status: 0 success, 2 bad input or usage (one-line message naming the file
+and the problem), 3 an unexpected internal error (rerun with ``--debug`` for
+the traceback).
+"""
+import importlib
+import logging
+import sys
+import warnings
+
+from ._parser import build_parser
+
+__all__ = ["main"]
+
+log = logging.getLogger("kpifs")
+
+
+def _setup_logging(args):
+    """Send kpifs's log records to stderr at the level -v/-q ask for."""
+    level = logging.WARNING - 10 * args.verbose
+    if args.quiet:
+        level = logging.ERROR
+    for h in [h for h in log.handlers if getattr(h, "_kpifs_cli", False)]:
+        log.removeHandler(h)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("kpifs: %(message)s"))
+    handler._kpifs_cli = True
+    log.addHandler(handler)
+    log.setLevel(max(level, logging.DEBUG))
+
+
+def _make_show(args):
+    def show(message, category, filename, lineno, file=None, line=None):
+        if not args.quiet:
+            print(f"kpifs {args.command}: warning: {message}", file=sys.stderr)
+    return show
+
+
+def main(argv=None):
+    """Run the ``kpifs`` command line; return the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    _setup_logging(args)
+    # the command's module, and with it numpy/astropy, is imported only now: --help and
+    # --version have exited in parse_args without them
+    run = importlib.import_module(f"{__name__}.{args.module}").run
+    bad_input = (importlib.import_module("kpifs.exceptions").KpifsError, OSError)
+    old_show = warnings.showwarning
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("default")
+            warnings.showwarning = _make_show(args)
+            return run(args)
+    except BrokenPipeError:  # output piped into `head` and closed: not an error
+        sys.stderr.close()
+        return 0
+    except KeyboardInterrupt:
+        print(f"kpifs {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except bad_input as exc:
+        if args.debug:
+            raise
+        print(f"kpifs {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # pragma: no cover - a bug, not bad input
+        if args.debug:
+            raise
+        print(f"kpifs {args.command}: internal error: {type(exc).__name__}: {exc} "
+              f"(rerun with --debug for the traceback)", file=sys.stderr)
+        return 3
+    finally:
+        warnings.showwarning = old_show

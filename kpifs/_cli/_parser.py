@@ -1,0 +1,224 @@
+"""The ``kpifs`` argument parser: options only, no science, nothing heavy imported.
+
+Each subcommand names the module of `kpifs._cli` that runs it; the shared
+option groups (cubes, pupil model, extraction, search) are defined once here
+and turned into `~kpifs.workflow.ExtractOptions` / `~kpifs.workflow.DetectOptions`
+by `kpifs._cli._options`.
+"""
+import argparse
+
+from .._meta import VERSION
+
+__all__ = ["build_parser"]
+
+EPILOG_KERNEL = """examples:
+  kpifs kernel --pupil subaru --step 0.38m -o subaru_model.fits
+  kpifs kernel --pupil vlt --step 0.4m --offset 0.1m,0.05m --grey -o vlt_grey.fits
+  kpifs kernel --pupil mypupil.fits --pupil-scale 0.02m -o model.fits
+"""
+EPILOG_EXTRACT = """examples:
+  kpifs extract cube.fits --wavelengths 1.52um,1.60um,1.68um --pixscale 10.42mas \\
+      --pupil subaru -o kp.fits
+  kpifs extract sim/target.fits --pupil model.fits -o kp.fits --overwrite
+  kpifs extract target/CRSA*_cube.fits --calibrator calib/CRSA*_cube.fits -o cal_kp.fits
+  kpifs extract science_cube.fits --instrument sphere --wavelengths wavelength.fits \\
+      --calibrator ref_cube.fits -o cal_kp.fits
+"""
+EPILOG_DETECT = """examples:
+  kpifs detect cal_kp.fits -o detection.fits --plots figures
+  kpifs detect target_kp.fits --calibrator calib_kp.fits --test B-paper --pfa 1e-3 \\
+      --max-sep 200mas --grid-step 5mas -o detection.fits
+  kpifs detect cal_kp.fits --test NP --spectrum 1.3,1.0,0.7 -o detection.fits
+"""
+EPILOG_BATCH = """examples:
+  kpifs batch archive.csv -o reprocessed
+  kpifs batch --glob 'night1/*_cube.fits' --calibrator 'night1/cal/*_cube.fits' -o out
+  kpifs batch archive.csv --scheduler tcp://10.0.0.5:8786 -o reprocessed
+manifest (CSV):
+  name,target,calibrator
+  hd1234,hd1234/CRSA*_cube.fits,ref1/CRSA*_cube.fits|ref2/CRSA*_cube.fits
+every entry is reduced as 'kpifs extract TARGET --calibrator CAL' then 'kpifs detect'
+would with the same options; exit status 1 if any entry failed (see summary.ecsv);
+a rerun skips entries already done.
+"""
+EPILOG_INFO = """examples:
+  kpifs info target/CRSA00000000_cube.fits
+  kpifs info kp.fits
+"""
+EPILOG_SIMULATE = """examples:
+  kpifs simulate --preset paper --frames 100 -o sim
+  kpifs simulate --preset charis --layout charis --frames 5 -o charis_sim
+  kpifs simulate --preset sphere --layout sphere -o sphere_sim
+"""
+
+TESTS = ("B", "B-paper", "NP", "E")
+INSTRUMENTS = ("auto", "charis", "sphere", "generic")
+
+
+def _cube_options(p):
+    g = p.add_argument_group("input cubes")
+    g.add_argument("--instrument", default="auto", choices=INSTRUMENTS,
+                   help="file format (default: recognised from the header)")
+    g.add_argument("--wavelengths", help="list (1.52um,1.60um) or file (text/FITS, um or nm); "
+                                         "default: from the file's header")
+    g.add_argument("--pixscale", help="pixel scale, e.g. 10.42mas; default: from the header "
+                                      "or the instrument (CHARIS 16.2mas, SPHERE 7.46mas)")
+
+
+def _pupil_options(p):
+    g = p.add_argument_group("pupil model")
+    g.add_argument("--pupil", default=None,
+                   help="telescope name (subaru, vlt, pharo), pupil image FITS (PUPSCALE "
+                        "keyword or --pupil-scale) or kernel-model FITS (default: the "
+                        "instrument's telescope, subaru for plain cubes)")
+    g.add_argument("--pupil-scale", help="pupil image pixel size, e.g. 0.02m")
+    g.add_argument("--step", default="0.38m", help="pupil grid step (default 0.38m)")
+    g.add_argument("--offset", default="0.17m,0.11m",
+                   help="grid offset x,y (default 0.17m,0.11m; 0,0 gives a "
+                        "centro-symmetric model)")
+    g.add_argument("--min-transmission", type=float, default=0.9,
+                   help="keep cells at least this much inside the pupil (default 0.9)")
+    g.add_argument("--grey", action="store_true", help="keep fractional transmissions")
+    g.add_argument("--hexagonal", action="store_true", help="hexagonal grid")
+
+
+def _extraction_options(p):
+    g = p.add_argument_group("extraction")
+    g.add_argument("--window", "--window-size", dest="window_size", type=int,
+                   help="cut-out size in pixels (default: the image size, at most 64)")
+    g.add_argument("--window-radius", type=float,
+                   help="super-Gaussian radius in pixels (default 0.8 x half the cut-out)")
+    g.add_argument("--centroid", default="com", choices=("com", "peak", "quadratic", "2dg"),
+                   help="star-centre method (default com)")
+    g.add_argument("--bad-pixels", default="fill", choices=("fill", "exclude"),
+                   help="interpolate bad pixels (default) or leave them out")
+    g.add_argument("--nyquist", default="drop", choices=("drop", "raise"),
+                   help="uv points beyond the Nyquist limit: drop (warn) or refuse")
+    g = p.add_argument_group("covariance")
+    g.add_argument("--shrinkage", default="auto", choices=("auto", "ledoit-wolf", "none"),
+                   help="covariance estimator (auto: Ledoit-Wolf when frames are too few)")
+    g.add_argument("--joint-covariance", action="store_true",
+                   help="also estimate the joint covariance across channels")
+    g.add_argument("--covariance", action="store_true",
+                   help="store the frames' covariance even without a calibrator")
+
+
+def _search_options(p, *, grid_step_aliases=("--grid-step",), draws=30000):
+    g = p.add_argument_group("search")
+    g.add_argument("--test", default="B", choices=TESTS,
+                   help="B: GLR sum max(z,0)^2 (default); B-paper: sum max(z,0); NP: matched "
+                        "filter for --spectrum; E: energy detector")
+    g.add_argument("--pfa", type=float, default=1e-3, help="global false-alarm probability")
+    g.add_argument("--pd", type=float, default=0.5, help="detection probability of the limits")
+    g.add_argument("--max-sep", help="largest separation searched, e.g. 200mas")
+    g.add_argument("--min-sep", help="smallest separation searched, e.g. 20mas")
+    g.add_argument(*grid_step_aliases, dest="grid_step",
+                   help="search grid step, e.g. 5mas (default lambda/4D)")
+    g.add_argument("--spectrum", help="companion spectrum shape: flat, comma list or file")
+    g.add_argument("--draws", type=int, default=draws,
+                   help=f"Monte-Carlo draws calibrating the grid search (default {draws})")
+    g.add_argument("--seed", type=int, default=0, help="seed of those draws (default 0)")
+
+
+def _output(p, help_text="output FITS file", *, required=True, default=None):
+    p.add_argument("-o", "--output", required=required, default=default, help=help_text)
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+
+
+def build_parser():
+    """The ``kpifs`` parser; ``args.module`` names the `kpifs._cli` module that runs it."""
+    parser = argparse.ArgumentParser(
+        prog="kpifs", description="Multi-wavelength kernel-phase analysis of IFS cubes.",
+        epilog="Run 'kpifs COMMAND --help' for the options and examples of each command. "
+               "Exit status: 0 ok, 2 bad input, 3 internal error.")
+    parser.add_argument("--version", action="version", version=f"kpifs {VERSION}")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("-v", "--verbose", action="count", default=0, help="more messages")
+    common.add_argument("-q", "--quiet", action="store_true", help="errors only")
+    common.add_argument("--debug", action="store_true", help="show tracebacks")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    raw = argparse.RawDescriptionHelpFormatter
+
+    def command(name, help_text, epilog, module=None):
+        p = sub.add_parser(name, parents=[common], help=help_text, epilog=epilog,
+                           formatter_class=raw)
+        p.set_defaults(module=module or name)
+        return p
+
+    p = command("kernel", "build a kernel model and save it", EPILOG_KERNEL)
+    _pupil_options(p)
+    _output(p)
+
+    p = command("extract", "kernel phases of IFS cubes", EPILOG_EXTRACT)
+    p.add_argument("cubes", nargs="+", metavar="CUBE",
+                   help="FITS cube(s) of the target; several files are more frames")
+    p.add_argument("--calibrator", action="append", nargs="+", metavar="CUBE",
+                   help="cube(s) of a calibrator star; repeat the option for several "
+                        "calibrators (their mean is subtracted)")
+    _cube_options(p)
+    _pupil_options(p)
+    _extraction_options(p)
+    _output(p, "output KPFITS file")
+
+    p = command("info", "describe a cube, KPFITS, model or detection file", EPILOG_INFO)
+    p.add_argument("files", nargs="+", metavar="FILE")
+    _cube_options(p)
+    _pupil_options(p)
+
+    p = command("simulate", "simulate a target and a calibrator", EPILOG_SIMULATE)
+    p.add_argument("--preset", default="paper", choices=("paper", "charis", "sphere"))
+    p.add_argument("--layout", default="plain", choices=("plain", "charis", "sphere"),
+                   help="file layout (default plain 4-D cube)")
+    p.add_argument("--frames", type=int, help="number of frames (preset default)")
+    p.add_argument("--contrasts", help="per-channel contrasts, comma separated")
+    p.add_argument("--separation", help="companion separation, e.g. 100mas")
+    p.add_argument("--pa", help="companion angle from +x towards +y, e.g. 36.87deg")
+    p.add_argument("--wavefront", help="rms wavefront error, e.g. 100nm")
+    p.add_argument("--shape", type=int, help="image side in pixels (preset default)")
+    p.add_argument("--exptime", help="exposure time per frame, e.g. 1s (default 0.1s)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    _output(p, "output directory")
+
+    p = command("detect", "search kernel phases for companions", EPILOG_DETECT)
+    p.add_argument("kp", metavar="KP.fits", help="kernel-phase data (KPFITS)")
+    p.add_argument("--calibrator", nargs="+", metavar="CAL_KP.fits",
+                   help="kernel phases of calibrator(s), if KP.fits is not calibrated")
+    _search_options(p, grid_step_aliases=("--grid-step", "--step"))
+    p.add_argument("--shrinkage", default="auto", choices=("auto", "ledoit-wolf", "none"),
+                   help="covariance estimator when calibrating here")
+    p.add_argument("--plots", metavar="DIR", help="write PNG figures there")
+    _output(p)
+
+    p = command("roc", "the seed paper's ROC experiment",
+                "example:\n  kpifs roc --preset paper --frames 300 -o roc")
+    p.add_argument("--preset", default="paper", choices=("paper", "charis", "sphere"))
+    p.add_argument("--frames", type=int, default=1000, help="calibrator frames (default 1000)")
+    p.add_argument("--draws", type=int, default=30000, help="Monte-Carlo draws (default 30000)")
+    p.add_argument("--seed", type=int, default=0)
+    _output(p, "output directory")
+
+    p = command("batch", "reprocess many observations on Dask", EPILOG_BATCH)
+    p.add_argument("manifest", nargs="*", metavar="MANIFEST",
+                   help="CSV/ECSV with columns name, target, calibrator (';' separates files, "
+                        "'|' calibrator stars; globs allowed)")
+    p.add_argument("--glob", help="one entry per matching target file")
+    p.add_argument("--calibrator", help="with --glob: calibrator file pattern for every entry")
+    p.add_argument("--scheduler", help="address of a running Dask scheduler (default: a local "
+                                       "cluster)")
+    p.add_argument("--workers", type=int, default=2, help="local-cluster workers (default 2)")
+    _cube_options(p)
+    _pupil_options(p)
+    _extraction_options(p)
+    _search_options(p)
+    p.add_argument("-o", "--output", required=True, help="output directory")
+    p.add_argument("--overwrite", action="store_true",
+                   help="redo entries already done (default: skip them, resuming a run)")
+
+    p = command("demo", "run the whole chain on simulated data",
+                "example:\n  kpifs demo -o demo_output")
+    p.add_argument("--frames", type=int, default=200, help="exposures per star (default 200)")
+    p.add_argument("--draws", type=int, default=20000,
+                   help="Monte-Carlo draws calibrating the search (default 20000)")
+    p.add_argument("--seed", type=int, default=1)
+    _output(p, "output directory", required=False, default="kpifs_demo")
+    return parser

@@ -1,0 +1,21 @@
+"""``kpifs extract``: kernel phases of cubes, calibrated when calibrators are given."""
+from .._utils import check_output_path
+from ..workflow import calibrate_observation, extract_observation
+from ._options import extract_options
+
+
+def run(args):
+    check_output_path(args.output, overwrite=args.overwrite)
+    opts = extract_options(args)
+    progress = not args.quiet
+    kpd = extract_observation(args.cubes, opts, progress=progress)
+    cal_files = args.calibrator or []
+    cals = [extract_observation(files, opts, model=kpd.kernel_model, progress=progress)
+            for files in cal_files]
+    kpd = calibrate_observation(kpd, cals, opts)
+    kpd.write(args.output, overwrite=args.overwrite,
+              inputs=list(args.cubes) + [f for files in cal_files for f in files])
+    what = "calibrated kernel phases" if cals else \
+        f"{kpd.n_frame} frame(s) x {kpd.n_wave} channel(s) x {kpd.n_kp} kernel phases"
+    print(f"{kpd.meta.get('instrument', 'cube')}: {what} -> {args.output}")
+    return 0

@@ -1,0 +1,95 @@
+"""``kpifs info``: describe a cube, a KPFITS file, a kernel model or detection products."""
+import numpy as np
+from astropy import units as u
+
+from ..data import DetectionResult, KernelPhaseData
+from ..io.cube import open_fits
+from ..io.readers import read_cube
+from ..io.wavelengths import parse_wavelengths
+from ..kernel import KernelModel, nyquist_usable
+from ..workflow import DEFAULT_PUPIL, kernel_model_for
+from ._options import extract_options
+
+
+def run(args):
+    for path in args.files:
+        with open_fits(path) as hdul:
+            is_kp = "KP-DATA" in hdul
+            is_model = "KER-MAT" in hdul
+            is_det = hdul[0].header.get("CONTENT") == "KPIFS-DETECTION"
+        if is_det:
+            _detection(path)
+        elif is_kp:
+            _kpfits(path)
+        elif is_model:
+            print(f"{path}: kernel model\n  {KernelModel.read(path)!r}")
+        else:
+            _cube(path, args)
+    return 0
+
+
+def _detection(path):
+    res = DetectionResult.read(path)
+    print(f"{path}: kpifs detection products")
+    print(f"  test {res.test}, global P_FA {res.pfa:g}, P_D {res.pd:g}, threshold "
+          f"{res.threshold:.3f} ({res.meta['n_draws']} Monte-Carlo draws)")
+    print(f"  map {res.statistic.shape[1]} x {res.statistic.shape[0]}; energy detector: "
+          f"T_E = {res.energy['statistic']:.1f} for {res.energy['dof']} degrees of freedom, "
+          f"P_FA {res.energy['pfa']:.2e}")
+    print(f"  {len(res.candidates)} candidate(s)")
+    for row in res.candidates:
+        print(f"    ({row['x'].to_value(u.mas):.1f}, {row['y'].to_value(u.mas):.1f}) mas, "
+              f"global P_FA {row['pfa_global']:.1e}")
+
+
+def _kpfits(path):
+    kpd = KernelPhaseData.read(path)
+    wl = kpd.wavelengths.to_value(u.um)
+    print(f"{path}: kernel-phase data (KPFITS)")
+    print(f"  {kpd.n_frame} frame(s) x {kpd.n_wave} channel(s) x {kpd.n_kp} kernel phases; "
+          f"{wl.min():.4f}-{wl.max():.4f} um; {kpd.pixscale:.2f}")
+    print(f"  model: {kpd.kernel_model!r}")
+    cals = ", ".join(kpd.meta.get("calibrators", []))
+    print(f"  calibrated: {'yes, with ' + cals if kpd.meta.get('calibrated') else 'no'}")
+    cov = "per channel" if kpd.covariance is not None else "none"
+    if kpd.joint_covariance is not None:
+        cov += " and joint"
+    print(f"  covariance: {cov}")
+
+
+def _cube(path, args):
+    opts = extract_options(args)
+    with read_cube([path], instrument=opts.instrument,
+                   wavelengths=parse_wavelengths(opts.wavelengths, source="--wavelengths"),
+                   pixscale=None if opts.pixscale is None else opts.pixscale) as cube:
+        wl = cube.wavelengths.to_value(u.um)
+        print(f"{cube.name}: {cube.instrument} cube")
+        print(f"  frames x channels x y x x: {' x '.join(str(n) for n in cube.shape)}")
+        print(f"  wavelengths: {len(wl)} channels, {wl.min():.4f}-{wl.max():.4f} um")
+        print(f"  pixel scale: {cube.pixscale:.2f}")
+        if cube.angles is not None and np.any(np.isfinite(cube.angles.value)):
+            print(f"  frame angles: {np.nanmin(cube.angles.value):.2f}-"
+                  f"{np.nanmax(cube.angles.value):.2f} deg")
+        for key in ("OBJECT", "TELESCOP", "EXPTIME", "KPSIMX", "KPSIMY"):
+            if key in cube.header:
+                print(f"  {key}: {cube.header[key]}")
+        km = kernel_model_for(opts, cube.instrument)
+        pupil = opts.pupil or DEFAULT_PUPIL[cube.instrument]
+        usable = nyquist_usable(km.uv, cube.wavelengths, cube.pixscale)
+        lost = (~usable).sum(axis=1)
+        print(f"  pupil model {pupil}: {km.pupil.n_sub} sub-apertures, {km.n_uv} uv points, "
+              f"{km.n_kp} kernel phases")
+        if lost.any():
+            for w, n in zip(wl[lost > 0], lost[lost > 0]):
+                print(f"  Nyquist: at {w:.4f} um, {n} of {km.n_uv} uv points are beyond the "
+                      f"sampling limit")
+            print("  extract drops them for every channel (--nyquist drop, the default) or "
+                  "refuses (--nyquist raise)")
+        else:
+            print("  Nyquist: every channel is sampled well enough for every uv point")
+        given = [f"--{opt} {getattr(args, opt)}" for opt in ("instrument", "wavelengths",
+                                                             "pixscale")
+                 if getattr(args, opt) not in (None, "auto")]
+        files = cube.source[0] if len(cube.source) == 1 else f"{cube.source[0]} ..."
+        print(f"  next: kpifs extract {files} {' '.join(given + [f'--pupil {pupil}'])} "
+              f"[--calibrator CAL] -o kp.fits")

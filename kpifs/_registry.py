@@ -1,0 +1,57 @@
+"""``read``/``write`` methods of kpifs's containers through astropy's unified I/O registry.
+
+A container class sets ``_io_format`` (its default format name) and
+``read, write = io_methods("Name")``; the module that knows how to build it
+registers the functions with `astropy.io.registry`, as `~astropy.table.Table`
+and `~astropy.nddata.CCDData` do. Each class gets its own reader and writer
+classes, because the registry writes the list of formats into their
+docstrings.
+"""
+from astropy.io import registry
+
+__all__ = []
+
+
+class _Reader(registry.UnifiedReadWrite):
+    def __init__(self, instance, cls):
+        super().__init__(instance, cls, "read", registry=None)
+
+    def __call__(self, *args, format=None, **kwargs):
+        return self.registry.read(self._cls, *args, format=format or self._cls._io_format,
+                                  **kwargs)
+
+
+class _Writer(registry.UnifiedReadWrite):
+    def __init__(self, instance, cls):
+        super().__init__(instance, cls, "write", registry=None)
+
+    def __call__(self, *args, format=None, **kwargs):
+        return self.registry.write(self._instance, *args,
+                                   format=format or self._cls._io_format, **kwargs)
+
+
+def io_methods(name):
+    """``(read, write)`` descriptors for the container class called *name*."""
+    read_doc = f"""Read a `{name}` from a file.
+
+    ``{name}.read(path, format=None, **kwargs)``: the class's own format
+    unless *format* names another registered one.
+    """
+    write_doc = f"""Write this `{name}` to a file (atomically; never over an input).
+
+    ``obj.write(path, format=None, overwrite=False, **kwargs)``: the class's
+    own format unless *format* names another registered one.
+    """
+    reader = type(f"{name}Read", (_Reader,), {"__doc__": read_doc})
+    writer = type(f"{name}Write", (_Writer,), {"__doc__": write_doc})
+    return (registry.UnifiedReadWriteMethod(reader), registry.UnifiedReadWriteMethod(writer))
+
+
+def register(cls, fmt, reader=None, writer=None, identifier=None):
+    """Register *reader*/*writer*/*identifier* for *cls* under format *fmt*."""
+    if reader is not None:
+        registry.register_reader(fmt, cls, reader, force=True)
+    if writer is not None:
+        registry.register_writer(fmt, cls, writer, force=True)
+    if identifier is not None:
+        registry.register_identifier(fmt, cls, identifier, force=True)

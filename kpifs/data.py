@@ -1,0 +1,318 @@
+"""The containers that travel between the stages: kernel-phase data and detection results.
+
+- `KernelPhaseData`: kernel phases of a cube, with the kernel model, the
+  extraction window and (once calibrated) their covariance; read and written
+  in the KPFITS1 layout (`kpifs.io.kpfits`) with ``KernelPhaseData.read`` /
+  ``.write``.
+- `DetectionGrid`: the grid of companion offsets a search covers.
+- `DetectionResult`: what a search found (maps, limits, candidates), read and
+  written as kpifs detection products (`kpifs.io.products`) with
+  ``DetectionResult.read`` / ``.write``.
+
+Both ``read``/``write`` pairs go through astropy's unified I/O registry
+(formats ``'kpfits'`` and ``'kpifs-detection'``).
+"""
+from dataclasses import dataclass, field
+
+import numpy as np
+from astropy import units as u
+from astropy.io import fits
+
+from ._registry import io_methods, register
+from ._utils import to_quantity
+from .exceptions import KpifsError
+from .io.kpfits import is_kpfits, read_kpfits_parts, write_kpfits
+from .io.products import is_detection, read_detection_parts, write_detection
+from .io.wavelengths import check_wavelengths
+from .kernel import KernelModel
+from .window import ExtractionWindow
+
+__all__ = ["KernelPhaseData", "DetectionGrid", "DetectionResult"]
+
+
+class KernelPhaseData:
+    """Kernel phases of a cube, with everything needed to interpret them.
+
+    Parameters
+    ----------
+    kp : ndarray, shape (nframe, nwave, nkp)
+        Kernel phases (rad).
+    wavelengths : `~astropy.units.Quantity`, shape (nwave,)
+    pixscale : `~astropy.units.Quantity`
+        Pixel scale of the images the phases come from.
+    kernel_model : `~kpifs.kernel.KernelModel`
+        The model whose kernel produced *kp*.
+    window : `~kpifs.window.ExtractionWindow`, optional
+        The extraction window (its attenuation matters for contrasts).
+    phases, amplitudes : ndarray, shape (nframe, nwave, nuv), optional
+        Raw Fourier phases (rad) and normalised amplitudes, for diagnostics.
+    centres : `~astropy.table.QTable`, optional
+        Star centres used, one row per (frame, wavelength).
+    covariance : ndarray, shape (nwave, nkp, nkp), optional
+        Covariance of one frame's kernel phases, per channel (the same for
+        every frame).
+    joint_covariance : ndarray, shape (nwave*nkp, nwave*nkp), optional
+        The same across channels (spectral cross-talk included).
+    covariance_rows : ndarray, shape (nrow, nwave, nkp), optional
+        Rows ``R`` with ``R^T R`` the covariance across all channels (see
+        `~kpifs.calibrate.calibrate`): a compact, always-available form of the
+        cross-channel covariance used to draw realistic noise.
+    header : `~astropy.io.fits.Header`, optional
+        Header of the input cube (kept in products).
+    detpa : array-like, shape (nframe,), optional
+        Detector position angle of each frame (deg).
+    bandwidth : `~astropy.units.Quantity`, optional
+        Channel widths.
+    meta : dict, optional
+        Provenance.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> km = KernelModel.from_pupil(make_pupil("subaru"))
+    >>> kpd = KernelPhaseData(np.zeros((2, 3, km.n_kp)), [1.52, 1.6, 1.68] * u.um,
+    ...                       10.42 * u.mas, km)
+    >>> kpd.shape == (2, 3, km.n_kp)
+    True
+    """
+
+    _io_format = "kpfits"
+    read, write = io_methods("KernelPhaseData")
+
+    def __init__(self, kp, wavelengths, pixscale, kernel_model, *, window=None, phases=None,
+                 amplitudes=None, centres=None, covariance=None, joint_covariance=None,
+                 covariance_rows=None, header=None, detpa=None, bandwidth=None, meta=None):
+        kp = np.asarray(kp, float)
+        if kp.ndim == 2:
+            kp = kp[None]
+        self.kp = kp
+        self.wavelengths = check_wavelengths(to_quantity(wavelengths, u.um, name="wavelengths"))
+        self.pixscale = to_quantity(pixscale, u.mas, name="pixel scale")
+        if not isinstance(kernel_model, KernelModel):
+            raise KpifsError(f"expected a KernelModel, got {type(kernel_model).__name__}")
+        self.kernel_model = kernel_model
+        nw, nk = len(self.wavelengths), kernel_model.n_kp
+        if kp.ndim != 3 or kp.shape[1] != nw or kp.shape[2] != nk:
+            raise KpifsError(f"kernel phases have shape {kp.shape}, expected (nframe, {nw}, "
+                             f"{nk})")
+        if window is not None and not isinstance(window, ExtractionWindow):
+            raise KpifsError(f"window must be an ExtractionWindow, got {window!r}")
+        self.window = window
+        self.phases = phases
+        self.amplitudes = amplitudes
+        self.centres = centres
+        if covariance is not None:
+            covariance = np.asarray(covariance, float)
+            if covariance.ndim == 4:   # KPFITS (nframe, nwave, nkp, nkp): shared by frames
+                covariance = covariance.mean(axis=0)
+            if covariance.shape != (nw, nk, nk):
+                raise KpifsError(f"covariance has shape {covariance.shape}, expected "
+                                 f"({nw}, {nk}, {nk})")
+        if joint_covariance is not None:
+            joint_covariance = np.asarray(joint_covariance, float)
+            if joint_covariance.shape != (nw * nk, nw * nk):
+                raise KpifsError(f"joint covariance has shape {joint_covariance.shape}, "
+                                 f"expected ({nw * nk}, {nw * nk})")
+        if covariance_rows is not None:
+            covariance_rows = np.asarray(covariance_rows, float)
+            if covariance_rows.ndim != 3 or covariance_rows.shape[1:] != kp.shape[1:]:
+                raise KpifsError(f"covariance rows have shape {covariance_rows.shape}, "
+                                 f"expected (nrow, {nw}, {nk})")
+        self.covariance = covariance
+        self.joint_covariance = joint_covariance
+        self.covariance_rows = covariance_rows
+        self.header = fits.Header() if header is None else header.copy()
+        self.detpa = None if detpa is None else np.asarray(detpa, float)
+        self.bandwidth = bandwidth
+        self.meta = dict(meta or {})
+
+    @property
+    def shape(self):
+        return self.kp.shape
+
+    @property
+    def n_frame(self):
+        return self.kp.shape[0]
+
+    @property
+    def n_wave(self):
+        return self.kp.shape[1]
+
+    @property
+    def n_kp(self):
+        return self.kp.shape[2]
+
+    @property
+    def name(self):
+        """The data's name for messages (its source file)."""
+        return self.meta.get("source", "<kernel-phase data>")
+
+    def __repr__(self):
+        return (f"<KernelPhaseData: {self.n_frame} frame(s) x {self.n_wave} channel(s) x "
+                f"{self.n_kp} kernel phases, {self.wavelengths.min():.3f}-"
+                f"{self.wavelengths.max():.3f}, {self.pixscale:.2f}>")
+
+
+def _read_kpd(path):
+    parts = read_kpfits_parts(path)
+    model = parts.pop("model")
+    km = KernelModel.from_parts(model, source=path)
+    window = ExtractionWindow.from_header(parts["header"])
+    return KernelPhaseData(parts.pop("kp"), parts.pop("wavelengths"), parts.pop("pixscale"),
+                           km, window=window, **parts)
+
+
+register(KernelPhaseData, "kpfits", reader=_read_kpd, writer=write_kpfits,
+         identifier=is_kpfits)
+
+
+class DetectionGrid:
+    """A rectangular grid of companion offsets ``(alpha, beta)`` in mas.
+
+    Parameters
+    ----------
+    x, y : `~astropy.units.Quantity`
+        Grid coordinates along image x and y (1-D, uniformly spaced).
+    min_sep, max_sep : `~astropy.units.Quantity`, optional
+        Positions closer or farther than these are not searched.
+
+    Examples
+    --------
+    >>> import astropy.units as u
+    >>> from kpifs.data import DetectionGrid
+    >>> g = DetectionGrid.from_separation(200 * u.mas, 10 * u.mas, min_sep=30 * u.mas)
+    >>> g.shape, int(g.valid.sum())
+    ((41, 41), 1232)
+    """
+
+    def __init__(self, x, y, *, min_sep=None, max_sep=None):
+        self.x = np.atleast_1d(to_quantity(x, u.mas, name="grid x")).value.astype(float)
+        self.y = np.atleast_1d(to_quantity(y, u.mas, name="grid y")).value.astype(float)
+        if self.x.size < 2 or self.y.size < 2:
+            raise KpifsError("a detection grid needs at least 2 points along each axis")
+        self.min_sep = 0.0 if min_sep is None else to_quantity(min_sep, u.mas).value
+        self.max_sep = np.inf if max_sep is None else to_quantity(max_sep, u.mas).value
+        self.X, self.Y = np.meshgrid(self.x, self.y)
+        self.sep = np.hypot(self.X, self.Y)
+        self.valid = (self.sep >= self.min_sep) & (self.sep <= self.max_sep) & (self.sep > 0)
+        if not self.valid.any():
+            raise KpifsError("the detection grid has no valid position")
+
+    @classmethod
+    def from_separation(cls, max_sep, step, *, min_sep=None):
+        """A square grid of half-width *max_sep* and spacing *step*, searched out to *max_sep*.
+
+        Examples
+        --------
+        >>> import astropy.units as u
+        >>> from kpifs.data import DetectionGrid
+        >>> DetectionGrid.from_separation(50 * u.mas, 10 * u.mas).shape
+        (11, 11)
+        """
+        max_sep = to_quantity(max_sep, u.mas, name="maximum separation").value
+        step = to_quantity(step, u.mas, name="grid step").value
+        if not (step > 0 and max_sep > step):
+            raise KpifsError(f"grid step ({step} mas) must be > 0 and smaller than the maximum "
+                             f"separation ({max_sep} mas)")
+        n = int(np.floor(max_sep / step))
+        c = np.arange(-n, n + 1) * step
+        return cls(c * u.mas, c * u.mas, min_sep=min_sep, max_sep=max_sep * u.mas)
+
+    @property
+    def shape(self):
+        return self.X.shape
+
+    @property
+    def step(self):
+        return float(self.x[1] - self.x[0]), float(self.y[1] - self.y[0])
+
+    def wcs(self):
+        """A linear WCS from map pixels to offsets (mas) along image x and y."""
+        from astropy.wcs import WCS   # deferred: astropy.wcs is only needed for products
+        w = WCS(naxis=2)
+        w.wcs.ctype = ["OFFSET-X", "OFFSET-Y"]
+        w.wcs.cunit = ["mas", "mas"]
+        w.wcs.crpix = [1, 1]
+        w.wcs.crval = [self.x[0], self.y[0]]
+        w.wcs.cdelt = [self.x[1] - self.x[0], self.y[1] - self.y[0]]
+        return w
+
+    def key(self):
+        """A hashable description of the grid (for caches)."""
+        return (self.x.tobytes(), self.y.tobytes(), self.min_sep, self.max_sep)
+
+
+@dataclass
+class DetectionResult:
+    """Everything a search found: maps (ny, nx) on `grid`, tables and provenance.
+
+    Read and written as kpifs detection products: ``DetectionResult.read(path)``,
+    ``result.write(path, inputs=..., overwrite=...)``. *header* is the header of
+    the data searched (kept in the products).
+
+    Examples
+    --------
+    >>> from kpifs.detect.pipeline import _example_result
+    >>> res = _example_result()
+    >>> res.statistic.shape == res.grid.shape, res.limit is res.limits["B"]
+    (True, True)
+    """
+
+    grid: DetectionGrid
+    test: str
+    pfa: float
+    pd: float
+    statistic: np.ndarray
+    pfa_local: np.ndarray
+    pfa_global: np.ndarray
+    contrast: np.ndarray
+    contrast_err: np.ndarray
+    limits: dict
+    curves: object
+    candidates: object
+    threshold: float
+    wavelengths: u.Quantity
+    energy: dict = field(default_factory=dict)
+    meta: dict = field(default_factory=dict)
+    header: fits.Header = field(default_factory=fits.Header)
+
+    _io_format = "kpifs-detection"
+    read, write = io_methods("DetectionResult")
+
+    @property
+    def limit(self):
+        """The detection-limit map of the chosen test."""
+        return self.limits[self.test]
+
+
+def _read_detection(path):
+    parts = read_detection_parts(path)
+    hdr, images, tables = parts["header"], parts["images"], parts["tables"]
+    stat = images["DETECTION"]
+    ny, nx = stat.shape
+    g = parts["grid_header"]            # the maps' WCS: pixel 1 is the grid's first point
+    x = g["CRVAL1"] + g["CDELT1"] * (np.arange(nx) + 1 - g["CRPIX1"])
+    y = g["CRVAL2"] + g["CDELT2"] * (np.arange(ny) + 1 - g["CRPIX2"])
+    grid = DetectionGrid(x * u.mas, y * u.mas, min_sep=hdr["GRIDMIN"] * u.mas,
+                         max_sep=(hdr["GRIDMAX"] if hdr["GRIDMAX"] >= 0 else np.inf) * u.mas)
+    nwave = sum(1 for k in hdr if k.startswith("WAVE") and k[4:].isdigit())
+    wl = [hdr[f"WAVE{i}"] for i in range(1, nwave + 1)] * u.um
+    energy = {"statistic": hdr["ESTAT"], "dof": hdr["EDOF"], "pfa": hdr["EPFA"],
+              "threshold": hdr.get("ETHRESH", np.nan), "pd": hdr["PD"]}
+    meta = {"test": hdr["TEST"], "pfa": hdr["PFA"], "pd": hdr["PD"], "n_draws": hdr["NDRAWS"],
+            "seed": hdr["MCSEED"], "null_channels": hdr["NULLCHAN"],
+            "calibrators": [hdr[k] for k in hdr if k.startswith("KPCAL") and k[5:].isdigit()],
+            "spectrum": [hdr[f"SPEC{i}"] for i in range(1, nwave + 1) if f"SPEC{i}" in hdr],
+            "source": str(path)}
+    return DetectionResult(grid=grid, test=hdr["TEST"], pfa=hdr["PFA"], pd=hdr["PD"],
+                           statistic=stat, pfa_local=images["PFA_LOCAL"],
+                           pfa_global=images["PFA"], contrast=images["CONTRAST"],
+                           contrast_err=images["CONTRAST_ERR"], limits=parts["limits"],
+                           curves=tables["CURVES"], candidates=tables["CANDIDATES"],
+                           threshold=hdr["THRESH"], wavelengths=wl, energy=energy, meta=meta,
+                           header=hdr)
+
+
+register(DetectionResult, "kpifs-detection", reader=_read_detection, writer=write_detection,
+         identifier=is_detection)

@@ -1,0 +1,362 @@
+"""One observation, from files to products: the driver behind ``kpifs extract``,
+``kpifs detect``, ``kpifs batch`` and ``kpifs demo``.
+
+Options live in two typed objects, `ExtractOptions` (how cubes are read and
+reduced to kernel phases) and `DetectOptions` (how calibrated kernel phases
+are searched). The steps are functions that every interface calls:
+
+- `kernel_model_for`: the pupil/kernel model the options ask for;
+- `extract_observation`: read cube file(s) and extract kernel phases;
+- `calibrate_observation`: the one place where a calibrator is subtracted
+  (or, without one, the frames' own covariance is attached);
+- `detect_observation`: the search, maps, candidates and limits;
+- `process_observation`: all of them for one target and its calibrators,
+  writing ``calibrated_kp.fits`` and ``detection.fits`` exactly as the two
+  commands ``kpifs extract … --calibrator …`` and ``kpifs detect`` would.
+"""
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from astropy import units as u
+
+from ._utils import check_output_path, to_quantity
+from .calibrate import calibrate
+from .covariance import empirical_covariance
+from .data import KernelPhaseData
+from .detect.pipeline import default_grid, detect
+from .exceptions import KpifsError
+from .extract import extract_kernel_phases
+from .io.readers import read_cube
+from .io.wavelengths import parse_wavelengths
+from .kernel import load_kernel_model
+from .window import ExtractionWindow
+
+__all__ = ["ExtractOptions", "DetectOptions", "DEFAULT_PUPIL", "kernel_model_for",
+           "extract_observation", "calibrate_observation", "detect_observation",
+           "process_observation", "parse_spectrum"]
+
+log = logging.getLogger(__name__)
+
+#: The telescope pupil of each instrument's cubes (plain cubes: Subaru).
+DEFAULT_PUPIL = {"charis": "subaru", "sphere": "vlt", "generic": "subaru"}
+
+
+@dataclass
+class ExtractOptions:
+    """How cubes are read, which kernel model is used and how phases are extracted.
+
+    Every field has the command line's default; strings with units are
+    accepted wherever a Quantity is (``step="0.38m"``).
+
+    Examples
+    --------
+    >>> from kpifs.workflow import ExtractOptions
+    >>> opts = ExtractOptions(step="0.8m", window_radius=12)
+    >>> opts.instrument, opts.centroid
+    ('auto', 'com')
+    """
+
+    # reading
+    instrument: str = "auto"
+    wavelengths: object = None
+    pixscale: object = None
+    # pupil and kernel model (pupil None: the instrument's telescope)
+    pupil: object = None
+    pupil_scale: object = None
+    step: object = field(default_factory=lambda: 0.38 * u.m)
+    offset: object = field(default_factory=lambda: [0.17, 0.11] * u.m)
+    min_transmission: float = 0.9
+    grey: bool = False
+    hexagonal: bool = False
+    # extraction
+    window_size: int = None
+    window_radius: float = None
+    window_order: float = 4.0
+    centroid: str = "com"
+    bad_pixels: str = "fill"
+    on_nyquist: str = "drop"
+    mask: object = None
+    # covariance
+    shrinkage: str = "auto"
+    joint_covariance: bool = False
+    covariance: bool = False
+
+    def window_for(self, image_shape):
+        """The `~kpifs.window.ExtractionWindow` these options give for images of a shape."""
+        return ExtractionWindow.default(image_shape, size=self.window_size,
+                                        radius=self.window_radius, order=self.window_order)
+
+
+@dataclass
+class DetectOptions:
+    """How calibrated kernel phases are searched (see `~kpifs.detect.detect`).
+
+    ``max_sep``, ``min_sep`` and ``grid_step`` (mas) override the default grid;
+    ``spectrum`` is 'flat' (None), a list of per-channel values or a text file.
+
+    Examples
+    --------
+    >>> from kpifs.workflow import DetectOptions
+    >>> DetectOptions(pfa=1e-4).test
+    'B'
+    """
+
+    test: str = "B"
+    pfa: float = 1e-3
+    pd: float = 0.5
+    max_sep: object = None
+    min_sep: object = None
+    grid_step: object = None
+    spectrum: object = None
+    draws: int = 30000
+    seed: int = 0
+    shrinkage: str = "auto"
+    fit: bool = True
+    max_candidates: int = 5
+
+
+def kernel_model_for(options, instrument="generic"):
+    """The kernel model *options* ask for, for cubes of *instrument*.
+
+    Examples
+    --------
+    >>> from kpifs.workflow import ExtractOptions, kernel_model_for
+    >>> kernel_model_for(ExtractOptions(step="0.8m"), "sphere")
+    <KernelModel 'vlt': ... kernel phases>
+    """
+    pupil = options.pupil if options.pupil is not None else DEFAULT_PUPIL.get(instrument,
+                                                                              "subaru")
+    offset = to_quantity(options.offset, u.m, name="grid offset")
+    if offset.size != 2:
+        raise KpifsError(f"the grid offset needs two values x,y, got {options.offset!r}")
+    return load_kernel_model(pupil, pupil_scale=options.pupil_scale,
+                             step=to_quantity(options.step, u.m, name="grid step"),
+                             offset=offset, min_transmission=options.min_transmission,
+                             grey=options.grey, hexagonal=options.hexagonal)
+
+
+def _pixscale(options):
+    if options.pixscale is None:
+        return None
+    return to_quantity(options.pixscale, u.mas, name="pixel scale")
+
+
+def extract_observation(files, options=None, *, model=None, progress=False):
+    """Read cube file(s) of one star and extract their kernel phases.
+
+    Parameters
+    ----------
+    files : str or list of str
+        Cube files; several are more frames of the same star.
+    options : `ExtractOptions`, optional
+    model : `~kpifs.kernel.KernelModel`, optional
+        Use this model (e.g. the target's, for its calibrators) instead of
+        the one *options* describe.
+    progress : bool
+        Progress bar on a terminal.
+
+    Returns
+    -------
+    `~kpifs.data.KernelPhaseData`
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from kpifs.io import write_observation
+    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.workflow import ExtractOptions, extract_observation
+    >>> files = write_observation(simulate_scene("paper", n_frames=2, npup=32),
+    ...                           tempfile.mkdtemp())
+    >>> extract_observation(files["target"], ExtractOptions(step="0.8m")).shape
+    (2, 3, 74)
+    """
+    options = options or ExtractOptions()
+    files = [str(files)] if isinstance(files, (str, Path)) else [str(f) for f in files]
+    with read_cube(files, instrument=options.instrument,
+                   wavelengths=parse_wavelengths(options.wavelengths,
+                                                 source="--wavelengths"),
+                   pixscale=_pixscale(options)) as cube:
+        log.info("%s read as %s: %s", cube.name, cube.instrument, cube.shape)
+        km = model if model is not None else kernel_model_for(options, cube.instrument)
+        try:
+            window = options.window_for(cube.shape)
+        except KpifsError as exc:
+            raise KpifsError(f"{cube.name}: {exc}") from None
+        mask = cube.mask if options.mask is None else options.mask
+        kpd = extract_kernel_phases(
+            cube.data, km, wavelengths=cube.wavelengths, pixscale=cube.pixscale,
+            window=window, mask=mask, centroid=options.centroid,
+            bad_pixels=options.bad_pixels, on_nyquist=options.on_nyquist,
+            header=cube.header, source=cube.name, progress=progress)
+    kpd.meta["instrument"] = cube.instrument
+    return kpd
+
+
+def calibrate_observation(target, calibrators=(), options=None):
+    """Calibrate *target* with *calibrators* (the one place kpifs calibrates).
+
+    Without calibrators the target is returned, with the frames' own
+    covariance attached when ``options.covariance`` or
+    ``options.joint_covariance`` asks for it.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs.workflow import calibrate_observation
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> rng = np.random.default_rng(0)
+    >>> t, c = (KernelPhaseData(rng.normal(0, 0.1, (200, 1, km.n_kp)), [1.6] * u.um,
+    ...                         10 * u.mas, km) for _ in range(2))
+    >>> calibrate_observation(t, [c]).meta["calibrated"]
+    True
+    """
+    options = options or ExtractOptions()
+    calibrators = list(calibrators)
+    if calibrators:
+        return calibrate(target, calibrators, shrinkage=options.shrinkage,
+                         joint=options.joint_covariance)
+    if options.covariance or options.joint_covariance:
+        if target.n_frame < 2:
+            raise KpifsError(f"{target.name}: one frame: no covariance can be estimated")
+        target.covariance = empirical_covariance(target.kp, shrinkage=options.shrinkage,
+                                                 source=target.name)
+        if options.joint_covariance:
+            target.joint_covariance = empirical_covariance(
+                target.kp, joint=True, shrinkage=options.shrinkage, source=target.name)
+    return target
+
+
+def parse_spectrum(value, n_channels):
+    """A companion spectrum shape from 'flat'/None, a sequence, a comma list or a text file.
+
+    Examples
+    --------
+    >>> from kpifs.workflow import parse_spectrum
+    >>> parse_spectrum("1.3,1.0,0.7", 3)
+    array([1.3, 1. , 0.7])
+    """
+    if value is None or (isinstance(value, str) and value == "flat"):
+        return None
+    if isinstance(value, (str, Path)) and Path(value).is_file():
+        try:
+            return np.loadtxt(value, ndmin=1)
+        except ValueError as exc:
+            raise KpifsError(f"{value}: cannot read a spectrum: {exc}") from None
+    if isinstance(value, str):
+        try:
+            return np.array([float(v) for v in value.split(",")])
+        except ValueError:
+            raise KpifsError(f"spectrum: expected 'flat', comma-separated values or a file, "
+                             f"got {value!r}") from None
+    return np.asarray(value, float)
+
+
+def _mas(value, name):
+    return None if value is None else to_quantity(value, u.mas, name=name)
+
+
+def detect_observation(kpd, options=None, *, calibrators=(), progress=False):
+    """Search kernel-phase data for companions with *options* (calibrating first if given
+    *calibrators*).
+
+    Returns a `~kpifs.data.DetectionResult`.
+
+    Examples
+    --------
+    >>> from kpifs.detect.pipeline import _example_result
+    >>> _example_result().test                           # made by detect()
+    'B'
+    """
+    options = options or DetectOptions()
+    if calibrators:
+        kpd = calibrate_observation(kpd, calibrators, ExtractOptions(shrinkage=options.shrinkage))
+    grid = None
+    if options.max_sep is not None or options.grid_step is not None or \
+            options.min_sep is not None:
+        grid = default_grid(kpd, step=_mas(options.grid_step, "grid step"),
+                            max_sep=_mas(options.max_sep, "maximum separation"),
+                            min_sep=_mas(options.min_sep, "minimum separation"))
+    return detect(kpd, test=options.test, pfa=options.pfa, pd=options.pd, grid=grid,
+                  spectrum=parse_spectrum(options.spectrum, kpd.n_wave),
+                  n_draws=options.draws, seed=options.seed, shrinkage=options.shrinkage,
+                  fit=options.fit, max_candidates=options.max_candidates, progress=progress)
+
+
+def process_observation(target, calibrators, outdir, *, extract_options=None,
+                        detect_options=None, overwrite=False, keep_stars=False,
+                        progress=False):
+    """Extract, calibrate and search one observation; write its products in *outdir*.
+
+    Writes ``calibrated_kp.fits`` (as ``kpifs extract TARGET --calibrator CAL``
+    would) and ``detection.fits`` (as ``kpifs detect calibrated_kp.fits``
+    would: from the file just written); with *keep_stars* also
+    ``target_kp.fits`` and ``calibrator_kp.fits`` (``calibrator<i>_kp.fits``
+    for several calibrators).
+
+    Parameters
+    ----------
+    target : list of str
+        The target's cube files.
+    calibrators : list of list of str
+        Cube files of each calibrator star.
+    outdir : str or Path
+    extract_options, detect_options : `ExtractOptions`, `DetectOptions`
+    overwrite : bool
+        Replace existing products.
+
+    Returns
+    -------
+    dict
+        ``calibrated`` (`~kpifs.data.KernelPhaseData` as read back),
+        ``result`` (`~kpifs.data.DetectionResult`) and ``paths``.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from kpifs.io import write_observation
+    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.workflow import DetectOptions, ExtractOptions, process_observation
+    >>> d = tempfile.mkdtemp()
+    >>> files = write_observation(simulate_scene("paper", n_frames=100, npup=32), d)
+    >>> out = process_observation(files["target"], [files["calibrator"]], d,
+    ...                           extract_options=ExtractOptions(step="1.2m"),
+    ...                           detect_options=DetectOptions(draws=500, pfa=0.01))
+    >>> sorted(p.name for p in out["paths"].values())
+    ['calibrated_kp.fits', 'detection.fits']
+    """
+    xo = extract_options or ExtractOptions()
+    do = detect_options or DetectOptions()
+    outdir = Path(outdir)
+    if outdir.exists() and not outdir.is_dir():
+        raise KpifsError(f"{outdir}: exists and is not a directory")
+    outdir.mkdir(parents=True, exist_ok=True)
+    target = [str(f) for f in target]
+    calibrators = [[str(f) for f in files] for files in calibrators]
+    if not calibrators:
+        raise KpifsError(f"{target[0] if target else outdir}: no calibrator")
+    paths = {"calibrated": outdir / "calibrated_kp.fits", "detection": outdir / "detection.fits"}
+    names = ["target_kp.fits"] + (["calibrator_kp.fits"] if len(calibrators) == 1 else
+                                  [f"calibrator{i}_kp.fits" for i in
+                                   range(1, len(calibrators) + 1)])
+    star_paths = [outdir / n for n in names] if keep_stars else []
+    for p in list(paths.values()) + star_paths:   # refuse before any work
+        check_output_path(p, overwrite=overwrite)
+    tkp = extract_observation(target, xo, progress=progress)
+    ckps = [extract_observation(files, xo, model=tkp.kernel_model, progress=progress)
+            for files in calibrators]
+    for kpd, files, p in zip([tkp] + ckps, [target] + calibrators, star_paths):
+        kpd.write(p, overwrite=overwrite, inputs=files)
+    cal = calibrate_observation(tkp, ckps, xo)
+    cal.write(paths["calibrated"], overwrite=overwrite,
+              inputs=target + [f for files in calibrators for f in files])
+    # detection from the file, as `kpifs detect` does, so both give the same products
+    cal = KernelPhaseData.read(paths["calibrated"])
+    result = detect_observation(cal, do, progress=progress)
+    result.write(paths["detection"], inputs=[str(paths["calibrated"])], overwrite=overwrite)
+    if keep_stars:
+        paths.update(zip(("target",) + tuple(f"calibrator{i}" for i in range(len(ckps))),
+                         star_paths))
+    return {"calibrated": cal, "result": result, "paths": paths}
