@@ -34,7 +34,8 @@ from ._utils import progress as progress_bar
 from ._utils import write_table
 from .data import DetectionResult
 from .exceptions import KpifsError
-from .workflow import DetectOptions, ExtractOptions, process_observation
+from .workflow import (DetectOptions, ExtractOptions, observation_digest, options_record,
+                       process_observation)
 
 __all__ = ["BatchEntry", "read_manifest", "entries_from_glob", "process_entry", "run_batch"]
 
@@ -171,27 +172,21 @@ def process_entry(entry, extract_options, detect_options, outdir, *, overwrite=F
     """
     t0 = time.perf_counter()
     out = Path(outdir) / entry.name
-    row = {"name": entry.name, "status": "failed", "message": "", "n_candidates": -1,
-           "best_x": np.nan, "best_y": np.nan, "best_separation": np.nan,
-           "best_pfa_global": np.nan, "best_contrast": np.nan, "limit_median": np.nan,
-           "seconds": 0.0}
-    det_path = out / "detection.fits"
-    if det_path.exists() and not overwrite:
-        row.update(status="skipped", message="done earlier (detection.fits exists)")
-        try:
-            _summarise(DetectionResult.read(det_path), row)
-        except Exception as exc:  # a damaged earlier product: say so, keep going
-            row.update(status="failed", message=f"earlier detection.fits unreadable: {exc}")
-        return row
+    xo = _entry_options(entry, extract_options)
+    row = _row(entry, "failed", xo, detect_options)
+    note = ""
+    if not overwrite:
+        earlier, note = _earlier(row, out / "detection.fits")
+        if earlier is not None:
+            return earlier
     try:
         if not entry.calibrators:
             raise KpifsError(f"{entry.name}: no calibrator")
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            res = process_observation(entry.target, entry.calibrators, out,
-                                      extract_options=_entry_options(entry, extract_options),
+            res = process_observation(entry.target, entry.calibrators, out, extract_options=xo,
                                       detect_options=detect_options, overwrite=True)["result"]
-        row["message"] = "; ".join(sorted({str(w.message)[:160] for w in caught}))
+        row["message"] = note + "; ".join(sorted({str(w.message)[:160] for w in caught}))
         row["status"] = "ok"
         _summarise(res, row)
     except Exception as exc:  # one entry's failure must not stop the batch
@@ -200,6 +195,33 @@ def process_entry(entry, extract_options, detect_options, outdir, *, overwrite=F
             row["message"] += " | " + traceback.format_exc(limit=3).replace("\n", " ")
     row["seconds"] = time.perf_counter() - t0
     return row
+
+
+def _earlier(row, path):
+    """``(row, note)``: *row* filled from earlier products made with the same options and
+    inputs (status 'skipped'), or None and a note saying why the entry is redone."""
+    if not path.exists():
+        return None, ""
+    try:
+        earlier = DetectionResult.read(path)
+    except Exception as exc:  # a damaged earlier product: say so, redo it
+        return None, f"earlier {path.name} unreadable ({exc}): redone; "
+    if earlier.header.get("KPHASH") != row["options_hash"]:
+        return None, "redone: the options or inputs differ from the earlier run's; "
+    row = dict(row, status="skipped", message="done earlier with the same options and inputs")
+    _summarise(earlier, row)
+    return row, ""
+
+
+def _row(entry, status, extract_options, detect_options, message=""):
+    """A summary row with nothing measured yet."""
+    return {"name": entry.name, "status": status, "message": message, "n_candidates": -1,
+            "best_x": np.nan, "best_y": np.nan, "best_separation": np.nan,
+            "best_pfa_global": np.nan, "best_contrast": np.nan, "limit_median": np.nan,
+            "seconds": 0.0,
+            "options_hash": observation_digest(entry.target, entry.calibrators,
+                                               extract_options, detect_options),
+            "options": _options_text(extract_options, detect_options)}
 
 
 def _summarise(result, row):
@@ -216,17 +238,13 @@ def _summarise(result, row):
                    best_contrast=float(np.mean(best[key])))
 
 
-def _plain(options):
-    """Options as a dict of plain values (for the summary's metadata)."""
-    out = {}
-    for k, v in dataclasses.asdict(options).items():
-        if isinstance(v, u.Quantity):
-            v = str(v)
-        elif isinstance(v, np.ndarray):
-            v = v.tolist()
-        if isinstance(v, (int, float, str, bool, list, type(None))):
-            out[k] = v
-    return out
+def _options_text(extract_options, detect_options):
+    """The options that differ from the defaults, as ``name=value; ...``."""
+    parts = []
+    for opts, default in ((extract_options, ExtractOptions()), (detect_options, DetectOptions())):
+        mine, base = options_record(opts), options_record(default)
+        parts += [f"{k}={v}" for k, v in mine.items() if v != base[k]]
+    return "; ".join(parts) or "defaults"
 
 
 def run_batch(entries, outdir, *, extract_options=None, detect_options=None, overwrite=False,
@@ -283,31 +301,54 @@ def run_batch(entries, outdir, *, extract_options=None, detect_options=None, ove
         raise KpifsError("entry names must be unique")
     cluster = None
     if scheduler is None:
+        # a free port for the dashboard: never the default 8787 another cluster may hold
         cluster = LocalCluster(n_workers=n_workers if processes else 1, threads_per_worker=1,
-                               processes=processes, dashboard_address=None)
+                               processes=processes, dashboard_address=":0")
         client = Client(cluster)
     else:
         client = Client(scheduler)
-    rows = []
+    rows, futures = [], []
+    interrupted = False
     try:
         futures = [client.submit(process_entry, e, xo, do, str(outdir), overwrite=overwrite,
                                  key=f"kpifs-{e.name}", pure=False) for e in entries]
         for fut in progress_bar(as_completed(futures), total=len(futures), desc="batch",
                                 unit="entry", enabled=progress):
             rows.append(fut.result())
+    except KeyboardInterrupt:
+        interrupted = True
+        client.cancel(futures)
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
+    done = {r["name"] for r in rows}
+    for e in entries:
+        if e.name in done:
+            continue
+        row = _row(e, "interrupted", _entry_options(e, xo), do,
+                   "interrupted before it finished; a rerun does it")
+        finished, _ = _earlier(row, outdir / e.name / "detection.fits")
+        if finished is not None and not overwrite:   # finished before the interrupt
+            finished.update(status="ok", message="finished before the interrupt")
+        rows.append(finished if finished is not None and not overwrite else row)
     order = {n: i for i, n in enumerate(names)}
     rows.sort(key=lambda r: order[r["name"]])
     table = Table(rows=[[r[k] for k in rows[0]] for r in rows], names=list(rows[0]))
-    table.meta.update({"extract_options": _plain(xo), "detect_options": _plain(do),
-                       "n_entries": len(rows)})
+    table.meta.update({"extract_options": options_record(xo),
+                       "detect_options": options_record(do), "n_entries": len(rows)})
     for col in ("best_x", "best_y", "best_separation"):
         table[col].unit = u.mas
     _write_summary(table, outdir / "summary.ecsv")
+    if interrupted:
+        n = int(np.sum(table["status"] == "interrupted"))
+        raise BatchInterrupted(f"{len(table) - n} entries finished, {n} interrupted; "
+                               f"{outdir / 'summary.ecsv'} records them; rerun to resume")
     return table
+
+
+class BatchInterrupted(KeyboardInterrupt):
+    """A batch stopped by Ctrl-C, after its summary was written (the message says where)."""
 
 
 def _write_summary(table, path):

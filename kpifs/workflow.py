@@ -14,7 +14,11 @@ are searched). The steps are functions that every interface calls:
   writing ``calibrated_kp.fits`` and ``detection.fits`` exactly as the two
   commands ``kpifs extract … --calibrator …`` and ``kpifs detect`` would.
 """
+import dataclasses
+import hashlib
+import json
 import logging
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,7 +39,8 @@ from .window import ExtractionWindow
 
 __all__ = ["ExtractOptions", "DetectOptions", "DEFAULT_PUPIL", "kernel_model_for",
            "extract_observation", "calibrate_observation", "detect_observation",
-           "process_observation", "parse_spectrum"]
+           "process_observation", "parse_spectrum", "options_record", "inputs_digest",
+           "products_digest", "observation_digest"]
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +122,90 @@ class DetectOptions:
     max_candidates: int = 5
 
 
+def options_record(options):
+    """The options as a dict of plain values (units written out), for provenance.
+
+    Examples
+    --------
+    >>> from kpifs.workflow import ExtractOptions, options_record
+    >>> options_record(ExtractOptions(step="0.8m"))["step"]
+    '0.8m'
+    """
+    out = {}
+    for f in dataclasses.fields(options):
+        v = getattr(options, f.name)
+        if isinstance(v, u.Quantity):
+            v = v.to_string() if v.isscalar else [q.to_string() for q in v]
+        elif isinstance(v, np.ndarray):
+            v = "sha1:" + hashlib.sha1(np.ascontiguousarray(v).tobytes()).hexdigest()[:12]
+        elif isinstance(v, Path):
+            v = str(v)
+        elif not isinstance(v, (int, float, str, bool, list, tuple, type(None))):
+            v = repr(v)
+        out[f.name] = v
+    return out
+
+
+def _digest(payload):
+    text = json.dumps(payload, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+def inputs_digest(files):
+    """A digest of input files: their absolute paths, sizes and modification times.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> from kpifs.workflow import inputs_digest
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "a.fits"
+    >>> _ = p.write_bytes(b"x")
+    >>> inputs_digest([p]) == inputs_digest([str(p)]), len(inputs_digest([p]))
+    (True, 20)
+    """
+    stats = []
+    for f in files:
+        try:
+            st = os.stat(f)
+            stats.append([os.path.abspath(f), st.st_size, st.st_mtime_ns])
+        except OSError:
+            stats.append([os.path.abspath(f), None, None])
+    return _digest(stats)
+
+
+def observation_digest(target, calibrators, extract_options, detect_options):
+    """The ``KPHASH`` that `process_observation` gives the products of these inputs and
+    options (without running anything).
+
+    Examples
+    --------
+    >>> from kpifs.workflow import DetectOptions, ExtractOptions, observation_digest
+    >>> len(observation_digest(["t.fits"], [["c.fits"]], ExtractOptions(), DetectOptions()))
+    20
+    """
+    inputs = _digest([inputs_digest(target)] + [inputs_digest(c) for c in calibrators])
+    return products_digest(options_record(extract_options), inputs,
+                           options_record(detect_options))
+
+
+def products_digest(extract_record, inputs, detect_record):
+    """Digest of what makes a detection product: extraction options, input digest(s) and
+    detection options (``KPHASH`` in the products; ``kpifs batch`` redoes an entry whose
+    digest changed).
+
+    Examples
+    --------
+    >>> from kpifs.workflow import (DetectOptions, ExtractOptions, options_record,
+    ...                             products_digest)
+    >>> a = products_digest(options_record(ExtractOptions()), "x", options_record(DetectOptions()))
+    >>> b = products_digest(options_record(ExtractOptions()), "x",
+    ...                     options_record(DetectOptions(pfa=1e-4)))
+    >>> a == b
+    False
+    """
+    return _digest({"extract": extract_record, "inputs": inputs, "detect": detect_record})
+
+
 def kernel_model_for(options, instrument="generic"):
     """The kernel model *options* ask for, for cubes of *instrument*.
 
@@ -191,6 +280,9 @@ def extract_observation(files, options=None, *, model=None, progress=False):
             bad_pixels=options.bad_pixels, on_nyquist=options.on_nyquist,
             header=cube.header, source=cube.name, progress=progress)
     kpd.meta["instrument"] = cube.instrument
+    kpd.header["KPXOPTS"] = (json.dumps(options_record(options), sort_keys=True),
+                             "kpifs extraction options")
+    kpd.header["KPINHASH"] = (inputs_digest(files), "digest of the input files")
     return kpd
 
 
@@ -216,8 +308,12 @@ def calibrate_observation(target, calibrators=(), options=None):
     options = options or ExtractOptions()
     calibrators = list(calibrators)
     if calibrators:
-        return calibrate(target, calibrators, shrinkage=options.shrinkage,
-                         joint=options.joint_covariance)
+        result = calibrate(target, calibrators, shrinkage=options.shrinkage,
+                           joint=options.joint_covariance)
+        result.header["KPINHASH"] = (_digest([k.header.get("KPINHASH", k.name)
+                                              for k in [target] + calibrators]),
+                                     "digest of the input files")
+        return result
     if options.covariance or options.joint_covariance:
         if target.n_frame < 2:
             raise KpifsError(f"{target.name}: one frame: no covariance can be estimated")
@@ -279,10 +375,17 @@ def detect_observation(kpd, options=None, *, calibrators=(), progress=False):
         grid = default_grid(kpd, step=_mas(options.grid_step, "grid step"),
                             max_sep=_mas(options.max_sep, "maximum separation"),
                             min_sep=_mas(options.min_sep, "minimum separation"))
-    return detect(kpd, test=options.test, pfa=options.pfa, pd=options.pd, grid=grid,
-                  spectrum=parse_spectrum(options.spectrum, kpd.n_wave),
-                  n_draws=options.draws, seed=options.seed, shrinkage=options.shrinkage,
-                  fit=options.fit, max_candidates=options.max_candidates, progress=progress)
+    result = detect(kpd, test=options.test, pfa=options.pfa, pd=options.pd, grid=grid,
+                    spectrum=parse_spectrum(options.spectrum, kpd.n_wave),
+                    n_draws=options.draws, seed=options.seed, shrinkage=options.shrinkage,
+                    fit=options.fit, max_candidates=options.max_candidates,
+                    progress=progress)
+    record = options_record(options)
+    result.header["KPDOPTS"] = (json.dumps(record, sort_keys=True), "kpifs detection options")
+    result.header["KPHASH"] = (products_digest(json.loads(kpd.header.get("KPXOPTS", "null")),
+                                               kpd.header.get("KPINHASH", kpd.name), record),
+                               "digest of the options and inputs of these products")
+    return result
 
 
 def process_observation(target, calibrators, outdir, *, extract_options=None,

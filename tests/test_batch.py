@@ -87,3 +87,82 @@ def test_manifest_errors(tmp_path):
         read_manifest(tmp_path / "dup.csv")
     with pytest.raises(KpifsError, match="not found"):
         read_manifest(tmp_path / "none.csv")
+
+
+@pytest.fixture(scope="module")
+def small_archive(tmp_path_factory):
+    d = tmp_path_factory.mktemp("small")
+    lines = ["name,target,calibrator"]
+    for i in range(4):
+        obs = simulate_scene("paper", n_frames=60, seed=40 + i, npup=32, exptime=1 * u.s,
+                             contrasts=0.0)
+        write_observation(obs, d / f"s{i}")
+        lines.append(f"s{i},s{i}/target.fits,s{i}/calibrator.fits")
+    (d / "small.csv").write_text("\n".join(lines) + "\n")
+    return d
+
+
+SMALL = ["--step", "1.2m", "--draws", "500", "--pfa", "0.01", "--workers", "1", "-q"]
+
+
+def test_batch_rerun_is_keyed_on_options(small_archive, tmp_path, capsys):
+    """A rerun skips entries made with the same options and inputs, and redoes the others."""
+    manifest = str(small_archive / "small.csv")
+    out = str(tmp_path / "out")
+    assert main(["batch", manifest, *SMALL, "-o", out]) == 0
+    first = Table.read(tmp_path / "out" / "summary.ecsv")
+    assert set(first["status"]) == {"ok"}
+    assert all("step=1.2" in o and "pfa=0.01" in o for o in first["options"])
+    assert main(["batch", manifest, *SMALL, "-o", out]) == 0
+    again = Table.read(tmp_path / "out" / "summary.ecsv")
+    assert set(again["status"]) == {"skipped"}
+    assert list(again["options_hash"]) == list(first["options_hash"])
+    # other options: every entry is redone, and the summary says with what
+    assert main(["batch", manifest, *[a if a != "0.01" else "0.02" for a in SMALL],
+                 "-o", out]) == 0
+    third = Table.read(tmp_path / "out" / "summary.ecsv")
+    assert set(third["status"]) == {"ok"}
+    assert all("redone" in m for m in third["message"])
+    assert all("pfa=0.02" in o for o in third["options"])
+    assert not set(third["options_hash"]) & set(first["options_hash"])
+    from astropy.io import fits
+    with fits.open(tmp_path / "out" / "s0" / "detection.fits") as h:
+        assert h[0].header["KPHASH"] == third["options_hash"][0]
+        assert h[0].header["PFA"] == 0.02
+    # an input changed on disk: redone too
+    (small_archive / "s1" / "target.fits").touch()
+    assert main(["batch", manifest, *[a if a != "0.01" else "0.02" for a in SMALL],
+                 "-o", out]) == 0
+    fourth = Table.read(tmp_path / "out" / "summary.ecsv")
+    assert dict(zip(fourth["name"], fourth["status"])) == {
+        "s0": "skipped", "s1": "ok", "s2": "skipped", "s3": "skipped"}
+
+
+def test_batch_interrupt_keeps_a_record(small_archive, tmp_path):
+    """Ctrl-C: a short message, status 130, a summary of what finished; a rerun resumes."""
+    import os
+    import signal
+    import time
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "kpifs", "batch", str(small_archive / "small.csv"), *SMALL,
+           "-o", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    t0 = time.time()
+    while not (out / "s0" / "detection.fits").exists() and time.time() - t0 < 120:
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    assert "interrupted" in err and "summary.ecsv" in err
+    summary = Table.read(out / "summary.ecsv")
+    status = dict(zip(summary["name"], summary["status"]))
+    assert status["s0"] == "ok"
+    assert "interrupted" in status.values()
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    again = dict(zip(*Table.read(out / "summary.ecsv")[["name", "status"]].columns.values()))
+    assert again["s0"] == "skipped"
+    assert all(again[n] in ("ok", "skipped") for n in again)
+    assert sum(s == "ok" for s in again.values()) == sum(s != "ok" for s in status.values())

@@ -64,8 +64,9 @@ def main(argv=None):
     except BrokenPipeError:  # output piped into `head` and closed: not an error
         sys.stderr.close()
         return 0
-    except KeyboardInterrupt:
-        print(f"kpifs {args.command}: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        why = f": {exc}" if str(exc) else ""
+        print(f"kpifs {args.command}: interrupted{why}", file=sys.stderr)
         return 130
     except bad_input as exc:
         if args.debug:

@@ -184,7 +184,7 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
                            contrast_err=np.where(valid, cerr, np.nan), limits=limits,
                            curves=curves, candidates=cands, threshold=threshold,
                            wavelengths=kpd.wavelengths, energy=energy, meta=meta,
-                           header=kpd.header)
+                           header=kpd.header.copy())
 
 
 def _correlated_inputs(model, rows, a, energy, te, seed):
