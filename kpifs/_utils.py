@@ -51,8 +51,19 @@ def as_rng(seed):
     return np.random.default_rng(seed)
 
 
+def _check_writable(folder, what):
+    """Refuse a folder that cannot take a new file (tried, not guessed from permissions)."""
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".kpifs-probe-", dir=folder)
+    except OSError as exc:
+        raise KpifsError(f"{what}: cannot write in {folder} ({exc.strerror})") from None
+    os.close(fd)
+    os.remove(probe)
+
+
 def check_output_path(path, *, overwrite=False):
-    """Refuse an existing output (unless *overwrite*), a directory and a missing folder."""
+    """Refuse an existing output (unless *overwrite*), a directory, a missing or unwritable
+    folder: before any work is done."""
     path = Path(path)
     if path.is_dir():
         raise KpifsError(f"{path}: is a directory, expected an output file name")
@@ -60,6 +71,19 @@ def check_output_path(path, *, overwrite=False):
         raise KpifsError(f"{path}: output exists; pass overwrite=True (--overwrite) to replace it")
     if not path.parent.exists():
         raise KpifsError(f"{path}: the folder {path.parent} does not exist")
+    _check_writable(path.parent, path)
+    return path
+
+
+def check_output_dir(path):
+    """Refuse an output folder that exists as a file, or cannot be created or written."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise KpifsError(f"{path}: exists and is not a directory")
+    parent = path if path.exists() else next((p for p in path.parents if p.exists()), Path("."))
+    if not parent.is_dir():
+        raise KpifsError(f"{path}: cannot be created ({parent} is not a directory)")
+    _check_writable(parent, path)
     return path
 
 

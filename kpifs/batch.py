@@ -31,7 +31,7 @@ from astropy import units as u
 from astropy.table import Table
 
 from ._utils import progress as progress_bar
-from ._utils import write_table
+from ._utils import check_output_dir, write_table
 from .data import DetectionResult
 from .exceptions import KpifsError
 from .workflow import (DetectOptions, ExtractOptions, observation_digest, options_record,
@@ -291,10 +291,8 @@ def run_batch(entries, outdir, *, extract_options=None, detect_options=None, ove
     except ImportError:
         raise KpifsError("kpifs batch needs Dask: pip install 'kpifs[batch]'") from None
     xo = extract_options or ExtractOptions()
-    do = detect_options or DetectOptions()
-    outdir = Path(outdir)
-    if outdir.exists() and not outdir.is_dir():
-        raise KpifsError(f"{outdir}: exists and is not a directory")
+    do = (detect_options or DetectOptions()).validate()
+    outdir = check_output_dir(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     names = [e.name for e in entries]
     if len(set(names)) != len(names):

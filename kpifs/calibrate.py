@@ -60,8 +60,16 @@ def _fmt(wl):
     return f"{len(wl)} channels {wl.min():.4f}-{wl.max():.4f} um"
 
 
+#: Fewest frames of a star from which its frame-to-frame scatter is estimated.
+MIN_FRAMES = 3
+
+
 def _mean_and_cov(kpd, shrinkage, joint, debias=True):
     """Mean kernel phases and the covariance of one frame (N = number of frames)."""
+    if 1 < kpd.n_frame < MIN_FRAMES:
+        raise KpifsError(f"{_name(kpd)}: {kpd.n_frame} frames are too few to estimate the "
+                         f"noise of {kpd.n_kp} kernel phases (at least {MIN_FRAMES} per star; "
+                         f"false alarms would not be controlled)")
     if kpd.n_frame > 1:
         cov = empirical_covariance(kpd.kp, joint=joint, shrinkage=shrinkage, debias=debias,
                                    source=_name(kpd))

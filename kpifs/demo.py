@@ -7,11 +7,11 @@ all through `kpifs.workflow.process_observation`, as ``kpifs batch`` and the
 ``extract``/``detect`` commands would.
 """
 import logging
-from pathlib import Path
 
 import numpy as np
 from astropy import units as u
 
+from ._utils import check_output_dir
 from .exceptions import KpifsError
 from .io.layouts import write_observation
 from .plotting import save_detection_plots
@@ -48,13 +48,11 @@ def run_demo(outdir, *, frames=200, seed=1, overwrite=False, progress=True, draw
     >>> from kpifs.demo import run_demo
     >>> with warnings.catch_warnings():
     ...     warnings.simplefilter("ignore")    # 20 frames: kpifs warns the null is optimistic
-    ...     res = run_demo(tempfile.mkdtemp(), frames=20, draws=500, progress=False)
+    ...     res = run_demo(tempfile.mkdtemp(), frames=20, draws=1000, progress=False)
     >>> res.test, len(res.wavelengths)
     ('B', 22)
     """
-    outdir = Path(outdir)
-    if outdir.exists() and not outdir.is_dir():
-        raise KpifsError(f"{outdir}: exists and is not a directory")
+    outdir = check_output_dir(outdir)
     if (outdir / "detection.fits").exists() and not overwrite:
         raise KpifsError(f"{outdir}: holds the products of an earlier demo; pass --overwrite")
     outdir.mkdir(parents=True, exist_ok=True)

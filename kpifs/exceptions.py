@@ -1,7 +1,7 @@
 """Exceptions and warnings raised by kpifs."""
 from astropy.utils.exceptions import AstropyUserWarning
 
-__all__ = ["KpifsError", "KpifsWarning"]
+__all__ = ["KpifsError", "MissingInformation", "KpifsWarning"]
 
 
 class KpifsError(ValueError):
@@ -19,6 +19,19 @@ class KpifsError(ValueError):
     ... except KpifsError as err:
     ...     print(str(err).split(":")[0])
     unknown pupil 'hubble'
+    """
+
+
+class MissingInformation(KpifsError):
+    """A file lacks something kpifs needs and cannot guess (wavelengths, pixel scale).
+
+    The message says what to give; ``kpifs info`` still describes such a file.
+
+    Examples
+    --------
+    >>> from kpifs.exceptions import KpifsError, MissingInformation
+    >>> issubclass(MissingInformation, KpifsError)
+    True
     """
 
 

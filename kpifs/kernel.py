@@ -15,12 +15,11 @@ import warnings
 
 import numpy as np
 from astropy import units as u
-from astropy.io import fits
 
 from ._registry import io_methods, register
 from ._utils import to_quantity, write_hdulist
 from .exceptions import KpifsError, KpifsWarning
-from .io.kpfits import has_kernel_model, model_hdulist, read_model_parts
+from .io.kpfits import has_kernel_model, model_hdulist, read_model_file, read_model_parts
 from .pupil import PupilModel, make_pupil
 
 __all__ = ["KernelModel", "nyquist_usable", "load_kernel_model"]
@@ -363,11 +362,7 @@ class KernelModel:
 
 
 def _read_model(path):
-    try:
-        with fits.open(path, memmap=False) as hdul:
-            return KernelModel.from_hdulist(hdul, source=path)
-    except (OSError, TypeError) as exc:
-        raise KpifsError(f"{path}: cannot read kernel model: {exc}") from None
+    return KernelModel.from_parts(read_model_file(path), source=path)
 
 
 def _write_model(model, path, *, overwrite=False):

@@ -25,11 +25,13 @@ from pathlib import Path
 import numpy as np
 from astropy import units as u
 
-from ._utils import check_output_path, to_quantity
+from ._utils import check_output_dir, check_output_path, to_quantity
 from .calibrate import calibrate
 from .covariance import empirical_covariance
 from .data import KernelPhaseData
+from .detect.null import check_draws
 from .detect.pipeline import default_grid, detect
+from .detect.stats import TESTS, check_probability
 from .exceptions import KpifsError
 from .extract import extract_kernel_phases
 from .io.readers import read_cube
@@ -120,6 +122,16 @@ class DetectOptions:
     shrinkage: str = "auto"
     fit: bool = True
     max_candidates: int = 5
+    allow_uncalibrated: bool = False
+
+    def validate(self):
+        """Refuse options no search can run with (before any work); return self."""
+        if self.test not in TESTS:
+            raise KpifsError(f"unknown test {self.test!r}: use one of {TESTS}")
+        check_probability(self.pfa, "P_FA")
+        check_probability(self.pd, "P_D")
+        check_draws(self.draws)
+        return self
 
 
 def options_record(options):
@@ -379,12 +391,12 @@ def detect_observation(kpd, options=None, *, calibrators=(), progress=False):
                     spectrum=parse_spectrum(options.spectrum, kpd.n_wave),
                     n_draws=options.draws, seed=options.seed, shrinkage=options.shrinkage,
                     fit=options.fit, max_candidates=options.max_candidates,
-                    progress=progress)
+                    allow_uncalibrated=options.allow_uncalibrated, progress=progress)
     record = options_record(options)
     result.header["KPDOPTS"] = (json.dumps(record, sort_keys=True), "kpifs detection options")
     result.header["KPHASH"] = (products_digest(json.loads(kpd.header.get("KPXOPTS", "null")),
                                                kpd.header.get("KPINHASH", kpd.name), record),
-                               "digest of the options and inputs of these products")
+                               "digest of the options and inputs")
     return result
 
 
@@ -426,15 +438,13 @@ def process_observation(target, calibrators, outdir, *, extract_options=None,
     >>> files = write_observation(simulate_scene("paper", n_frames=100, npup=32), d)
     >>> out = process_observation(files["target"], [files["calibrator"]], d,
     ...                           extract_options=ExtractOptions(step="1.2m"),
-    ...                           detect_options=DetectOptions(draws=500, pfa=0.01))
+    ...                           detect_options=DetectOptions(draws=1000, pfa=0.01))
     >>> sorted(p.name for p in out["paths"].values())
     ['calibrated_kp.fits', 'detection.fits']
     """
     xo = extract_options or ExtractOptions()
-    do = detect_options or DetectOptions()
-    outdir = Path(outdir)
-    if outdir.exists() and not outdir.is_dir():
-        raise KpifsError(f"{outdir}: exists and is not a directory")
+    do = (detect_options or DetectOptions()).validate()
+    outdir = check_output_dir(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     target = [str(f) for f in target]
     calibrators = [[str(f) for f in files] for files in calibrators]

@@ -1,6 +1,7 @@
 """Bad inputs through the command line: a clear one-line message naming the file and
 the problem, exit status 2 for errors, inputs byte-identical, no partial output."""
 import hashlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,7 +17,7 @@ def corpus(tmp_path_factory):
     d = tmp_path_factory.mktemp("corpus")
     paper = simulate_scene("paper", n_frames=4, seed=3, npup=48)
     plain = write_observation(paper, d / "plain")
-    charis = write_observation(simulate_scene("charis", n_frames=2, seed=3, npup=48,
+    charis = write_observation(simulate_scene("charis", n_frames=3, seed=3, npup=48,
                                               shape=(64, 64)), d / "charis", layout="charis")
     sphere = write_observation(simulate_scene("sphere", n_frames=2, seed=3, npup=48),
                                d / "sphere", layout="sphere")
@@ -69,7 +70,67 @@ def corpus(tmp_path_factory):
     f["lone_sphere"] = d / "lone" / "science_cube.fits"
     f["lone_sphere"].parent.mkdir()
     f["lone_sphere"].write_bytes(f["sphere_cube"].read_bytes())
+    # kernel-phase files (0.8 m model: 74 kernel phases), made with kpifs itself
+    kp = d / "kp"
+    kp.mkdir()
+    common = ["--step", "0.8m", "-q"]
+    assert main(["extract", str(f["target"]), "--calibrator", str(f["cal"]), *common,
+                 "-o", str(kp / "calibrated.fits")]) == 0
+    assert main(["extract", str(f["target"]), *common, "-o", str(kp / "target_kp.fits")]) == 0
+    assert main(["extract", str(f["cal"]), *common, "-o", str(kp / "cal_kp.fits")]) == 0
+    assert main(["extract", str(f["twochan"]), *common, "-o", str(kp / "twochan_kp.fits")]) == 0
+    fits.writeto(d / "two_frames.fits", data[:2], hdr)
+    assert main(["extract", str(d / "two_frames.fits"), *common,
+                 "-o", str(kp / "twoframes_kp.fits")]) == 0
+    names = ("calibrated", "target_kp", "cal_kp", "twochan_kp", "twoframes_kp")
+    f.update({k: kp / f"{k}.fits" for k in names})
+    f["two_frames"] = d / "two_frames.fits"
+    raw = bytearray((kp / "calibrated.fits").read_bytes())
+    with fits.open(kp / "calibrated.fits") as h:
+        where = h.fileinfo(h.index_of("KP-DATA"))["datLoc"]
+    raw[where + 11] ^= 0x40                                   # one flipped bit in the data
+    f["kp_corrupt"] = kp / "kp_corrupt.fits"
+    f["kp_corrupt"].write_bytes(bytes(raw))
+    f["kp_trunc"] = kp / "kp_trunc.fits"
+    f["kp_trunc"].write_bytes(bytes(raw[:len(raw) // 2]))
+    raw = bytearray((kp / "cal_kp.fits").read_bytes())
+    raw[where + 11] ^= 0x40
+    f["calkp_corrupt"] = kp / "calkp_corrupt.fits"
+    f["calkp_corrupt"].write_bytes(bytes(raw))
+    hdr4 = hdr.copy()
+    for key in ("KPWL1", "KPWL2", "KPWL3"):
+        del hdr4[key]
+    hdr4["INSTRUME"] = "CHARIS"
+    f["nowl_cube"] = d / "nowl.fits"
+    fits.writeto(f["nowl_cube"], data)
+    f["charis_nowl"] = d / "charis_nowl.fits"
+    fits.writeto(f["charis_nowl"], data, hdr4)
+    (d / "nocol.csv").write_text("name,target\nx,plain/target.fits\n")
+    f["nocol"] = d / "nocol.csv"
+    (d / "one.csv").write_text("name,target,calibrator\n"
+                               f"good,{f['target']},{f['cal']}\n"
+                               f"badcal,{f['target']},{f['truncated']}\n")
+    f["one"] = d / "one.csv"
+    f["unwritable"] = _unwritable(d)
     return f
+
+
+def _unwritable(base):
+    """A folder no new file can be written in: read-only for a normal user, or /sys
+    (refused even to root); None when there is none."""
+    import os
+    import tempfile
+    ro = base / "readonly"
+    ro.mkdir()
+    os.chmod(ro, 0o500)
+    for cand in (ro, Path("/sys")):
+        try:
+            fd, probe = tempfile.mkstemp(dir=cand)
+        except OSError:
+            return cand
+        os.close(fd)
+        os.remove(probe)
+    return None
 
 
 def _hashes(files):
@@ -115,6 +176,87 @@ CASES = [
     ("window larger than image", lambda f: ["extract", f["target"], "--window", "80"], 2,
      "larger than"),
     ("info on a truncated file", lambda f: ["info", f["truncated"]], 2, "truncated.fits"),
+    ("extract: pixel scale 0", lambda f: ["extract", f["target"], "--pixscale", "0mas"], 2,
+     "pixel scale must be > 0"),
+    ("extract: 1.52m for 1.52um",
+     lambda f: ["extract", f["target"], "--wavelengths", "1.52m,1.60um,1.68um"], 2,
+     "outside 0.3-30 um"),
+    ("extract: unwritable folder", lambda f: ["extract", f["target"], "-o",
+                                              _in(f, "unwritable", "kp.fits")], 2,
+     "cannot write in"),
+    ("extract: 2-frame calibrator", lambda f: ["extract", f["target"], "--calibrator",
+                                               f["two_frames"]], 2, "2 frames are too few"),
+    ("extract: CHARIS override count", lambda f: ["extract", *f["charis_tgt"],
+                                                  "--wavelengths", "1.2um,1.3um"], 2,
+     "2 wavelength(s) given but the cube has 22"),
+    # detection
+    ("detect: corrupted KPFITS", lambda f: ["detect", f["kp_corrupt"]], 2,
+     "kp_corrupt.fits: checksum mismatch (corrupted?)"),
+    ("detect: truncated KPFITS", lambda f: ["detect", f["kp_trunc"]], 2,
+     "kp_trunc.fits: truncated FITS file"),
+    ("detect: corrupted target, healthy calibrator",
+     lambda f: ["detect", f["kp_corrupt"], "--calibrator", f["cal_kp"]], 2,
+     "kp_corrupt.fits: checksum mismatch"),
+    ("detect: healthy target, corrupted calibrator",
+     lambda f: ["detect", f["target_kp"], "--calibrator", f["calkp_corrupt"]], 2,
+     "calkp_corrupt.fits: checksum mismatch"),
+    ("detect: uncalibrated", lambda f: ["detect", f["target_kp"]], 2,
+     "target_kp.fits: not calibrated"),
+    ("detect: --draws 0", lambda f: ["detect", f["calibrated"], "--draws", "0"], 2,
+     "0 Monte-Carlo draws cannot resolve"),
+    ("detect: too few draws", lambda f: ["detect", f["calibrated"], "--draws", "300"], 2,
+     "use at least 1000"),
+    ("detect: P_FA out of range", lambda f: ["detect", f["calibrated"], "--pfa", "2"], 2,
+     "P_FA must be in (0, 1)"),
+    ("detect: spectrum text", lambda f: ["detect", f["calibrated"], "--spectrum", "blue"], 2,
+     "spectrum: expected 'flat'"),
+    ("detect: spectrum length", lambda f: ["detect", f["calibrated"], "--spectrum", "1,2"], 2,
+     "the spectrum has 2 values for 3 channels"),
+    ("detect: a cube given", lambda f: ["detect", f["target"]], 2,
+     "target.fits: no KP-DATA extension"),
+    ("detect: missing file", lambda f: ["detect", f["adir"].parent / "none_kp.fits"], 2,
+     "none_kp.fits: file not found"),
+    ("detect: calibrator channels", lambda f: ["detect", f["target_kp"], "--calibrator",
+                                               f["twochan_kp"]], 2,
+     "twochan_kp.fits has channels"),
+    ("detect: 2-frame calibrator", lambda f: ["detect", f["target_kp"], "--calibrator",
+                                              f["twoframes_kp"]], 2, "2 frames are too few"),
+    ("detect: beyond the window", lambda f: ["detect", f["calibrated"], "--max-sep",
+                                             "400mas"], 2, "beyond"),
+    ("detect: unwritable plots folder", lambda f: ["detect", f["calibrated"], "--plots",
+                                                   _in(f, "unwritable", "figs")], 2,
+     "cannot write in"),
+    ("detect: unwritable output", lambda f: ["detect", f["calibrated"], "-o",
+                                             _in(f, "unwritable", "det.fits")], 2,
+     "cannot write in"),
+    # info
+    ("info: no wavelengths", lambda f: ["info", f["nowl_cube"]], 0,
+     "incomplete: no wavelengths"),
+    ("info: CHARIS header, no wavelengths", lambda f: ["info", f["charis_nowl"]], 0,
+     "says CHARIS but has no wavelength solution"),
+    ("info: pixel scale 0", lambda f: ["info", f["target"], "--pixscale", "0mas"], 2,
+     "pixel scale must be > 0"),
+    ("info: 1.52m for 1.52um", lambda f: ["info", f["target"], "--wavelengths",
+                                          "1.52m,1.6um,1.68um"], 2, "outside 0.3-30 um"),
+    ("info: corrupted KPFITS", lambda f: ["info", f["kp_corrupt"]], 2,
+     "kp_corrupt.fits: checksum mismatch"),
+    ("info: next command keeps the model", lambda f: ["info", f["target"], "--step", "0.8m",
+                                                      "--grey"], 0,
+     "--step 0.8m --offset 0.17m,0.11m --min-transmission 0.9 --grey"),
+    # archives
+    ("batch: missing manifest", lambda f: ["batch", f["adir"].parent / "none.csv"], 2,
+     "none.csv: manifest not found"),
+    ("batch: manifest column", lambda f: ["batch", f["nocol"]], 2, "lacks column"),
+    ("batch: --draws 0", lambda f: ["batch", f["one"], "--draws", "0"], 2,
+     "0 Monte-Carlo draws"),
+    ("batch: glob matches nothing", lambda f: ["batch", "--glob", f["adir"] / "*.fits",
+                                               "--calibrator", f["cal"]], 2,
+     "no file matches"),
+    ("batch: output is a file", lambda f: ["batch", f["one"], "-o", f["nocol"]], 2,
+     "nocol.csv: exists and is not a directory"),
+    ("batch: one bad calibrator", lambda f: ["batch", f["one"], "--step", "0.8m", "--draws",
+                                             "1000", "--workers", "1"], 1,
+     "truncated.fits: truncated FITS file"),
     # warnings: the job runs, the message says what happened
     ("star at the edge", lambda f: ["extract", f["edge"]], 0, "closer to the image edge"),
     ("fewer frames than kernels", lambda f: ["extract", f["target"], "--calibrator",
@@ -124,22 +266,33 @@ CASES = [
 ]
 
 
+def _in(files, key, name):
+    if files[key] is None:
+        pytest.skip("no unwritable folder on this machine")
+    return files[key] / name
+
+
 @pytest.mark.parametrize("name, argv, code, text", CASES, ids=[c[0] for c in CASES])
+@pytest.mark.filterwarnings("ignore::DeprecationWarning", "ignore::ResourceWarning",
+                            "ignore::pytest.PytestUnraisableExceptionWarning")
 def test_bad_input(corpus, tmp_path, capsys, name, argv, code, text):
-    out = tmp_path / "out.fits"
-    before = _hashes([p for v in corpus.values() for p in (v if isinstance(v, list) else [v])])
+    out = tmp_path / ("out" if name.startswith("batch") else "out.fits")
+    inputs = [p for v in corpus.values() if v is not None
+              for p in (v if isinstance(v, list) else [v])]
+    before = _hashes(inputs)
     args = [str(a) for a in argv(corpus)]
-    if args[0] == "extract":
+    if args[0] in ("extract", "detect", "batch") and "-o" not in args:
         args += ["-o", str(out)]
     assert main(args) == code
-    err = capsys.readouterr().err
+    captured = capsys.readouterr()
+    err = captured.err + (captured.out if code == 0 else "")
     assert "Traceback" not in err
     assert text in err, err
-    if code:
-        lines = [ln for ln in err.splitlines() if ": error: " in ln]
-        assert len(lines) == 1, err
-        assert not out.exists()
-    assert not list(tmp_path.glob(".out.fits*"))          # no temporary left behind
+    if code == 2:
+        lines = [ln for ln in captured.err.splitlines() if ": error: " in ln]
+        assert len(lines) == 1, captured.err
+        assert not out.exists()                           # refused before any work
+    assert not list(tmp_path.glob(".out*"))               # no temporary left behind
     assert _hashes(before) == before                      # inputs untouched
 
 

@@ -102,7 +102,7 @@ def small_archive(tmp_path_factory):
     return d
 
 
-SMALL = ["--step", "1.2m", "--draws", "500", "--pfa", "0.01", "--workers", "1", "-q"]
+SMALL = ["--step", "1.2m", "--draws", "1000", "--pfa", "0.01", "--workers", "1", "-q"]
 
 
 def test_batch_rerun_is_keyed_on_options(small_archive, tmp_path, capsys):

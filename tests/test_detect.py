@@ -299,9 +299,15 @@ def test_detect_bad_input(calibrated, tmp_path, capsys, extra, match):
 
 def test_detect_rejects_bad_covariance_and_channels(subaru_model):
     kpd = KernelPhaseData(np.zeros((1, 3, subaru_model.n_kp)), WL3, 10.42 * u.mas,
-                          subaru_model, covariance=-np.stack([np.eye(subaru_model.n_kp)] * 3))
+                          subaru_model, covariance=-np.stack([np.eye(subaru_model.n_kp)] * 3),
+                          meta={"calibrated": True})
     with pytest.raises(KpifsError, match="not positive"):
         detect(kpd, n_draws=1000)
+    kpd.meta["calibrated"] = False
+    with pytest.raises(KpifsError, match="not calibrated.*--allow-uncalibrated"):
+        detect(kpd, n_draws=1000)
+    with pytest.raises(KpifsError, match="at least 1000"):
+        detect(kpd, n_draws=10, allow_uncalibrated=True)
     t = KernelPhaseData(np.zeros((5, 3, subaru_model.n_kp)), WL3, 10.42 * u.mas, subaru_model)
     c = KernelPhaseData(np.zeros((5, 2, subaru_model.n_kp)), WL3[:2], 10.42 * u.mas,
                         subaru_model)

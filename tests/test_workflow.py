@@ -30,12 +30,18 @@ def observation(tmp_path_factory):
     return write_observation(obs, d)
 
 
+# Floats agree to 1e-12: a Dask worker's single-threaded BLAS sums in another order than
+# the command line's. The Monte-Carlo null is drawn in single precision for speed, so
+# false-alarm probabilities from its extrapolated tail agree to 1e-4 only.
+_RTOL = {"PFA": 1e-4, "CANDIDATES.pfa_global": 1e-4}
+
+
 def _same(x, y, what):
-    """Equal values; floats to 1e-12 (a Dask worker's single-threaded BLAS sums in
-    another order than the command line's)."""
+    """Equal values (floats within the tolerances above)."""
     x, y = np.asarray(x), np.asarray(y)
     if x.dtype.kind in "fc":
-        np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-300, err_msg=what)
+        np.testing.assert_allclose(x, y, rtol=_RTOL.get(what, 1e-12), atol=1e-300,
+                                   err_msg=what)
     else:
         np.testing.assert_array_equal(x, y, err_msg=what)
 

@@ -186,6 +186,9 @@ def build_parser():
     _search_options(p, grid_step_aliases=("--grid-step", "--step"))
     p.add_argument("--shrinkage", default="auto", choices=("auto", "ledoit-wolf", "none"),
                    help="covariance estimator when calibrating here")
+    p.add_argument("--allow-uncalibrated", action="store_true",
+                   help="search data that no calibrator was subtracted from (refused "
+                        "otherwise: aberrations look like companions)")
     p.add_argument("--plots", metavar="DIR", help="write PNG figures there")
     _output(p)
 

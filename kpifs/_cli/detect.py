@@ -1,7 +1,9 @@
 """``kpifs detect``: search kernel phases for companions and write the products."""
+import sys
+
 from astropy import units as u
 
-from .._utils import check_output_path
+from .._utils import check_output_dir, check_output_path
 from ..data import KernelPhaseData
 from ..plotting import save_detection_plots
 from ..workflow import detect_observation
@@ -9,10 +11,13 @@ from ._options import detect_options
 
 
 def run(args):
+    options = detect_options(args).validate()
     check_output_path(args.output, overwrite=args.overwrite)
+    if args.plots:
+        check_output_dir(args.plots)
     kpd = KernelPhaseData.read(args.kp)
     cals = [KernelPhaseData.read(c) for c in (args.calibrator or [])]
-    res = detect_observation(kpd, detect_options(args), calibrators=cals,
+    res = detect_observation(kpd, options, calibrators=cals,
                              progress=not args.quiet)
     res.write(args.output, inputs=[args.kp] + list(args.calibrator or []),
               overwrite=args.overwrite)
@@ -21,12 +26,19 @@ def run(args):
     for row in res.candidates:
         x = row["fit_x"] if "fit_x" in row.colnames else row["x"]
         y = row["fit_y"] if "fit_y" in row.colnames else row["y"]
+        how = " (extrapolated tail of the null)" if row["pfa_global_tail"] else ""
         print(f"  ({x.to_value(u.mas):.1f}, {y.to_value(u.mas):.1f}) mas, separation "
-              f"{row['separation'].to_value(u.mas):.0f} mas, global P_FA {row['pfa_global']:.1e}")
+              f"{row['separation'].to_value(u.mas):.0f} mas, global P_FA "
+              f"{row['pfa_global']:.1e}{how}")
     if args.plots:
         truth = None
         if "KPSIMX" in kpd.header and "KPSIMY" in kpd.header:
             truth = (kpd.header["KPSIMX"], kpd.header["KPSIMY"])
-        save_detection_plots(res, args.plots, truth=truth)
-        print(f"  figures in {args.plots}/")
+        try:
+            save_detection_plots(res, args.plots, truth=truth)
+        except (OSError, ValueError, RuntimeError) as exc:   # the products are written
+            print(f"kpifs detect: warning: {args.output} is written, but the figures "
+                  f"could not be ({type(exc).__name__}: {exc})", file=sys.stderr)
+        else:
+            print(f"  figures in {args.plots}/")
     return 0

@@ -3,12 +3,16 @@ import numpy as np
 from astropy import units as u
 
 from ..data import DetectionResult, KernelPhaseData
+from ..exceptions import MissingInformation
 from ..io.cube import open_fits
-from ..io.readers import read_cube
+from ..io.readers import detect_instrument, read_cube
 from ..io.wavelengths import parse_wavelengths
 from ..kernel import KernelModel, nyquist_usable
 from ..workflow import DEFAULT_PUPIL, kernel_model_for
 from ._options import extract_options
+
+# model options the suggested next command repeats
+_MODEL_OPTIONS = ("pupil_scale", "step", "offset", "min_transmission", "grey", "hexagonal")
 
 
 def run(args):
@@ -57,11 +61,28 @@ def _kpfits(path):
     print(f"  covariance: {cov}")
 
 
+def _raw(path, why):
+    """What can be said of a cube kpifs cannot read without more information."""
+    print(f"{path}: {detect_instrument(path)} cube, incomplete: {why.split(': ', 1)[-1]}")
+    with open_fits(path) as hdul:
+        for i, h in enumerate(hdul):
+            shape = "no data" if h.data is None else " x ".join(str(n) for n in h.data.shape)
+            print(f"  HDU {i} {h.name or ''}: {shape}")
+        for key in ("OBJECT", "INSTRUME", "TELESCOP", "EXPTIME", "PIXSCALE"):
+            if key in hdul[0].header:
+                print(f"  {key}: {hdul[0].header[key]}")
+
+
 def _cube(path, args):
     opts = extract_options(args)
-    with read_cube([path], instrument=opts.instrument,
-                   wavelengths=parse_wavelengths(opts.wavelengths, source="--wavelengths"),
-                   pixscale=None if opts.pixscale is None else opts.pixscale) as cube:
+    try:
+        cube = read_cube([path], instrument=opts.instrument,
+                         wavelengths=parse_wavelengths(opts.wavelengths, source="--wavelengths"),
+                         pixscale=opts.pixscale)
+    except MissingInformation as exc:
+        _raw(path, str(exc))
+        return
+    with cube:
         wl = cube.wavelengths.to_value(u.um)
         print(f"{cube.name}: {cube.instrument} cube")
         print(f"  frames x channels x y x x: {' x '.join(str(n) for n in cube.shape)}")
@@ -87,9 +108,23 @@ def _cube(path, args):
                   "refuses (--nyquist raise)")
         else:
             print("  Nyquist: every channel is sampled well enough for every uv point")
-        given = [f"--{opt} {getattr(args, opt)}" for opt in ("instrument", "wavelengths",
-                                                             "pixscale")
-                 if getattr(args, opt) not in (None, "auto")]
         files = cube.source[0] if len(cube.source) == 1 else f"{cube.source[0]} ..."
-        print(f"  next: kpifs extract {files} {' '.join(given + [f'--pupil {pupil}'])} "
+        print(f"  next: kpifs extract {files} {' '.join(_given(args, opts, pupil))} "
               f"[--calibrator CAL] -o kp.fits")
+
+
+def _given(args, opts, pupil):
+    """The reading options this call was given and every model option, as the next
+    command should repeat them (the model's options all shape the kernel phases)."""
+    given = [f"--{opt} {getattr(args, opt)}" for opt in ("instrument", "wavelengths",
+                                                         "pixscale")
+             if getattr(args, opt) not in (None, "auto")]
+    given.append(f"--pupil {pupil}")
+    for name in _MODEL_OPTIONS:
+        value = getattr(args, name)
+        flag = f"--{name.replace('_', '-')}"
+        if isinstance(value, bool):
+            given += [flag] if value else []
+        elif value is not None:
+            given.append(f"{flag} {value}")
+    return given

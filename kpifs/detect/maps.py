@@ -299,8 +299,13 @@ class DetectionModel:
         tab["position_angle"] = np.degrees(np.arctan2(gx, gy)) % 360 * u.deg
         tab["statistic"] = tt[iy, ix]
         tab["pfa_local"] = self.local_pfa(tt[iy, ix], form)
-        tab["pfa_global"] = (null.pfa(tt[iy, ix]) if null is not None
-                             else np.full(len(iy), np.nan))
+        if null is not None:
+            pfa, tail = null.pfa(tt[iy, ix], return_method=True)
+        else:
+            pfa, tail = np.full(len(iy), np.nan), np.zeros(len(iy), bool)
+        tab["pfa_global"] = pfa
+        # which P_FA come from the extrapolated tail of the null (beyond the draws)
+        tab["pfa_global_tail"] = tail
         tab["contrast"] = c[:, iy, ix].T.reshape(len(iy), q)
         tab["contrast_err"] = err[:, iy, ix].T.reshape(len(iy), q)
         tab.meta["test"] = form

@@ -22,12 +22,40 @@ from .._utils import progress as progress_bar
 from ..exceptions import KpifsError
 from .stats import check_probability
 
-__all__ = ["NullCalibration", "energy_null"]
+__all__ = ["NullCalibration", "energy_null", "check_draws", "MIN_DRAWS"]
 
 log = logging.getLogger(__name__)
 
 _CACHE = {}
 _MAX_CACHE = 32
+
+#: Fewest draws that resolve the null: the tail fit needs ~100 draws above the 90 %
+#: quantile; with fewer draws than 10 / P_FA the threshold comes from that tail.
+MIN_DRAWS = 1000
+
+#: Smallest global false-alarm probability reported (extrapolations go no further).
+PFA_FLOOR = 1e-15
+
+
+def check_draws(n_draws):
+    """Refuse a number of Monte-Carlo draws that cannot resolve the null's tail.
+
+    Examples
+    --------
+    >>> from kpifs.detect.null import check_draws
+    >>> check_draws(30000)
+    30000
+    """
+    try:
+        n = int(n_draws)
+    except (TypeError, ValueError):
+        raise KpifsError(f"the number of Monte-Carlo draws must be an integer, got "
+                         f"{n_draws!r}") from None
+    if n < MIN_DRAWS:
+        raise KpifsError(f"{n} Monte-Carlo draws cannot resolve a false-alarm probability: "
+                         f"use at least {MIN_DRAWS} (--draws); below 10 / P_FA draws the "
+                         f"null's tail is extrapolated")
+    return n
 
 
 class NullCalibration:
@@ -66,9 +94,7 @@ class NullCalibration:
                  noise_rows=None, progress=False):
         if form not in ("B", "B-paper", "NP"):
             raise KpifsError(f"unknown map test {form!r}: 'B', 'B-paper' or 'NP'")
-        n_draws = int(n_draws)
-        if n_draws < 1:
-            raise KpifsError(f"the number of Monte-Carlo draws must be >= 1, got {n_draws}")
+        n_draws = check_draws(n_draws)
         self.model = model
         self.form = form
         self.n_draws = n_draws
@@ -142,32 +168,53 @@ class NullCalibration:
         maxima.sort()
         return maxima
 
+    def _tail(self):
+        """``(u, beta)``: the exponential tail ``P(T > t) = 0.1 exp(-(t - u) / beta)`` fitted
+        to the draws' upper decile (``u`` the 90 % quantile, ``beta`` the mean excess), the
+        tail of a maximum of chi-square-like variables."""
+        draws = self.draws
+        u0 = float(np.quantile(draws, 0.9))
+        return u0, float(np.mean(draws[draws > u0] - u0))
+
     def threshold(self, pfa):
         """Threshold of the grid-maximised statistic at global false-alarm *pfa*.
 
         Read from the draws when they reach *pfa* (at least 10 draws above it);
-        below that, extrapolated from an exponential fit to the draws' upper
-        decile, ``P(T > t) = 0.1 exp(-(t - u) / beta)`` with ``u`` the 90 %
-        quantile and ``beta`` the mean excess (the tail of a maximum of
-        chi-square-like variables), and logged as such.
+        below that, extrapolated from the exponential tail of the draws, and
+        logged as such.
         """
         pfa = check_probability(pfa, "P_FA")
         draws = self.draws
         if pfa * len(draws) >= 10:
             return float(np.quantile(draws, 1 - pfa, method="higher"))
-        u0 = float(np.quantile(draws, 0.9))
-        beta = float(np.mean(draws[draws > u0] - u0))
+        u0, beta = self._tail()
         xi = u0 + beta * np.log(0.1 / pfa)
         log.info("global P_FA %.1e is below what %d draws reach: threshold %.3f extrapolated "
                  "from the exponential tail of the draws", pfa, len(draws), xi)
         return float(xi)
 
-    def pfa(self, t):
-        """Global false-alarm probability of local statistics *t* (fraction of H0 maxima >= t)."""
+    def pfa(self, t, *, return_method=False):
+        """Global false-alarm probability of local statistics *t*.
+
+        The fraction of H0 maxima at or above *t* where at least 10 draws are;
+        beyond, where the draws cannot resolve it (never the ``1/draws`` floor),
+        the exponential tail of `threshold`. With *return_method*, also a
+        boolean array, True where the tail was used.
+        """
         draws = self.draws
         t = np.asarray(t, float)
-        above = len(draws) - np.searchsorted(draws, np.nan_to_num(t, nan=-np.inf), side="left")
-        return (above + 1) / (len(draws) + 1)
+        tt = np.nan_to_num(t, nan=-np.inf)
+        above = len(draws) - np.searchsorted(draws, tt, side="left")
+        out = (above + 1) / (len(draws) + 1)
+        tail = above < 10
+        if np.any(tail):
+            u0, beta = self._tail()
+            with np.errstate(over="ignore", under="ignore"):
+                # floored where double precision (and any model of the tail) ends
+                out = np.where(tail, np.maximum(0.1 * np.exp(-(tt - u0) / beta), PFA_FLOOR),
+                               out)
+        out = np.where(np.isnan(t), np.nan, out)
+        return (out, tail & np.isfinite(t)) if return_method else out
 
 
 def energy_null(rows, n_draws, seed):

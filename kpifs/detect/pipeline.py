@@ -16,7 +16,7 @@ from .fit import fit_binary
 from .limits import (energy_lambda, limit_binary, limit_energy, limit_energy_correlated,
                      limit_np, radial_curves, spectrum_shape)
 from .maps import DetectionModel
-from .null import NullCalibration, energy_null
+from .null import NullCalibration, check_draws, energy_null
 from .stats import TESTS, check_probability, energy_threshold
 
 __all__ = ["detect", "default_grid"]
@@ -55,11 +55,18 @@ def default_grid(kpd, *, step=None, max_sep=None, min_sep=None):
     return DetectionGrid.from_separation(max_sep * u.mas, step * u.mas, min_sep=min_sep * u.mas)
 
 
-def _prepare(kpd, shrinkage):
-    if kpd.n_frame > 1:
-        warnings.warn(f"{kpd.meta.get('source', 'data')}: not calibrated; using the mean of "
-                      f"{kpd.n_frame} frames with their covariance / N", KpifsWarning,
+def _prepare(kpd, shrinkage, allow_uncalibrated):
+    if not kpd.meta.get("calibrated"):
+        if not allow_uncalibrated:
+            raise KpifsError(f"{kpd.name}: not calibrated (no calibrator star subtracted): "
+                             f"give its calibrator (--calibrator CAL_KP.fits), or "
+                             f"--allow-uncalibrated to search the data as they are")
+        warnings.warn(f"{kpd.name}: not calibrated: searched as it is (aberrations that a "
+                      f"calibrator would remove look like companions)", KpifsWarning,
                       stacklevel=3)
+    if kpd.n_frame > 1:
+        log.info("%s: using the mean of %d frames with their covariance / N", kpd.name,
+                 kpd.n_frame)
         cov = empirical_covariance(kpd.kp, shrinkage=shrinkage, debias=True) / kpd.n_frame
         return kpd.kp.mean(axis=0), cov, kpd
     if kpd.covariance is None:
@@ -70,15 +77,16 @@ def _prepare(kpd, shrinkage):
 
 def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
            n_draws=30000, seed=0, shrinkage="auto", fit=True, max_candidates=5,
-           progress=False):
+           allow_uncalibrated=False, progress=False):
     """Search calibrated kernel phases for a companion.
 
     Parameters
     ----------
     kpd : `~kpifs.KernelPhaseData`
         Calibrated data (one frame with a covariance, from
-        `~kpifs.calibrate.calibrate`), or frames of the target (their mean is
-        then used uncalibrated, with a warning).
+        `~kpifs.calibrate.calibrate`). Uncalibrated data are refused unless
+        *allow_uncalibrated* (the frames' mean is then searched, with a
+        warning).
     test : {'B', 'B-paper', 'NP', 'E'}
         ``'B'``: the GLR binary test ``sum_i max(z_i, 0)^2``; ``'B-paper'``: the
         seed paper's ``sum_i max(z_i, 0)``; ``'NP'``: the matched filter for the
@@ -101,6 +109,8 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
         Candidates are searched one at a time: the strongest peak above the
         threshold is fitted and its model subtracted before the map is
         recomputed, so that side lobes of a companion are not reported.
+    allow_uncalibrated : bool
+        Search data that no calibrator star was subtracted from.
 
     Returns
     -------
@@ -117,7 +127,8 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
         raise KpifsError(f"unknown test {test!r}: use one of {TESTS}")
     pfa = check_probability(pfa, "P_FA")
     pd = check_probability(pd, "P_D")
-    kp, cov, kpd = _prepare(kpd, shrinkage)
+    check_draws(n_draws)
+    kp, cov, kpd = _prepare(kpd, shrinkage, allow_uncalibrated)
     q, p = kp.shape
     a = spectrum_shape(spectrum, q)
     w, rank = whitening_matrix(cov, return_rank=True, source="covariance of the data")
@@ -283,7 +294,8 @@ def _example_result():
         kp = km.binary_kernel_phases([60, -40] * u.mas, [4e-3, 3e-3], wl)
         kp = kp + rng.normal(0, 1e-3, kp.shape)
         cov = np.stack([np.eye(km.n_kp) * 1e-6] * 2)
-        kpd = KernelPhaseData(kp[None], wl, 10.42 * u.mas, km, covariance=cov)
+        kpd = KernelPhaseData(kp[None], wl, 10.42 * u.mas, km, covariance=cov,
+                              meta={"calibrated": True})
         grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
         _EXAMPLE["result"] = detect(kpd, grid=grid, n_draws=2000, seed=0)
     return _EXAMPLE["result"]

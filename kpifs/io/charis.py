@@ -129,7 +129,9 @@ def read_charis(paths, *, wavelengths=None, pixscale=None):
                 angles.append(float(par))
             except (TypeError, ValueError):
                 angles.append(np.nan)
-        stack = FrameStack(data, bad)
+        cube = IFSCube(data=FrameStack(data, bad), wavelengths=wl, pixscale=ps, header=header,
+                       angles=np.array(angles) * u.deg, instrument="charis", source=paths,
+                       _files=files)
     except BaseException:
         for f in files:
             f.close()
@@ -138,9 +140,7 @@ def read_charis(paths, *, wavelengths=None, pixscale=None):
         log.info("PARANG unavailable in the CHARIS headers")
     log.info("read %d CHARIS exposure(s): %d channels %.4f-%.4f um", len(paths), len(wl),
              wl[0].value, wl[-1].value)
-    return IFSCube(data=stack, wavelengths=wl, pixscale=ps, header=header,
-                   angles=np.array(angles) * u.deg, instrument="charis", source=paths,
-                   _files=files)
+    return cube
 
 
 class _OneFrame:

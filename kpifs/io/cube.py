@@ -1,5 +1,6 @@
 """The `IFSCube` container and the generic FITS cube reader."""
 import logging
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -8,7 +9,7 @@ from astropy import units as u
 from astropy.io import fits
 
 from .._utils import to_quantity
-from ..exceptions import KpifsError
+from ..exceptions import KpifsError, MissingInformation
 from .wavelengths import check_wavelengths, parse_wavelengths
 
 __all__ = ["IFSCube", "read_generic", "FrameStack", "open_fits"]
@@ -54,6 +55,14 @@ class IFSCube:
     instrument: str = "generic"
     source: list = field(default_factory=list)
     _files: list = field(default_factory=list, repr=False)
+
+    def __post_init__(self):
+        # one set of plausibility checks for every reader (and `kpifs info`)
+        self.wavelengths = check_wavelengths(self.wavelengths, source=self.name)
+        ps = to_quantity(self.pixscale, u.mas, name="pixel scale")
+        if not np.isfinite(ps.value) or ps.value <= 0:
+            raise KpifsError(f"{self.name}: pixel scale must be > 0, got {ps}")
+        self.pixscale = ps
 
     def close(self):
         """Close the memory-mapped files behind `data`."""
@@ -135,25 +144,59 @@ class FrameStack:
         return np.concatenate(out)
 
 
-def open_fits(path):
-    """Open a FITS file memory-mapped, refusing directories, missing and unreadable files."""
+def open_fits(path, *, verify=False):
+    """Open a FITS file, refusing directories, missing, truncated and unreadable files.
+
+    Cubes are memory-mapped (read later, one batch at a time). With *verify*
+    the whole file is read and its CHECKSUM/DATASUM cards, when present, are
+    checked (kpifs writes them on every product): a mismatch is reported as
+    "checksum mismatch (corrupted?)".
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np
+    >>> from astropy.io import fits
+    >>> from kpifs.io.cube import open_fits
+    >>> path = tempfile.mkdtemp() + "/a.fits"
+    >>> fits.writeto(path, np.zeros((4, 4)), checksum=True)
+    >>> with open_fits(path, verify=True) as hdul:
+    ...     print(hdul[0].data.shape)
+    (4, 4)
+    """
     path = Path(path)
     if path.is_dir():
         raise KpifsError(f"{path}: is a directory, expected a FITS file")
     if not path.exists():
         raise KpifsError(f"{path}: file not found")
-    try:
-        hdul = fits.open(path, memmap=True)
-    except (OSError, ValueError, TypeError, IndexError) as exc:
-        raise KpifsError(f"{path}: not a readable FITS file ({exc})") from None
-    try:
-        hdul.verify("silentfix")
-        for h in hdul:  # touching every HDU's data finds truncated files now
-            if h.data is not None:
-                h.data.shape
-    except (OSError, ValueError, TypeError, IndexError) as exc:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            hdul = fits.open(path, memmap=not verify, checksum=verify)
+        except (OSError, ValueError, TypeError, IndexError) as exc:
+            raise KpifsError(f"{path}: not a readable FITS file ({exc})") from None
+        try:
+            hdul.verify("silentfix")
+            for h in hdul:  # touching every HDU's data finds truncated files now
+                if h.data is not None:
+                    h.data.shape
+        except (OSError, ValueError, TypeError, IndexError) as exc:
+            hdul.close()
+            if path.stat().st_size % 2880 or "truncat" in str(exc) or "reshape" in str(exc):
+                raise KpifsError(f"{path}: truncated FITS file ({path.stat().st_size} bytes; "
+                                 f"an interrupted copy?)") from None
+            raise KpifsError(f"{path}: not a readable FITS file ({exc})") from None
+    messages = [str(w.message) for w in caught]
+    if any("truncated" in m or "Error validating header" in m or "is corrupted" in m
+           for m in messages):
         hdul.close()
-        raise KpifsError(f"{path}: not a readable FITS file ({exc})") from None
+        raise KpifsError(f"{path}: truncated FITS file ({path.stat().st_size} bytes; an "
+                         f"interrupted copy?)")
+    if any("Checksum verification failed" in m or "Datasum verification failed" in m
+           for m in messages):
+        hdul.close()
+        raise KpifsError(f"{path}: checksum mismatch (corrupted?)")
+    for m in messages:           # anything else astropy had to say is worth passing on
+        log.info("%s: %s", path, m.strip())
     return hdul
 
 
@@ -209,8 +252,8 @@ def _generic_from_hdul(hdul, path, wavelengths, pixscale):
     else:
         wl = _header_wavelengths(hdr, path)
     if wl is None:
-        raise KpifsError(f"{path}: no wavelengths: give them (--wavelengths 1.52um,1.60um or a "
-                         f"file)")
+        raise MissingInformation(f"{path}: no wavelengths: give them (--wavelengths "
+                                 f"1.52um,1.60um or a file)")
     if data.ndim == 2:
         data = data[None, None]
     elif data.ndim == 3:
@@ -223,7 +266,7 @@ def _generic_from_hdul(hdul, path, wavelengths, pixscale):
                          f"{data.shape[1]} channel(s)")
     ps = pixscale if pixscale is not None else hdr.get("PIXSCALE")
     if ps is None:
-        raise KpifsError(f"{path}: no pixel scale: give one (--pixscale 10.42mas)")
+        raise MissingInformation(f"{path}: no pixel scale: give one (--pixscale 10.42mas)")
     ps = to_quantity(ps, u.mas, name="pixel scale")
     return IFSCube(data=data, wavelengths=wl, pixscale=ps, header=hdr, instrument="generic",
                    source=[str(path)])

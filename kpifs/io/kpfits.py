@@ -13,7 +13,6 @@ headers. The containers (`~kpifs.kernel.KernelModel`,
 `~kpifs.data.KernelPhaseData`) connect these functions to astropy's unified
 I/O registry, so that ``KernelPhaseData.read(path)`` works.
 """
-from pathlib import Path
 
 import numpy as np
 from astropy import units as u
@@ -23,8 +22,10 @@ from astropy.table import Table
 from .._meta import VERSION
 from .._utils import write_hdulist
 from ..exceptions import KpifsError
+from .cube import open_fits
 
-__all__ = ["model_hdus", "model_hdulist", "read_model_parts", "kpd_to_hdulist",
+__all__ = ["model_hdus", "model_hdulist", "read_model_parts", "read_model_file",
+           "kpd_to_hdulist",
            "write_kpfits", "read_kpfits_parts", "has_kernel_model"]
 
 # cards of an input header that describe its data array and must not be copied
@@ -148,6 +149,28 @@ def read_model_parts(hdul, *, source="<memory>"):
             "uv": uv, "redundancy": np.array(uvt["RED"], float),
             "blm": np.array(hdul["BLM-MAT"].data, float) if "BLM-MAT" in hdul else None,
             "kernel": kmat, "rank": hdul["KER-MAT"].header.get("RANK")}
+
+
+def read_model_file(path):
+    """`read_model_parts` of a file (checksums verified).
+
+    Examples
+    --------
+    >>> import tempfile, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.io.kpfits import read_model_file
+    >>> path = tempfile.mkdtemp() + "/model.fits"
+    >>> _ = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m)).write(path)
+    >>> read_model_file(path)["kernel"].shape
+    (44, 66)
+    """
+    try:
+        with open_fits(path, verify=True) as hdul:
+            return read_model_parts(hdul, source=path)
+    except (OSError, TypeError, ValueError) as exc:
+        if isinstance(exc, KpifsError):
+            raise
+        raise KpifsError(f"{path}: cannot read kernel model: {exc}") from None
 
 
 def has_kernel_model(path):
@@ -303,12 +326,8 @@ def read_kpfits_parts(path):
     (2, 1, 44)
     """
     path = str(path)
-    if Path(path).is_dir():
-        raise KpifsError(f"{path}: is a directory, expected a KPFITS file")
-    if not Path(path).exists():
-        raise KpifsError(f"{path}: file not found")
     try:
-        with fits.open(path, memmap=False) as hdul:
+        with open_fits(path, verify=True) as hdul:
             if "KP-DATA" not in hdul:
                 raise KpifsError(f"{path}: no KP-DATA extension: not kernel-phase data")
             model = read_model_parts(hdul, source=path)

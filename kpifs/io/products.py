@@ -3,7 +3,6 @@
 This module knows the layout; `~kpifs.data.DetectionResult` connects it to
 astropy's unified I/O registry (``DetectionResult.read(path)``).
 """
-from pathlib import Path
 
 import numpy as np
 from astropy.io import fits
@@ -12,6 +11,7 @@ from astropy.table import QTable
 from .._meta import VERSION
 from .._utils import write_hdulist
 from ..exceptions import KpifsError
+from .cube import open_fits
 from .kpfits import card
 
 __all__ = ["detection_hdulist", "write_detection", "read_detection_parts"]
@@ -51,6 +51,8 @@ def detection_hdulist(result, *, header=None, inputs=()):
     hdr["THRESH"] = (result.threshold, "threshold of the map statistic at PFA")
     hdr["NDRAWS"] = (result.meta.get("n_draws", 0), "Monte-Carlo draws calibrating the search")
     hdr["MCSEED"] = (result.meta.get("seed", 0), "seed of those draws")
+    hdr["PFAFLOOR"] = (10 / (result.meta.get("n_draws", 0) + 1),
+                       "smaller P_FA: from the null's fitted tail")
     hdr["NCAND"] = (len(result.candidates), "candidates above the threshold")
     hdr["ESTAT"] = (result.energy.get("statistic", np.nan), "energy-detector statistic")
     hdr["EDOF"] = (result.energy.get("dof", 0), "energy-detector degrees of freedom")
@@ -106,6 +108,7 @@ def detection_hdulist(result, *, header=None, inputs=()):
 # cards the products write themselves: an inherited copy is dropped, so that the
 # products' own cards come in one order however often a result is written
 _PRODUCT_CARDS = {"KPIFSVER", "CONTENT", "TEST", "MAPTEST", "PFA", "PD", "THRESH", "NDRAWS",
+                  "PFAFLOOR",
                   "MCSEED", "NCAND", "ESTAT", "EDOF", "EPFA", "ETHRESH", "GRIDMIN", "GRIDMAX",
                   "NULLCHAN", "CALIB"}
 _PRODUCT_PREFIXES = ("WAVE", "SPEC", "KPCAL", "KPIN")
@@ -169,11 +172,9 @@ def read_detection_parts(path):
     ('B', 2, ['B', 'B-paper', 'E', 'NP'])
     """
     path = str(path)
-    if not Path(path).is_file():
-        raise KpifsError(f"{path}: file not found")
     out = {"images": {}, "limits": {}, "tables": {}}
     try:
-        with fits.open(path) as hdul:
+        with open_fits(path, verify=True) as hdul:
             out["header"] = hdul[0].header.copy()
             if out["header"].get("CONTENT") != "KPIFS-DETECTION":
                 raise KpifsError(f"{path}: not kpifs detection products (CONTENT is not "

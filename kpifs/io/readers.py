@@ -1,11 +1,12 @@
 """`read_cube`: pick the right reader for a file and say which."""
 import logging
+import warnings
 from pathlib import Path
 
 import numpy as np
 from astropy import units as u
 
-from ..exceptions import KpifsError
+from ..exceptions import KpifsError, KpifsWarning
 from .charis import is_charis, read_charis
 from .cube import FrameStack, IFSCube, open_fits, read_generic
 from .sphere import is_sphere, read_sphere
@@ -37,6 +38,10 @@ def detect_instrument(path):
             return "charis"
         if is_sphere(hdul):
             return "sphere"
+        if str(hdul[0].header.get("INSTRUME", "")).strip().upper() == "CHARIS":
+            warnings.warn(f"{path}: the header says CHARIS but has no wavelength solution "
+                          f"(LAM_MIN, DLOGLAM, NLAM): read as a plain cube; give the "
+                          f"wavelengths (--wavelengths)", KpifsWarning, stacklevel=2)
         return "generic"
     finally:
         hdul.close()

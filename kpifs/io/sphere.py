@@ -14,7 +14,7 @@ from astropy import units as u
 from astropy.io import fits
 
 from .._utils import to_quantity
-from ..exceptions import KpifsError
+from ..exceptions import KpifsError, MissingInformation
 from .cube import IFSCube, open_fits
 from .wavelengths import parse_wavelengths, read_wavelength_file
 
@@ -53,8 +53,9 @@ def _find_wavelengths(path, hdr, nwave, wavelengths):
     if lmin is not None and lmax is not None:
         log.info("%s: wavelengths spread linearly between the DRS limits", path)
         return np.linspace(float(lmin), float(lmax), nwave) * u.um
-    raise KpifsError(f"{path}: no wavelengths: give a wavelength file (--wavelengths "
-                     f"wavelength.fits) or put one named wavelength.fits beside the cube")
+    raise MissingInformation(f"{path}: no wavelengths: give a wavelength file (--wavelengths "
+                             f"wavelength.fits) or put one named wavelength.fits beside the "
+                             f"cube")
 
 
 def read_sphere(path, *, wavelengths=None, pixscale=None, angles=None):
@@ -108,14 +109,15 @@ def read_sphere(path, *, wavelengths=None, pixscale=None, angles=None):
         ps = to_quantity(pixscale if pixscale is not None else SPHERE_PIXSCALE, u.mas,
                          name="pixel scale")
         ang = _angles(path, angles, view.shape[0], _is_dc(hdr))
+        cube = IFSCube(data=view, wavelengths=wl, pixscale=ps, header=hdr, angles=ang,
+                       instrument="sphere", source=[str(path)], _files=[hdul])
     except BaseException:
         hdul.close()
         raise
     log.info("read SPHERE-IFS cube %s: %d frame(s), %d channels %.4f-%.4f um%s", path,
              view.shape[0], nwave, wl[0].value, wl[-1].value,
              " (Data Center product)" if _is_dc(hdr) else "")
-    return IFSCube(data=view, wavelengths=wl, pixscale=ps, header=hdr, angles=ang,
-                   instrument="sphere", source=[str(path)], _files=[hdul])
+    return cube
 
 
 def _angles(path, angles, nframe, dc):
