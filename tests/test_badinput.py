@@ -268,6 +268,13 @@ CASES = [
      "pyk_nouv.fits: not a kernel model: no UV-PLANE extension"),
     ("info: no wavelength", lambda f: ["info", f["pyk_nowl"]], 2,
      "pyk_nowl.fits: no wavelength: neither a CWAVEL extension nor"),
+    ("extract: --pa count", lambda f: ["extract", f["target"], "--pa", "1,2"], 2,
+     "target.fits: --pa: 2 detector position angles for 4 frame(s)"),
+    ("extract: --pa file missing", lambda f: ["extract", f["target"], "--pa",
+                                              f["adir"].parent / "pa.txt"], 2,
+     "pa.txt not found"),
+    ("extract: --pa not an angle", lambda f: ["extract", f["target"], "--pa", "north"], 2,
+     "cannot read --pa 'north'"),
     # info
     ("info: no wavelengths", lambda f: ["info", f["nowl_cube"]], 0,
      "incomplete: no wavelengths"),

@@ -1,5 +1,7 @@
 """KPFITS interoperability: files as xara, jwst-kpi and PyKernel/pynrm write them are read
 right; kpifs's own files round-trip and open the way fouriever's reader opens them."""
+import re
+
 import numpy as np
 import pytest
 import astropy.units as u
@@ -360,7 +362,6 @@ def test_files_kpifs_cannot_interpret(sim, tmp_path, name, edit, message):
     text = str(err.value)
     assert text.startswith(f"{bad}: ") and "\n" not in text
     if message.startswith(("BLM-MAT has (", "KER-MAT has shape \\(")):
-        import re
         assert re.search(message, text), text
     else:
         assert message in text, text

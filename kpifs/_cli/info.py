@@ -113,6 +113,11 @@ def _cube(path, args):
         if cube.angles is not None and np.any(np.isfinite(cube.angles.value)):
             print(f"  frame angles: {np.nanmin(cube.angles.value):.2f}-"
                   f"{np.nanmax(cube.angles.value):.2f} deg")
+        if cube.detpa is not None:
+            pa = cube.detpa.to_value(u.deg)
+            text = ("unknown" if not np.any(np.isfinite(pa)) else
+                    f"{np.nanmin(pa):.2f}-{np.nanmax(pa):.2f} deg")
+            print(f"  detector position angle: {text} ({cube.detpa_source})")
         for key in ("OBJECT", "TELESCOP", "EXPTIME", "KPSIMX", "KPSIMY"):
             if key in cube.header:
                 print(f"  {key}: {cube.header[key]}")
