@@ -4,6 +4,12 @@ The calibrated kernel phases are ``mean(target) - mean over calibrators of
 mean(calibrator)`` per channel, with covariance
 ``Sigma_t / N_t + (1/M^2) sum_m Sigma_m / N_m`` (``Sigma`` the covariance of
 one frame, estimated from the frames; ``N`` the numbers of frames).
+
+The average is taken in detector coordinates. The result's detector position
+angle is the (circular) mean of the target frames'; when they span more than
+`MAX_DETPA_SPAN`, a companion fixed on the sky moved on the detector during
+the sequence and its signal is smeared by the average: a `~kpifs.KpifsWarning`
+says so.
 """
 import logging
 import warnings
@@ -15,7 +21,7 @@ from .covariance import calibrated_covariance, empirical_covariance, hartlap_fac
 from .data import KernelPhaseData
 from .exceptions import KpifsError, KpifsWarning
 
-__all__ = ["calibrate", "check_compatible"]
+__all__ = ["calibrate", "check_compatible", "mean_detpa", "MAX_DETPA_SPAN"]
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +68,33 @@ def _fmt(wl):
 
 #: Fewest frames of a star from which its frame-to-frame scatter is estimated.
 MIN_FRAMES = 3
+
+#: Largest span (deg) of the target's detector position angles averaged without a warning.
+MAX_DETPA_SPAN = 1.0
+
+
+def mean_detpa(detpa):
+    """Mean and span (deg) of detector position angles, NaN ignored, across 0/360.
+
+    The angles are unwrapped about their circular mean and averaged; the
+    result is on the branch of the first angle (1 and 359 average to 0, 359
+    and 1 to 360). Returns ``(nan, nan)`` when no angle is known.
+
+    Examples
+    --------
+    >>> from kpifs.calibrate import mean_detpa
+    >>> [round(float(v), 6) for v in mean_detpa([1.0, 359.0, 3.0])]
+    [1.0, 4.0]
+    """
+    a = np.asarray(detpa, float)
+    a = a[np.isfinite(a)]
+    if a.size == 0:
+        return np.nan, np.nan
+    r = np.deg2rad(a)
+    centre = float(np.rad2deg(np.arctan2(np.mean(np.sin(r)), np.mean(np.cos(r)))))
+    centre = a[0] + (centre - a[0] + 180.0) % 360.0 - 180.0
+    dev = (a - centre + 180.0) % 360.0 - 180.0        # the angles unwrapped about it
+    return float(centre + dev.mean()), float(dev.max() - dev.min())
 
 
 def _mean_and_cov(kpd, shrinkage, joint, debias=True):
@@ -150,13 +183,39 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True
     meta = dict(target.meta)
     meta.update(calibrated=True, calibrators=names, n_target_frames=n_t,
                 n_calibrator_frames=[n for _, _, n in cal_stats])
+    detpa = None
+    if target.detpa is not None:
+        pa, span = mean_detpa(target.detpa)
+        detpa = [pa]
+        meta["detpa_span"] = None if np.isnan(span) else span
+        meta["detpa_source"] = (f"mean of {target.n_frame} target frame(s) "
+                                f"({target.meta.get('detpa_source', 'given')})")
+        if span > MAX_DETPA_SPAN:
+            warnings.warn(f"{_name(target)}: the target's detector position angle spans "
+                          f"{span:.1f} deg over its {target.n_frame} frames: they are averaged "
+                          f"in detector coordinates, so a companion fixed on the sky is "
+                          f"smeared over that arc (its signal is lost beyond ~"
+                          f"{_smear_limit(target, span):.0f} mas); the result carries the "
+                          f"mean angle {pa:.1f} deg", KpifsWarning, stacklevel=2)
     log.info("calibrated %s (%d frames) with %d calibrator(s)", _name(target), n_t,
              len(calibrators))
     return KernelPhaseData((t_mean - c_mean)[None], target.wavelengths, target.pixscale,
                            target.kernel_model, window=target.window, covariance=cov,
                            joint_covariance=jcov,
-                           covariance_rows=rows, header=target.header,
+                           covariance_rows=rows, header=target.header, detpa=detpa,
                            bandwidth=target.bandwidth, meta=meta)
+
+
+def _smear_limit(kpd, span):
+    """Separation (mas) at which an arc of *span* deg is a quarter of the finest fringe.
+
+    The finest fringe is ``lambda_min / B_max``; along an arc of angle *span* a
+    companion at separation ``r`` moves ``r * span``.
+    """
+    lam = kpd.wavelengths.to_value(u.m).min()
+    bmax = kpd.kernel_model.baseline_length.to_value(u.m).max()
+    fringe = lam / bmax / (np.pi / 180 / 3600 / 1000)
+    return 0.25 * fringe / np.deg2rad(span)
 
 
 def _effective_hartlap(covs, frames, dim, source):

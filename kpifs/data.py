@@ -50,7 +50,12 @@ class KernelPhaseData:
         Star centres used, one row per (frame, wavelength).
     covariance : ndarray, shape (nwave, nkp, nkp), optional
         Covariance of one frame's kernel phases, per channel (the same for
-        every frame).
+        every frame). Given per frame, shape (nframe, nwave, nkp, nkp) as other
+        tools' KPFITS files hold it, their mean is kept (exact for a
+        calibrated, single-frame file) and their diagonals become *kp_err*.
+    kp_err : ndarray, shape (nframe, nwave, nkp), optional
+        Per-frame 1-sigma errors of *kp* (rad), when known (KP-SIGM of other
+        tools' files); written back as KP-SIGM.
     joint_covariance : ndarray, shape (nwave*nkp, nwave*nkp), optional
         The same across channels (spectral cross-talk included).
     covariance_rows : ndarray, shape (nrow, nwave, nkp), optional
@@ -60,7 +65,8 @@ class KernelPhaseData:
     header : `~astropy.io.fits.Header`, optional
         Header of the input cube (kept in products).
     detpa : array-like, shape (nframe,), optional
-        Detector position angle of each frame (deg).
+        Detector position angle of each frame (deg): the position angle, East
+        of North, of the detector +y axis (NaN where unknown).
     bandwidth : `~astropy.units.Quantity`, optional
         Channel widths.
     meta : dict, optional
@@ -82,7 +88,8 @@ class KernelPhaseData:
 
     def __init__(self, kp, wavelengths, pixscale, kernel_model, *, window=None, phases=None,
                  amplitudes=None, centres=None, covariance=None, joint_covariance=None,
-                 covariance_rows=None, header=None, detpa=None, bandwidth=None, meta=None):
+                 covariance_rows=None, header=None, detpa=None, bandwidth=None, meta=None,
+                 kp_err=None):
         kp = np.asarray(kp, float)
         if kp.ndim == 2:
             kp = kp[None]
@@ -102,9 +109,16 @@ class KernelPhaseData:
         self.phases = phases
         self.amplitudes = amplitudes
         self.centres = centres
+        if kp_err is not None:
+            kp_err = np.asarray(kp_err, float)
         if covariance is not None:
             covariance = np.asarray(covariance, float)
-            if covariance.ndim == 4:   # KPFITS (nframe, nwave, nkp, nkp): shared by frames
+            if covariance.ndim == 4:   # one per frame (nframe, nwave, nkp, nkp)
+                if covariance.shape[0] not in (1, kp.shape[0]):
+                    raise KpifsError(f"covariance has shape {covariance.shape}, expected "
+                                     f"({kp.shape[0]} or 1, {nw}, {nk}, {nk})")
+                if kp_err is None and covariance.shape[0] > 1:
+                    kp_err = np.sqrt(np.diagonal(covariance, axis1=-2, axis2=-1))
                 covariance = covariance.mean(axis=0)
             if covariance.shape != (nw, nk, nk):
                 raise KpifsError(f"covariance has shape {covariance.shape}, expected "
@@ -119,11 +133,20 @@ class KernelPhaseData:
             if covariance_rows.ndim != 3 or covariance_rows.shape[1:] != kp.shape[1:]:
                 raise KpifsError(f"covariance rows have shape {covariance_rows.shape}, "
                                  f"expected (nrow, {nw}, {nk})")
+        if kp_err is not None and kp_err.shape != kp.shape:
+            raise KpifsError(f"kernel-phase errors have shape {kp_err.shape}, expected "
+                             f"{kp.shape}")
         self.covariance = covariance
+        self.kp_err = kp_err
         self.joint_covariance = joint_covariance
         self.covariance_rows = covariance_rows
         self.header = fits.Header() if header is None else header.copy()
-        self.detpa = None if detpa is None else np.asarray(detpa, float)
+        if detpa is not None:
+            detpa = np.atleast_1d(np.asarray(u.Quantity(detpa, u.deg).value, float))
+            if detpa.shape != (kp.shape[0],):
+                raise KpifsError(f"{detpa.size} detector position angle(s) for {kp.shape[0]} "
+                                 f"frame(s)")
+        self.detpa = detpa
         self.bandwidth = bandwidth
         self.meta = dict(meta or {})
 
@@ -154,8 +177,8 @@ class KernelPhaseData:
                 f"{self.wavelengths.max():.3f}, {self.pixscale:.2f}>")
 
 
-def _read_kpd(path):
-    parts = read_kpfits_parts(path)
+def _read_kpd(path, *, detpa=None):
+    parts = read_kpfits_parts(path, detpa=detpa)
     model = parts.pop("model")
     km = KernelModel.from_parts(model, source=path)
     window = ExtractionWindow.from_header(parts["header"])

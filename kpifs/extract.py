@@ -164,7 +164,7 @@ def _extract_batch(plan, iw, f0, f1, mat):
 def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, centres=None,
                           mask=None, centroid="com", bad_pixels="fill", on_nyquist="drop",
                           batch_size=256, header=None, source="<array>", keep_phases=True,
-                          progress=False):
+                          detpa=None, progress=False):
     """Kernel phases of every frame and channel of an IFS cube.
 
     Parameters
@@ -203,6 +203,9 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
         Name of the input, used in messages and provenance.
     keep_phases : bool
         Keep raw Fourier phases and amplitudes in the result.
+    detpa : array-like, optional
+        Detector position angle of each frame (deg; see `kpifs.io.angles`),
+        carried into the result.
     progress : bool
         Show a progress bar over the channels (on a terminal).
 
@@ -226,6 +229,11 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
                          bad_pixels=bad_pixels, on_nyquist=on_nyquist, source=source)
     km, win, wl = plan.model, plan.window, plan.wavelengths
     nframe, nwave = plan.cube.shape[:2]
+    if detpa is not None:
+        detpa = np.atleast_1d(to_quantity(detpa, u.deg, name="detector position angle").value)
+        if detpa.shape != (nframe,):
+            raise KpifsError(f"{source}: {detpa.size} detector position angle(s) for {nframe} "
+                             f"frame(s)")
     kp = np.empty((nframe, nwave, km.n_kp))
     phases = np.empty((nframe, nwave, km.n_uv)) if keep_phases else None
     amps = np.empty((nframe, nwave, km.n_uv)) if keep_phases else None
@@ -260,4 +268,4 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
     meta = {"source": str(source), "centroid": centroid if centres is None else "given",
             "n_bad_pixels": n_bad, "bad_pixels": bad_pixels}
     return KernelPhaseData(kp, wl, plan.pixscale, km, window=win, phases=phases,
-                           amplitudes=amps, centres=ctab, header=header, meta=meta)
+                           amplitudes=amps, centres=ctab, header=header, detpa=detpa, meta=meta)

@@ -56,6 +56,32 @@ def _uv_from_pupil(xy, trans, tol):
     return uv[order], red[order], A[order]
 
 
+def _blm_for_uv(xy, trans, uv, tol):
+    """The baseline-mapping matrix of sub-apertures *xy* for given uv points, in their order.
+
+    Each pair ``(j, k)`` whose baseline ``r_j - r_k`` is a uv point adds
+    ``+t_j t_k`` to column j and ``-t_j t_k`` to column k of that row (the
+    pair is turned round when ``r_k - r_j`` is the uv point): any half plane
+    works. Returns ``(A, missing)`` with *missing* the uv points no pair makes.
+    """
+    from scipy.spatial import cKDTree   # deferred: only for files without BLM-MAT
+    n = len(xy)
+    j, k = np.triu_indices(n, 1)
+    b = xy[j] - xy[k]
+    tree = cKDTree(uv)
+    w = trans[j] * trans[k]
+    A = np.zeros((len(uv), n))
+    hit = np.zeros(len(uv), bool)
+    for sign in (1.0, -1.0):
+        dist, idx = tree.query(sign * b, distance_upper_bound=tol)
+        ok = np.isfinite(dist)
+        plus, minus = (j, k) if sign > 0 else (k, j)
+        np.add.at(A, (idx[ok], plus[ok]), w[ok])
+        np.add.at(A, (idx[ok], minus[ok]), -w[ok])
+        hit[idx[ok]] = True
+    return A, np.flatnonzero(~hit)
+
+
 def _kernel_from_tfm(tfm, rtol):
     U, s, _ = np.linalg.svd(tfm, full_matrices=True)
     rank = int(np.sum(s > rtol * s[0])) if s.size else 0
@@ -345,17 +371,69 @@ class KernelModel:
 
     @classmethod
     def from_parts(cls, parts, *, source="<memory>"):
-        """Build the model from the arrays of `kpifs.io.kpfits.read_model_parts`."""
+        """Build the model from the arrays of `kpifs.io.kpfits.read_model_parts`.
+
+        The kernel is kept as stored (rows of any norm: kernel phases, errors
+        and covariances of the same file share its units). Without a BLM-MAT
+        the baseline-mapping matrix is rebuilt from the aperture for the file's
+        own uv points, in their order and half plane; without a grid step
+        (``STEP``) the closest pair of sub-apertures gives it. A kernel that is
+        not orthogonal to ``BLM / RED`` gets a `~kpifs.KpifsWarning`.
+
+        Examples
+        --------
+        >>> import astropy.units as u
+        >>> from kpifs import KernelModel, make_pupil
+        >>> from kpifs.io.kpfits import model_hdulist, read_model_parts
+        >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+        >>> parts = read_model_parts(model_hdulist(km))
+        >>> parts["blm"] = None                        # as in files without BLM-MAT
+        >>> bool(abs(KernelModel.from_parts(parts).blm - km.blm).max() < 1e-12)
+        True
+        """
+        meta = {"source": str(source)}
+        meta_pupil = ({} if parts.get("diameter") is None
+                      else {"diameter_m": float(parts["diameter"])})
         pup = PupilModel(parts["xy"], parts["transmission"], step=parts["step"],
-                         name=parts["name"])
+                         name=parts["name"], meta=meta_pupil)
+        uv = np.asarray(parts["uv"], float)
+        xy = pup.xy.value
+        d = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1))
+        if pup.step is None:      # other tools' files: the grid step is the closest pair
+            pup.step = float(np.min(d[d > 0])) * u.m
+            meta["step_inferred"] = True
         blm = parts["blm"]
         if blm is None:  # rebuild A from the aperture (files of other tools may omit it)
-            blm = cls.from_pupil(pup).blm
-            if blm.shape[0] != len(parts["uv"]):
-                raise KpifsError(f"{source}: no BLM-MAT and the aperture does not reproduce "
-                                 f"the {len(parts['uv'])} uv points")
-        return cls(pup, parts["uv"], parts["redundancy"], blm, parts["kernel"],
-                   rank=parts["rank"], meta={"source": str(source)})
+            blm, missing = _blm_for_uv(xy, pup.transmission, uv, 1e-3 * np.min(d[d > 0]))
+            if missing.size:
+                raise KpifsError(f"{source}: no BLM-MAT and no pair of sub-apertures makes "
+                                 f"{missing.size} of the {len(uv)} uv points (first: "
+                                 f"{uv[missing[0]].round(4).tolist()} m)")
+            meta["blm_rebuilt"] = "from the aperture"
+        elif parts.get("blm_rebuilt"):
+            meta["blm_rebuilt"] = "reference column"
+        km = cls(pup, uv, parts["redundancy"], blm, parts["kernel"], rank=parts["rank"],
+                 meta=meta)
+        resid = km.kernel_residual()
+        if resid > 1e-6:
+            warnings.warn(f"{source}: KER-MAT is not orthogonal to BLM-MAT / RED (relative "
+                          f"residual {resid:.1e}): the kernel and the baseline model disagree "
+                          f"(integer redundancies of a grey model?)", KpifsWarning,
+                          stacklevel=2)
+        return km
+
+    def kernel_residual(self):
+        """``max |K R^-1 A| / (||K|| ||R^-1 A||)``: 0 for a kernel of this model.
+
+        Examples
+        --------
+        >>> from kpifs import KernelModel, make_pupil
+        >>> KernelModel.from_pupil(make_pupil("subaru")).kernel_residual() < 1e-12
+        True
+        """
+        tfm = self.tfm
+        scale = np.linalg.norm(self.kernel, 2) * np.linalg.norm(tfm, 2)
+        return float(np.abs(self.kernel @ tfm).max() / scale) if scale > 0 else 0.0
 
     _io_format = "kpfits-model"
     read, write = io_methods("KernelModel")

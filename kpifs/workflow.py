@@ -34,12 +34,14 @@ from .detect.pipeline import default_grid, detect
 from .detect.stats import TESTS, check_probability
 from .exceptions import KpifsError
 from .extract import extract_kernel_phases
+from .io.angles import frame_detpa, parse_angles
 from .io.readers import read_cube
 from .io.wavelengths import parse_wavelengths
 from .kernel import load_kernel_model
 from .window import ExtractionWindow
 
 __all__ = ["ExtractOptions", "DetectOptions", "DEFAULT_PUPIL", "kernel_model_for",
+           "calibrator_options",
            "extract_observation", "calibrate_observation", "detect_observation",
            "process_observation", "parse_spectrum", "options_record", "inputs_digest",
            "products_digest", "observation_digest"]
@@ -55,7 +57,10 @@ class ExtractOptions:
     """How cubes are read, which kernel model is used and how phases are extracted.
 
     Every field has the command line's default; strings with units are
-    accepted wherever a Quantity is (``step="0.38m"``).
+    accepted wherever a Quantity is (``step="0.38m"``). ``pa`` overrides the
+    detector position angles of the cubes read (deg: one value, one per
+    frame, or a text/FITS file; see `kpifs.io.parse_angles`); calibrators are
+    read without it (`calibrator_options`).
 
     Examples
     --------
@@ -69,6 +74,7 @@ class ExtractOptions:
     instrument: str = "auto"
     wavelengths: object = None
     pixscale: object = None
+    pa: object = None
     # pupil and kernel model (pupil None: the instrument's telescope)
     pupil: object = None
     pupil_scale: object = None
@@ -132,6 +138,21 @@ class DetectOptions:
         check_probability(self.pd, "P_D")
         check_draws(self.draws)
         return self
+
+
+def calibrator_options(options):
+    """The options for a calibrator's cubes: *options* without the ``pa`` override.
+
+    The override gives the angles of the target's frames; a calibrator keeps
+    the angles of its own headers.
+
+    Examples
+    --------
+    >>> from kpifs.workflow import ExtractOptions, calibrator_options
+    >>> calibrator_options(ExtractOptions(pa="10,20")).pa is None
+    True
+    """
+    return dataclasses.replace(options, pa=None)
 
 
 def options_record(options):
@@ -275,6 +296,7 @@ def extract_observation(files, options=None, *, model=None, progress=False):
     """
     options = options or ExtractOptions()
     files = [str(files)] if isinstance(files, (str, Path)) else [str(f) for f in files]
+    pa = parse_angles(options.pa, source="--pa")
     with read_cube(files, instrument=options.instrument,
                    wavelengths=parse_wavelengths(options.wavelengths,
                                                  source="--wavelengths"),
@@ -286,16 +308,38 @@ def extract_observation(files, options=None, *, model=None, progress=False):
         except KpifsError as exc:
             raise KpifsError(f"{cube.name}: {exc}") from None
         mask = cube.mask if options.mask is None else options.mask
+        detpa, pa_source = _detpa(cube, pa)
         kpd = extract_kernel_phases(
             cube.data, km, wavelengths=cube.wavelengths, pixscale=cube.pixscale,
             window=window, mask=mask, centroid=options.centroid,
             bad_pixels=options.bad_pixels, on_nyquist=options.on_nyquist,
-            header=cube.header, source=cube.name, progress=progress)
+            header=cube.header, source=cube.name, detpa=detpa, progress=progress)
     kpd.meta["instrument"] = cube.instrument
+    kpd.meta["detpa_source"] = pa_source
     kpd.header["KPXOPTS"] = (json.dumps(options_record(options), sort_keys=True),
                              "kpifs extraction options")
     kpd.header["KPINHASH"] = (inputs_digest(files), "digest of the input files")
     return kpd
+
+
+def _detpa(cube, override):
+    """The detector position angle of each frame of *cube* (deg) and where it came from."""
+    if override is not None:
+        return frame_detpa(override, cube.shape[0], source=f"{cube.name}: --pa"), "--pa"
+    if cube.detpa is None:
+        log.warning("%s: no detector position angle: sky orientation unknown (give --pa)",
+                    cube.name)
+        return np.full(cube.shape[0], np.nan), "unknown"
+    detpa = cube.detpa.to_value(u.deg)
+    n_nan = int(np.isnan(detpa).sum())
+    if n_nan:
+        log.warning("%s: detector position angle unknown for %d of %d frame(s) (%s): sky "
+                    "orientation unknown there (give --pa)", cube.name, n_nan, len(detpa),
+                    cube.detpa_source)
+    elif str(cube.detpa_source).startswith("none"):
+        log.info("%s: no detector position angle in the file: 0 deg assumed (North up, East "
+                 "left; give --pa)", cube.name)
+    return detpa, cube.detpa_source
 
 
 def calibrate_observation(target, calibrators=(), options=None):
@@ -458,8 +502,8 @@ def process_observation(target, calibrators, outdir, *, extract_options=None,
     for p in list(paths.values()) + star_paths:   # refuse before any work
         check_output_path(p, overwrite=overwrite)
     tkp = extract_observation(target, xo, progress=progress)
-    ckps = [extract_observation(files, xo, model=tkp.kernel_model, progress=progress)
-            for files in calibrators]
+    ckps = [extract_observation(files, calibrator_options(xo), model=tkp.kernel_model,
+                                progress=progress) for files in calibrators]
     for kpd, files, p in zip([tkp] + ckps, [target] + calibrators, star_paths):
         kpd.write(p, overwrite=overwrite, inputs=files)
     cal = calibrate_observation(tkp, ckps, xo)

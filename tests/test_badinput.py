@@ -7,9 +7,12 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
+from kpifs import KernelPhaseData
 from kpifs.cli import main
 from kpifs.io.layouts import write_observation
 from kpifs.simulate import simulate_scene
+
+from kpfits_layouts import parts_of, write_jwstkpi, write_pykernel
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +115,30 @@ def corpus(tmp_path_factory):
                                f"badcal,{f['target']},{f['truncated']}\n")
     f["one"] = d / "one.csv"
     f["unwritable"] = _unwritable(d)
+    f.update(_other_tools_files(d, f["target_kp"]))
     return f
+
+
+def _other_tools_files(d, target_kp):
+    """KPFITS files as other tools write them (from kpifs's own 4-frame extraction)."""
+    kpd = KernelPhaseData.read(target_kp)
+    p = parts_of(kpd)
+    one = dict(p, kp=kpd.kp[:, :1], wavelengths=p["wavelengths"][:1])
+    cov = 1e-4 * np.eye(kpd.n_kp)
+    out = {"jwst_uncal": write_jwstkpi(d / "jwst_uncal.fits", p, detpa=10.0, cov=cov),
+           "pyk_tel": write_pykernel(d / "pyk_tel.fits", one, detpa=5.0, cov=cov, tel_rows=3)}
+    good = write_pykernel(d / "pyk_good.fits", one, detpa=5.0, cov=cov)
+    for name, edit in (("pyk_blm", lambda h: h.__setitem__(
+            "BLM-MAT", fits.ImageHDU(h["BLM-MAT"].data[:, 2:], name="BLM-MAT"))),
+                       ("pyk_nouv", lambda h: h.pop(h.index_of("UV-PLANE"))),
+                       ("pyk_nowl", lambda h: [h[0].header.remove(k) for k in
+                                               ("CWAVE", "CENWAVE")])):
+        with fits.open(good) as h:
+            hl = fits.HDUList([x.copy() for x in h])
+        edit(hl)
+        out[name] = d / f"{name}.fits"
+        hl.writeto(out[name])
+    return out
 
 
 def _unwritable(base):
@@ -229,6 +255,26 @@ CASES = [
     ("detect: unwritable output", lambda f: ["detect", f["calibrated"], "-o",
                                              _in(f, "unwritable", "det.fits")], 2,
      "cannot write in"),
+    # kernel-phase files of other tools
+    ("detect: jwst-kpi file, CALFLAG 'False'", lambda f: ["detect", f["jwst_uncal"]], 2,
+     "jwst_uncal.fits: not calibrated"),
+    ("detect: TEL table of other length", lambda f: ["detect", f["pyk_tel"]], 2,
+     "pyk_tel.fits: 3 detector position angles (TEL table) for 4 frames of KP-DATA"),
+    ("info: TEL table of other length", lambda f: ["info", f["pyk_tel"]], 2,
+     "pyk_tel.fits: 3 detector position angles (TEL table)"),
+    ("detect: BLM-MAT columns", lambda f: ["detect", f["pyk_blm"]], 2,
+     "pyk_blm.fits: BLM-MAT has"),
+    ("detect: no UV-PLANE", lambda f: ["detect", f["pyk_nouv"]], 2,
+     "pyk_nouv.fits: not a kernel model: no UV-PLANE extension"),
+    ("info: no wavelength", lambda f: ["info", f["pyk_nowl"]], 2,
+     "pyk_nowl.fits: no wavelength: neither a CWAVEL extension nor"),
+    ("extract: --pa count", lambda f: ["extract", f["target"], "--pa", "1,2"], 2,
+     "target.fits: --pa: 2 detector position angles for 4 frame(s)"),
+    ("extract: --pa file missing", lambda f: ["extract", f["target"], "--pa",
+                                              f["adir"].parent / "pa.txt"], 2,
+     "pa.txt not found"),
+    ("extract: --pa not an angle", lambda f: ["extract", f["target"], "--pa", "north"], 2,
+     "cannot read --pa 'north'"),
     # info
     ("info: no wavelengths", lambda f: ["info", f["nowl_cube"]], 0,
      "incomplete: no wavelengths"),

@@ -8,6 +8,7 @@ def extract_options(args):
     """`~kpifs.workflow.ExtractOptions` from the options the command has (the rest default)."""
     get = {k: getattr(args, a) for k, a in (
         ("instrument", "instrument"), ("wavelengths", "wavelengths"), ("pixscale", "pixscale"),
+        ("pa", "pa"),
         ("pupil", "pupil"), ("pupil_scale", "pupil_scale"), ("step", "step"),
         ("offset", "offset"), ("min_transmission", "min_transmission"), ("grey", "grey"),
         ("hexagonal", "hexagonal"), ("window_size", "window_size"),

@@ -23,6 +23,7 @@ EPILOG_EXTRACT = """examples:
   kpifs extract target/CRSA*_cube.fits --calibrator calib/CRSA*_cube.fits -o cal_kp.fits
   kpifs extract science_cube.fits --instrument sphere --wavelengths wavelength.fits \\
       --calibrator ref_cube.fits -o cal_kp.fits
+  kpifs extract cube.fits --pa 12.5,13.0,13.6 -o kp.fits
 """
 EPILOG_DETECT = """examples:
   kpifs detect cal_kp.fits -o detection.fits --plots figures
@@ -156,6 +157,11 @@ def build_parser():
                    help="cube(s) of a calibrator star; repeat the option for several "
                         "calibrators (their mean is subtracted)")
     _cube_options(p)
+    p.add_argument("--pa", metavar="DEG|LIST|FILE",
+                   help="detector position angle of the target's frames (deg, East of North "
+                        "of the detector +y axis): one value, a comma list with one per "
+                        "frame, or a text/FITS file; replaces the instrument's (CHARIS "
+                        "PARANG+113, SPHERE angle file+33.76, generic DETPA or 0)")
     _pupil_options(p)
     _extraction_options(p)
     _output(p, "output KPFITS file")

@@ -1,6 +1,6 @@
 """``kpifs extract``: kernel phases of cubes, calibrated when calibrators are given."""
 from .._utils import check_output_path
-from ..workflow import calibrate_observation, extract_observation
+from ..workflow import calibrate_observation, calibrator_options, extract_observation
 from ._options import extract_options
 
 
@@ -10,8 +10,8 @@ def run(args):
     progress = not args.quiet
     kpd = extract_observation(args.cubes, opts, progress=progress)
     cal_files = args.calibrator or []
-    cals = [extract_observation(files, opts, model=kpd.kernel_model, progress=progress)
-            for files in cal_files]
+    cals = [extract_observation(files, calibrator_options(opts), model=kpd.kernel_model,
+                                progress=progress) for files in cal_files]
     kpd = calibrate_observation(kpd, cals, opts)
     kpd.write(args.output, overwrite=args.overwrite,
               inputs=list(args.cubes) + [f for files in cal_files for f in files])

@@ -49,16 +49,38 @@ def _detection(path):
 def _kpfits(path):
     kpd = KernelPhaseData.read(path)
     wl = kpd.wavelengths.to_value(u.um)
-    print(f"{path}: kernel-phase data (KPFITS)")
+    meta = kpd.meta
+    who = {"kpifs": "kpifs", "jwst-kpi": "jwst-kpi", "xara": "xara", "xara-legacy":
+           "xara (legacy)", "pykernel": "PyKernel/pynrm"}.get(meta.get("layout"), "unknown")
+    print(f"{path}: kernel-phase data (KPFITS, written by {who})")
+    if meta.get("instrument") or meta.get("telescope"):
+        print(f"  {meta.get('instrument') or '?'} on {meta.get('telescope') or '?'}")
     print(f"  {kpd.n_frame} frame(s) x {kpd.n_wave} channel(s) x {kpd.n_kp} kernel phases; "
           f"{wl.min():.4f}-{wl.max():.4f} um; {kpd.pixscale:.2f}")
     print(f"  model: {kpd.kernel_model!r}")
-    cals = ", ".join(kpd.meta.get("calibrators", []))
-    print(f"  calibrated: {'yes, with ' + cals if kpd.meta.get('calibrated') else 'no'}")
+    cals = ", ".join(meta.get("calibrators", []))
+    print(f"  calibrated: {'yes, with ' + cals if meta.get('calibrated') else 'no'}")
     cov = "per channel" if kpd.covariance is not None else "none"
     if kpd.joint_covariance is not None:
         cov += " and joint"
+    if meta.get("covariance_source") and meta.get("layout") != "kpifs":
+        cov += f" (from {meta['covariance_source']})"
+    if kpd.kp_err is not None:
+        cov += "; per-frame errors"
     print(f"  covariance: {cov}")
+    if kpd.detpa is None:
+        print("  detector position angle: unknown")
+    else:
+        pa = kpd.detpa
+        known = pa[np.isfinite(pa)]
+        text = "unknown" if known.size == 0 else (
+            f"{known[0]:.2f} deg" if np.ptp(known) == 0 else
+            f"{known.min():.2f} to {known.max():.2f} deg")
+        if 0 < known.size < pa.size:
+            text += f" ({pa.size - known.size} frame(s) unknown)"
+        print(f"  detector position angle: {text} ({meta.get('detpa_source') or 'file'})")
+    for note in meta.get("notes", []):
+        print(f"  note: {note}")
 
 
 def _raw(path, why):
@@ -91,6 +113,11 @@ def _cube(path, args):
         if cube.angles is not None and np.any(np.isfinite(cube.angles.value)):
             print(f"  frame angles: {np.nanmin(cube.angles.value):.2f}-"
                   f"{np.nanmax(cube.angles.value):.2f} deg")
+        if cube.detpa is not None:
+            pa = cube.detpa.to_value(u.deg)
+            text = ("unknown" if not np.any(np.isfinite(pa)) else
+                    f"{np.nanmin(pa):.2f}-{np.nanmax(pa):.2f} deg")
+            print(f"  detector position angle: {text} ({cube.detpa_source})")
         for key in ("OBJECT", "TELESCOP", "EXPTIME", "KPSIMX", "KPSIMY"):
             if key in cube.header:
                 print(f"  {key}: {cube.header[key]}")

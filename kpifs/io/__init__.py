@@ -7,6 +7,7 @@ connect the KPFITS and detection-product layouts to astropy's I/O registry.
 """
 from .cube import IFSCube, read_generic  # noqa: F401
 from .wavelengths import check_wavelengths, parse_wavelengths, read_wavelength_file  # noqa
+from .angles import parse_angles  # noqa: F401
 from .charis import read_charis  # noqa: F401
 from .sphere import read_sphere  # noqa: F401
 from .readers import read_cube, detect_instrument  # noqa: F401
@@ -15,4 +16,4 @@ from .layouts import write_observation  # noqa: F401
 
 __all__ = ["IFSCube", "read_cube", "detect_instrument", "read_charis", "read_sphere",
            "read_generic", "parse_wavelengths", "check_wavelengths", "read_wavelength_file",
-           "write_kpfits", "write_observation"]
+           "parse_angles", "write_kpfits", "write_observation"]

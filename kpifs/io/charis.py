@@ -6,6 +6,13 @@ cube ``(nlam, 201, 201)``, HDU 2 its inverse variance. Spaxels with
 and stay 0 (they add nothing to the Fourier sums). Wavelengths (nm) are
 ``LAM_MIN * exp(i * DLOGLAM)``, checked against ``NLAM``, the cube length and
 ``LAM_MAX``.
+
+Sky orientation: each file's ``PARANG`` (deg, or the string 'unavailable')
+gives that frame's detector position angle ``DETPA = PARANG +
+CHARIS_DETPA_OFFSET``. The CHARIS pipeline's WCS (charis-dep
+``addWCS``: ``TOT_ROT = -(PARANG + 113)``, x scale negative) puts the position
+angle of the detector +y axis there; pyKLIP uses 113.5 deg. An unavailable
+``PARANG`` gives NaN (unknown).
 """
 import logging
 
@@ -17,23 +24,48 @@ from ..exceptions import KpifsError
 from .cube import FrameStack, IFSCube, open_fits
 from .wavelengths import check_wavelengths, parse_wavelengths
 
-__all__ = ["read_charis", "is_charis", "charis_wavelengths", "CHARIS_PIXSCALE"]
+__all__ = ["read_charis", "is_charis", "charis_wavelengths", "CHARIS_PIXSCALE",
+           "CHARIS_DETPA_OFFSET"]
 
 log = logging.getLogger(__name__)
 
 #: Default CHARIS lenslet scale (published values 16.15-16.4 mas).
 CHARIS_PIXSCALE = 16.2 * u.mas
 
+#: Detector position angle minus ``PARANG`` (deg): the rotation of the CHARIS
+#: pipeline's WCS (charis-dep; pyKLIP uses 113.5 deg).
+CHARIS_DETPA_OFFSET = 113.0
+
 
 def is_charis(hdul):
-    """True for a CHARIS pipeline cube (wavelength keys and a cube in HDU 1)."""
+    """True for a CHARIS pipeline cube (wavelength keys and a cube in HDU 1).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from astropy.io import fits
+    >>> from kpifs.io.charis import is_charis
+    >>> hdul = fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(np.zeros((22, 8, 8)))])
+    >>> hdul[0].header.update(LAM_MIN=1159.56, DLOGLAM=0.0344, NLAM=22)
+    >>> is_charis(hdul)
+    True
+    """
     hdr = hdul[0].header
     has_keys = all(k in hdr for k in ("LAM_MIN", "DLOGLAM", "NLAM"))
     return has_keys and len(hdul) > 1 and hdul[1].data is not None and hdul[1].data.ndim == 3
 
 
 def charis_wavelengths(header, nlam_cube, *, source="CHARIS cube"):
-    """Channel wavelengths from a CHARIS header, checked for consistency."""
+    """Channel wavelengths from a CHARIS header, checked for consistency.
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.charis import charis_wavelengths
+    >>> hdr = fits.Header({"LAM_MIN": 1159.56, "DLOGLAM": 0.0344, "NLAM": 3})
+    >>> charis_wavelengths(hdr, 3).round(4)
+    <Quantity [1.1596, 1.2001, 1.2421] um>
+    """
     missing = [k for k in ("LAM_MIN", "DLOGLAM", "NLAM") if k not in header]
     if missing:
         raise KpifsError(f"{source}: missing wavelength keyword(s) "
@@ -73,6 +105,9 @@ def read_charis(paths, *, wavelengths=None, pixscale=None):
     pixscale : `~astropy.units.Quantity`, optional
         Lenslet scale; default `CHARIS_PIXSCALE` (16.2 mas).
 
+    The cube's ``angles`` are the files' ``PARANG`` and its ``detpa``
+    ``PARANG + CHARIS_DETPA_OFFSET`` (NaN where ``PARANG`` is 'unavailable').
+
     Examples
     --------
     >>> import tempfile
@@ -85,6 +120,8 @@ def read_charis(paths, *, wavelengths=None, pixscale=None):
     >>> cube = read_charis(files["target"])
     >>> cube.shape, cube.instrument
     ((2, 22, 64, 64), 'charis')
+    >>> cube.detpa                                  # PARANG 0 in the simulated files
+    <Quantity [113., 113.] deg>
     >>> cube.close()
     """
     if isinstance(paths, (str, bytes)) or not hasattr(paths, "__iter__"):
@@ -129,15 +166,18 @@ def read_charis(paths, *, wavelengths=None, pixscale=None):
                 angles.append(float(par))
             except (TypeError, ValueError):
                 angles.append(np.nan)
+        angles = np.array(angles)
         cube = IFSCube(data=FrameStack(data, bad), wavelengths=wl, pixscale=ps, header=header,
-                       angles=np.array(angles) * u.deg, instrument="charis", source=paths,
-                       _files=files)
+                       angles=angles * u.deg, detpa=(angles + CHARIS_DETPA_OFFSET) * u.deg,
+                       detpa_source=f"PARANG + {CHARIS_DETPA_OFFSET:g} deg",
+                       instrument="charis", source=paths, _files=files)
     except BaseException:
         for f in files:
             f.close()
         raise
-    if np.all(np.isnan(angles)):
-        log.info("PARANG unavailable in the CHARIS headers")
+    if np.any(np.isnan(angles)):
+        log.info("PARANG unavailable in %d of %d CHARIS file(s): detector position angle "
+                 "unknown (NaN) for those frames", int(np.isnan(angles).sum()), len(angles))
     log.info("read %d CHARIS exposure(s): %d channels %.4f-%.4f um", len(paths), len(wl),
              wl[0].value, wl[-1].value)
     return cube

@@ -10,6 +10,7 @@ from astropy.io import fits
 
 from .._utils import to_quantity
 from ..exceptions import KpifsError, MissingInformation
+from .angles import header_detpa
 from .wavelengths import check_wavelengths, parse_wavelengths
 
 __all__ = ["IFSCube", "read_generic", "FrameStack", "open_fits"]
@@ -32,7 +33,13 @@ class IFSCube:
     mask : ndarray of bool or None
         True for bad pixels, broadcastable to *data*.
     angles : `~astropy.units.Quantity` or None
-        Per-frame parallactic angles.
+        Per-frame angles as the instrument records them (CHARIS ``PARANG``,
+        the SPHERE angle file).
+    detpa : `~astropy.units.Quantity` or None
+        Per-frame detector position angles: the position angle, East of North,
+        of the detector +y axis (NaN where unknown); see `kpifs.io.angles`.
+    detpa_source : str or None
+        Where *detpa* came from (for messages and the products).
     instrument : str
     source : list of str
         Input file names.
@@ -52,6 +59,8 @@ class IFSCube:
     header: fits.Header = field(default_factory=fits.Header)
     mask: np.ndarray = None
     angles: u.Quantity = None
+    detpa: u.Quantity = None
+    detpa_source: str = None
     instrument: str = "generic"
     source: list = field(default_factory=list)
     _files: list = field(default_factory=list, repr=False)
@@ -63,6 +72,12 @@ class IFSCube:
         if not np.isfinite(ps.value) or ps.value <= 0:
             raise KpifsError(f"{self.name}: pixel scale must be > 0, got {ps}")
         self.pixscale = ps
+        if self.detpa is not None:
+            pa = np.atleast_1d(to_quantity(self.detpa, u.deg, name="detector position angle"))
+            if pa.shape != (self.data.shape[0],):
+                raise KpifsError(f"{self.name}: {pa.size} detector position angle(s) for "
+                                 f"{self.data.shape[0]} frame(s)")
+            self.detpa = pa
 
     def close(self):
         """Close the memory-mapped files behind `data`."""
@@ -214,7 +229,10 @@ def read_generic(path, *, wavelengths=None, pixscale=None):
 
     Wavelengths come from *wavelengths* or the header cards ``KPWL1 ... KPWLn``
     (um, as kpifs's simulator writes them); the pixel scale from *pixscale* or
-    ``PIXSCALE`` (mas). The data stay memory-mapped.
+    ``PIXSCALE`` (mas). The detector position angles come from a ``DETPA``
+    image extension (one value per frame) or a ``DETPA`` card (deg); without
+    either they are taken to be 0 (North up, East left) and
+    ``cube.detpa_source`` says so. The data stay memory-mapped.
 
     Examples
     --------
@@ -268,5 +286,10 @@ def _generic_from_hdul(hdul, path, wavelengths, pixscale):
     if ps is None:
         raise MissingInformation(f"{path}: no pixel scale: give one (--pixscale 10.42mas)")
     ps = to_quantity(ps, u.mas, name="pixel scale")
+    detpa, where = header_detpa(hdul, data.shape[0], source=str(path))
+    if detpa is None:
+        log.info("%s: no detector position angle (DETPA extension or card): 0 deg assumed "
+                 "(North up); give --pa", path)
+        detpa, where = np.zeros(data.shape[0]), "none (0 assumed)"
     return IFSCube(data=data, wavelengths=wl, pixscale=ps, header=hdr, instrument="generic",
-                   source=[str(path)])
+                   source=[str(path)], detpa=detpa * u.deg, detpa_source=where)

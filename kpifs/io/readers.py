@@ -123,9 +123,13 @@ def _concatenate(cubes):
             raise KpifsError(f"{c.name}: pixel scale {c.pixscale} differs from {first.pixscale}")
     stack = FrameStack([c.data for c in cubes])
     files = [f for c in cubes for f in c._files]
-    angles = None
+    angles = detpa = None
     if all(c.angles is not None for c in cubes):
         angles = np.concatenate([c.angles.to_value(u.deg) for c in cubes]) * u.deg
+    if all(c.detpa is not None for c in cubes):
+        detpa = np.concatenate([c.detpa.to_value(u.deg) for c in cubes]) * u.deg
+    sources = list(dict.fromkeys(c.detpa_source for c in cubes))
     return IFSCube(data=stack, wavelengths=first.wavelengths, pixscale=first.pixscale,
-                   header=first.header, angles=angles, instrument=first.instrument,
+                   header=first.header, angles=angles, detpa=detpa,
+                   detpa_source="; ".join(str(s) for s in sources), instrument=first.instrument,
                    source=[s for c in cubes for s in c.source], _files=files)

@@ -5,6 +5,17 @@ with the wavelengths in a separate file (nm) and frame angles in another.
 SPHERE Data Center products (``HIERARCH ESO PRO REC1 ID = 'sph_ifs_science_dr'``)
 have the same layout but wavelengths in um and angles of the opposite sign.
 The cube is kept memory-mapped and viewed as ``(nframe, nwave, ny, nx)``.
+
+Sky orientation (uncertain; check on a known binary): the detector position
+angle of a frame is taken as ``DETPA = angle + SPHERE_DETPA_OFFSET`` with the
+frame angle from the angle file. vlt-sphere's ``compute_angles`` (after Maire
+et al. 2016) gives the on-sky angle of its IFS cubes as ``PARANG +
+SPHERE_PUPIL_OFFSET + SPHERE_IFS_OFFSET + SPHERE_TRUE_NORTH`` = PARANG + 33.76
+deg in pupil-tracking mode, which is what the offset assumes: an angle file of
+parallactic angles. Whether a given angle file holds parallactic or
+derotation angles, and their sign in Data Center products (inverted here, as
+before), is not established; when the file already holds detector position
+angles, give it to ``--pa`` instead (no offset is added to ``--pa``).
 """
 import logging
 from pathlib import Path
@@ -18,12 +29,23 @@ from ..exceptions import KpifsError, MissingInformation
 from .cube import IFSCube, open_fits
 from .wavelengths import parse_wavelengths, read_wavelength_file
 
-__all__ = ["read_sphere", "is_sphere", "SPHERE_PIXSCALE"]
+__all__ = ["read_sphere", "is_sphere", "SPHERE_PIXSCALE", "SPHERE_DETPA_OFFSET",
+           "SPHERE_PUPIL_OFFSET", "SPHERE_IFS_OFFSET", "SPHERE_TRUE_NORTH"]
 
 log = logging.getLogger(__name__)
 
 #: SPHERE-IFS spaxel scale.
 SPHERE_PIXSCALE = 7.46 * u.mas
+
+#: Pupil offset in pupil-tracking ('ELEV') mode (deg, +135.99 +- 0.11; Maire et al. 2016).
+SPHERE_PUPIL_OFFSET = 135.99
+#: IFS instrument offset (deg, -100.48 +- 0.10).
+SPHERE_IFS_OFFSET = -100.48
+#: True-north correction (deg, -1.75 +- 0.08).
+SPHERE_TRUE_NORTH = -1.75
+#: Detector position angle minus the angle file's value (deg). Uncertain: see the
+#: module docstring.
+SPHERE_DETPA_OFFSET = SPHERE_PUPIL_OFFSET + SPHERE_IFS_OFFSET + SPHERE_TRUE_NORTH
 
 _WAVE_NAMES = ("wavelength.fits", "wavelengths.fits", "lambda.fits")
 
@@ -33,7 +55,17 @@ def _is_dc(header):
 
 
 def is_sphere(hdul):
-    """True when the header says SPHERE-IFS (or the SPHERE Data Center)."""
+    """True when the header says SPHERE-IFS (or the SPHERE Data Center).
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.sphere import is_sphere
+    >>> hdul = fits.HDUList([fits.PrimaryHDU()])
+    >>> hdul[0].header["HIERARCH ESO SEQ ARM"] = "IFS"
+    >>> is_sphere(hdul)
+    True
+    """
     hdr = hdul[0].header
     return (_is_dc(hdr) or str(hdr.get("INSTRUME", "")).strip().upper() == "SPHERE"
             or str(hdr.get("HIERARCH ESO SEQ ARM", "")).strip().upper() == "IFS")
@@ -75,7 +107,9 @@ def read_sphere(path, *, wavelengths=None, pixscale=None, angles=None):
     angles : str or array, optional
         Frame angles (deg), or a FITS file of them; default
         ``parallactic_angles.fits`` beside the cube when present. Data Center
-        angles are sign-inverted to the community convention.
+        angles are sign-inverted to the community convention. The detector
+        position angles are ``angles + SPHERE_DETPA_OFFSET`` (NaN without an
+        angle file).
 
     Examples
     --------
@@ -109,8 +143,15 @@ def read_sphere(path, *, wavelengths=None, pixscale=None, angles=None):
         ps = to_quantity(pixscale if pixscale is not None else SPHERE_PIXSCALE, u.mas,
                          name="pixel scale")
         ang = _angles(path, angles, view.shape[0], _is_dc(hdr))
+        if ang is None:
+            log.info("%s: no angle file: detector position angles unknown", path)
+            detpa, where = np.full(view.shape[0], np.nan) * u.deg, "none (unknown)"
+        else:
+            detpa = ang + SPHERE_DETPA_OFFSET * u.deg
+            where = f"angle file + {SPHERE_DETPA_OFFSET:.2f} deg"
         cube = IFSCube(data=view, wavelengths=wl, pixscale=ps, header=hdr, angles=ang,
-                       instrument="sphere", source=[str(path)], _files=[hdul])
+                       detpa=detpa, detpa_source=where, instrument="sphere",
+                       source=[str(path)], _files=[hdul])
     except BaseException:
         hdul.close()
         raise

@@ -1,0 +1,135 @@
+"""Detector position angles: the one rule for angle arguments, and the generic sources.
+
+The detector position angle (DETPA) of a frame is the position angle, East of
+North, of the detector's +y axis (image rows increasing); the detector is not
+mirrored. At DETPA = 0 North is up and East is left. A sky offset
+(dRA East-positive, dDec) lands at image offsets
+
+    x = -dRA cos(DETPA) + dDec sin(DETPA),   y = dRA sin(DETPA) + dDec cos(DETPA)
+
+(the convention of fouriever and of the producers of KPFITS files; see
+``docs/user/reading.rst``). Each instrument reader says where its angles come
+from (CHARIS: ``PARANG`` + 113 deg; SPHERE-IFS: the angle file plus an offset);
+`parse_angles` reads the ``--pa`` override and `header_detpa` the angles of a
+generic cube.
+"""
+from pathlib import Path
+
+import numpy as np
+from astropy import units as u
+from astropy.io import fits
+
+from .._utils import to_quantity
+from ..exceptions import KpifsError
+
+__all__ = ["parse_angles", "header_detpa", "frame_detpa"]
+
+
+def parse_angles(value, *, source="--pa"):
+    """Angles (deg, a 1-D float array) from a value, a list or a file (None stays None).
+
+    Parameters
+    ----------
+    value : float, str, sequence, Quantity or path
+        ``30``, ``"30deg"``, ``"10,11.5,13"`` (deg unless a unit is given), a
+        sequence or Quantity, or a text file (one value per line) or FITS file
+        (its first data array) of angles in degrees.
+    source : str
+        Name used in messages.
+
+    Examples
+    --------
+    >>> from kpifs.io import parse_angles
+    >>> parse_angles("10,11.5,13")
+    array([10. , 11.5, 13. ])
+    >>> parse_angles("0.5rad").round(3)
+    array([28.648])
+    """
+    if value is None:
+        return None
+    path = None
+    if isinstance(value, Path):
+        path = value
+    elif isinstance(value, str):
+        text = value.strip()
+        if not text:
+            raise KpifsError(f"{source}: empty list of angles")
+        try:
+            is_file = Path(text).is_file()
+        except OSError:
+            is_file = False
+        if is_file:
+            path = Path(text)
+        elif text.lower().endswith((".fits", ".fit", ".txt", ".dat", ".csv")) or "/" in text:
+            raise KpifsError(f"{source}: angle file {text} not found")
+    if path is not None:
+        try:
+            if path.suffix.lower() in (".fits", ".fit", ".fts") or \
+                    path.name.lower().endswith(".fits.gz"):
+                with fits.open(path) as hdul:
+                    hdu = next((h for h in hdul if h.data is not None), None)
+                    if hdu is None:
+                        raise KpifsError(f"{path}: no data in the angle file")
+                    values = np.array(hdu.data, float).ravel()
+            else:
+                values = np.loadtxt(path, ndmin=2, comments="#")[:, 0]
+        except (OSError, ValueError, TypeError, IndexError) as exc:
+            raise KpifsError(f"{path}: cannot read angles: {exc}") from None
+        source = str(path)
+    else:
+        values = np.atleast_1d(to_quantity(value, u.deg, name=source).to_value(u.deg))
+    values = np.asarray(values, float).ravel()
+    if values.size == 0:
+        raise KpifsError(f"{source}: no angles")
+    if not np.all(np.isfinite(values)):
+        raise KpifsError(f"{source}: angles must be finite numbers (deg)")
+    return values
+
+
+def header_detpa(hdul, nframe, *, source="<file>"):
+    """Detector position angles of a generic cube: a ``DETPA`` extension or card, or None.
+
+    A ``DETPA`` image extension holds one value per frame (or one for all);
+    a ``DETPA`` card in the primary header applies to every frame. Returns
+    ``(angles, where)`` with *angles* of shape (nframe,), or ``(None, None)``.
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.angles import header_detpa
+    >>> hdul = fits.HDUList([fits.PrimaryHDU()])
+    >>> hdul[0].header["DETPA"] = 12.5
+    >>> header_detpa(hdul, 2)
+    (array([12.5, 12.5]), 'DETPA card')
+    """
+    values, where = None, None
+    if "DETPA" in hdul and hdul["DETPA"].is_image and hdul["DETPA"].data is not None:
+        values, where = np.ravel(np.asarray(hdul["DETPA"].data, float)), "DETPA extension"
+    elif "DETPA" in hdul[0].header:
+        try:
+            values = np.atleast_1d(float(hdul[0].header["DETPA"]))
+        except (TypeError, ValueError):
+            raise KpifsError(f"{source}: DETPA card {hdul[0].header['DETPA']!r} is not a "
+                             f"number (deg)") from None
+        where = "DETPA card"
+    if values is None:
+        return None, None
+    return frame_detpa(values, nframe, source=f"{source}: {where}"), where
+
+
+def frame_detpa(values, nframe, *, source="--pa"):
+    """One detector position angle per frame: *values* of length 1 (broadcast) or nframe.
+
+    Examples
+    --------
+    >>> from kpifs.io.angles import frame_detpa
+    >>> frame_detpa([30.0], 3)
+    array([30., 30., 30.])
+    """
+    values = np.ravel(np.asarray(values, float))
+    if values.size == 1:
+        return np.full(nframe, values[0])
+    if values.size != nframe:
+        raise KpifsError(f"{source}: {values.size} detector position angles for {nframe} "
+                         f"frame(s) (give one value, or one per frame)")
+    return values.copy()
