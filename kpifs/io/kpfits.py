@@ -5,7 +5,8 @@ Primary header ``CONTENT = 'KPFITS1'`` with ``PSCALE`` (mas), ``DIAM`` (m),
 APERTURE, UV-PLANE, KER-MAT, BLM-MAT (the model), KP-DATA
 ``(nframe, nwave, nkp)`` in rad, optional KP-SIGM and KP-COV, CWAVEL (table of
 wavelengths and bandwidths in m), DETPA (deg), and optional CVIS-DATA
-``(2, nframe, nwave, nuv)`` holding the raw Fourier phases and amplitudes.
+``(2, nframe, nwave, nuv)`` holding the raw Fourier phases and amplitudes
+(float32).
 
 This module knows the layout, not the science: it turns objects into HDUs
 (reading only the attributes it writes) and files into plain arrays and
@@ -245,7 +246,10 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
     detpa = kpd.detpa if kpd.detpa is not None else np.zeros(kpd.n_frame)
     hdus.append(fits.ImageHDU(np.asarray(detpa, float), name="DETPA"))
     if kpd.phases is not None:
-        hdus.append(fits.ImageHDU(np.stack([kpd.phases, kpd.amplitudes]), name="CVIS-DATA"))
+        # diagnostics, stored in float32 (1e-7 rad resolution): half the file and the time
+        cv = np.empty((2,) + np.shape(kpd.phases), np.float32)
+        cv[0], cv[1] = kpd.phases, kpd.amplitudes
+        hdus.append(fits.ImageHDU(cv, name="CVIS-DATA"))
     return fits.HDUList(hdus)
 
 
