@@ -165,3 +165,13 @@ def test_quantised_windows_cached_and_close(monkeypatch):
     monkeypatch.setattr(window, "WINDOW_CACHE_BYTES", 10 * 32 * 32 * 8)
     win.apply(np.ones((50, 32, 32)), rng.uniform(-0.5, 0.5, (50, 2)))
     assert len(window._window_cache) <= 10 / 3
+
+
+def test_extract_command_imports_no_scipy():
+    """`kpifs extract` needs neither scipy.stats nor scipy.optimize (loaded on first use)."""
+    import subprocess
+    import sys
+    code = ("import sys, kpifs._cli.extract; "
+            "print(sorted(m for m in ('scipy.stats', 'scipy.optimize') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
