@@ -10,8 +10,11 @@ the redundancy ``R[b]`` is the summed weight; the phase-transfer matrix
 orthonormal basis of the left null space of ``R^-1 A`` obtained from its SVD,
 so that ``K R^-1 A = 0`` and ``n_kp = n_uv - rank``.
 """
+import hashlib
 import logging
+import threading
 import warnings
+from collections import OrderedDict
 
 import numpy as np
 from astropy import units as u
@@ -19,6 +22,7 @@ from astropy import units as u
 from ._registry import io_methods, register
 from ._utils import to_quantity, write_hdulist
 from .exceptions import KpifsError, KpifsWarning
+from .fourier import fourier_operator
 from .io.kpfits import has_kernel_model, model_hdulist, read_model_file, read_model_parts
 from .pupil import PupilModel, make_pupil
 
@@ -82,10 +86,29 @@ def _blm_for_uv(xy, trans, uv, tol):
     return A, np.flatnonzero(~hit)
 
 
+#: Kernels of the last few phase-transfer matrices (models rebuilt for every file
+#: of an archive share their SVD).
+_KERNEL_CACHE_SIZE = 8
+_kernel_cache = OrderedDict()
+_kernel_lock = threading.Lock()
+
+
 def _kernel_from_tfm(tfm, rtol):
+    key = (hashlib.sha1(np.ascontiguousarray(tfm).tobytes()).hexdigest(), tfm.shape, rtol)
+    with _kernel_lock:
+        hit = _kernel_cache.get(key)
+        if hit is not None:
+            _kernel_cache.move_to_end(key)
+            return hit
     U, s, _ = np.linalg.svd(tfm, full_matrices=True)
     rank = int(np.sum(s > rtol * s[0])) if s.size else 0
-    return U[:, rank:].T.copy(), rank, s
+    out = (U[:, rank:].T.copy(), rank, s)
+    out[0].flags.writeable = False
+    with _kernel_lock:
+        _kernel_cache[key] = out
+        while len(_kernel_cache) > _KERNEL_CACHE_SIZE:
+            _kernel_cache.popitem(last=False)
+    return out
 
 
 def nyquist_usable(uv, wavelengths, pixscale):
@@ -150,9 +173,6 @@ class KernelModel:
     True
     """
 
-    #: Memory budget of the cache of DFT matrices (bytes).
-    dft_cache_bytes = 2 * 2 ** 30
-
     def __init__(self, pupil, uv, redundancy, blm, kernel=None, *, rank=None, rtol=1e-9,
                  meta=None):
         self.pupil = pupil
@@ -164,16 +184,47 @@ class KernelModel:
             raise KpifsError(f"inconsistent kernel model: {nuv} uv points, redundancy "
                              f"{self.redundancy.shape}, BLM {self.blm.shape}, "
                              f"{pupil.n_sub} sub-apertures")
-        if kernel is None:
-            kernel, rank, _ = _kernel_from_tfm(self.tfm, rtol)
-        elif rank is None:
-            rank = int(np.linalg.matrix_rank(self.tfm, tol=rtol * np.linalg.norm(self.tfm, 2)))
-        self.kernel = np.asarray(kernel, float)
-        if self.kernel.ndim != 2 or self.kernel.shape[1] != nuv:
-            raise KpifsError(f"kernel matrix has shape {self.kernel.shape}, expected (nkp, {nuv})")
-        self.rank = int(rank)
+        self._rtol = rtol
+        self._kernel = None
+        self._rank = None if rank is None else int(rank)
+        if kernel is not None:
+            self._kernel = np.asarray(kernel, float)
+            if self._kernel.ndim != 2 or self._kernel.shape[1] != nuv:
+                raise KpifsError(f"kernel matrix has shape {self._kernel.shape}, expected "
+                                 f"(nkp, {nuv})")
         self.meta = dict(meta or {})
-        self._dft_cache = {}
+
+    # the SVD is the costly part of a model, and a model made only to be cut down by
+    # `for_wavelengths` never needs its own: kernel and rank are computed on first use
+    @property
+    def kernel(self):
+        """Kernel matrix ``K`` (nkp, nuv), rows orthonormal."""
+        if self._kernel is None:
+            self._solve()
+        return self._kernel
+
+    def _solve(self):
+        self._kernel, self._rank, _ = _kernel_from_tfm(self.tfm, self._rtol)
+
+    @kernel.setter
+    def kernel(self, value):
+        self._kernel = np.asarray(value, float)
+
+    @property
+    def rank(self):
+        """Rank of the phase-transfer matrix."""
+        if self._rank is None:
+            if self._kernel is None:
+                self._solve()
+            else:
+                tfm = self.tfm
+                self._rank = int(np.linalg.matrix_rank(tfm, tol=self._rtol
+                                                       * np.linalg.norm(tfm, 2)))
+        return self._rank
+
+    @rank.setter
+    def rank(self, value):
+        self._rank = int(value)
 
     @classmethod
     def from_pupil(cls, pupil, *, rtol=1e-9, uv_tol=None):
@@ -200,8 +251,7 @@ class KernelModel:
             uv_tol = 1e-3 * step
         uv, red, A = _uv_from_pupil(xy, pupil.transmission, uv_tol)
         km = cls(pupil, uv, red, A, rtol=rtol, meta={"rtol": rtol, "uv_tol_m": uv_tol})
-        log.info("kernel model: %d sub-apertures, %d uv points, rank %d, %d kernel phases",
-                 pupil.n_sub, km.n_uv, km.rank, km.n_kp)
+        log.info("kernel model: %d sub-apertures, %d uv points", pupil.n_sub, km.n_uv)
         return km
 
     # --- basic properties -------------------------------------------------
@@ -294,41 +344,15 @@ class KernelModel:
         ``cos`` and last ``nuv`` rows ``-sin`` of ``2 pi (u x + v y) / lam``, so
         that ``M @ image.ravel()`` stacks ``Re V`` and ``Im V`` with
         ``V(u, v) = sum I(x, y) exp(-2 pi i (u x + v y) / lam)``. Pixel ``(ny//2,
-        nx//2)`` of the window is the origin. Matrices are cached per
-        (wavelength, pixel scale, shape).
+        nx//2)`` of the window is the origin. This is the dense reference of
+        `kpifs.fourier` (extraction uses a faster path when there is one);
+        matrices are kept in its bounded module-level cache, keyed by the uv
+        points, wavelength, pixel scale and shape, so models rebuilt per file
+        share them.
         """
         wl = float(to_quantity(wavelength, u.m, name="wavelength").value)
         p = float(to_quantity(pixscale, u.mas, name="pixel scale").value) * MAS
-        ny, nx = shape
-        key = (round(wl * 1e15), round(p * 1e18), ny, nx)
-        mat = self._dft_cache.get(key)
-        if mat is None:
-            # separable: cos/sin of (u x + v y) from small per-axis tables by the
-            # angle-addition formulas (much cheaper than cos/sin on every element)
-            ax = (2 * np.pi * p / wl) * np.outer(self._uv[:, 0], np.arange(nx) - nx // 2)
-            ay = (2 * np.pi * p / wl) * np.outer(self._uv[:, 1], np.arange(ny) - ny // 2)
-            cx, sx = np.cos(ax)[:, None, :], np.sin(ax)[:, None, :]
-            cy, sy = np.cos(ay)[:, :, None], np.sin(ay)[:, :, None]
-            nuv = self.n_uv
-            mat = np.empty((2 * nuv, ny, nx))
-            tmp = np.empty((min(nuv, 32), ny, nx))
-            for a in range(0, nuv, 32):  # chunks: no large temporaries
-                b = min(nuv, a + 32)
-                t = tmp[:b - a]
-                np.multiply(cy[a:b], cx[a:b], out=mat[a:b])
-                np.multiply(sy[a:b], sx[a:b], out=t)
-                mat[a:b] -= t
-                np.multiply(sy[a:b], cx[a:b], out=mat[nuv + a:nuv + b])
-                np.multiply(cy[a:b], sx[a:b], out=t)
-                mat[nuv + a:nuv + b] += t
-                np.negative(mat[nuv + a:nuv + b], out=mat[nuv + a:nuv + b])
-            mat = mat.reshape(2 * nuv, ny * nx)
-            self._dft_cache[key] = mat
-            # bounded cache: extraction builds each matrix once per call anyway
-            while sum(m.nbytes for m in self._dft_cache.values()) > self.dft_cache_bytes \
-                    and len(self._dft_cache) > 1:
-                self._dft_cache.pop(next(iter(self._dft_cache)))
-        return mat
+        return fourier_operator(self._uv, wl, p, shape, method="dense").matrix
 
     def signature(self, offset, wavelengths):
         """First-order kernel-phase signature of a companion at *offset*.

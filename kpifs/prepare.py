@@ -20,7 +20,9 @@ CENTROID_METHODS = ("com", "peak", "quadratic", "2dg")
 
 
 def _peak_positions(data):
-    flat = np.nan_to_num(data, nan=-np.inf).reshape(len(data), -1)
+    flat = data.reshape(len(data), -1)
+    if np.isnan(flat).any():
+        flat = np.nan_to_num(flat, nan=-np.inf)
     idx = np.argmax(flat, axis=1)
     return np.column_stack(np.unravel_index(idx, data.shape[1:])[::-1]).astype(float)
 
@@ -183,9 +185,11 @@ def cut_out(sl, centres, ws):
     if inside.all() and np.all(ic == ic[0]):
         # the usual case: one window for the whole batch, a plain slice
         return sl[:, lo_y[0]:lo_y[0] + ws, lo_x[0]:lo_x[0] + ws].copy(), delta
-    padded = np.zeros((nb, ny + 2 * h, nx + 2 * h))
-    padded[:, h:h + ny, h:h + nx] = sl
-    off = np.arange(ws)
-    yy = (lo_y + h)[:, None, None] + off[None, :, None]
-    xx = (lo_x + h)[:, None, None] + off[None, None, :]
-    return padded[np.arange(nb)[:, None, None], yy, xx], delta
+    # one slice copy per image (faster than a gather through a padded copy)
+    out = np.zeros((nb, ws, ws), dtype=sl.dtype)
+    xa, xb = np.maximum(lo_x, 0), np.minimum(lo_x + ws, nx)
+    ya, yb = np.maximum(lo_y, 0), np.minimum(lo_y + ws, ny)
+    for i in np.flatnonzero((xa < xb) & (ya < yb)):
+        out[i, ya[i] - lo_y[i]:yb[i] - lo_y[i], xa[i] - lo_x[i]:xb[i] - lo_x[i]] = \
+            sl[i, ya[i]:yb[i], xa[i]:xb[i]]
+    return out, delta

@@ -5,6 +5,8 @@ the images with it, the kernel-phase data carry it (header cards ``WINSIZE``,
 ``WINRAD``, ``WINORD``), and detection uses it for the attenuation of a
 companion's signal at its separation.
 """
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -12,7 +14,7 @@ import numpy as np
 from .exceptions import KpifsError
 
 __all__ = ["ExtractionWindow", "super_gaussian", "DEFAULT_WINDOW_RADIUS",
-           "DEFAULT_MAX_WINDOW"]
+           "DEFAULT_MAX_WINDOW", "WINDOW_QUANTUM"]
 
 #: Default super-Gaussian radius, as a fraction of the half-width of the
 #: cut-out: wide enough that a companion at half the field radius keeps ~90 %
@@ -23,6 +25,20 @@ DEFAULT_WINDOW_RADIUS = 0.8
 #: Largest default cut-out (pixels): the image's smaller side up to this. A
 #: 64-pixel cut-out is ~1 arcsec for CHARIS and keeps each DFT matrix ~40 MB.
 DEFAULT_MAX_WINDOW = 64
+
+#: Extraction computes windows at the star's sub-pixel offset rounded to this
+#: fraction of a pixel (cached, with their gradients) and corrects each frame's
+#: to first order (`ExtractionWindow.apply`): windows are computed once per
+#: sequence and kernel phases differ from exact windows by ~1e-8 rad
+#: (rounding alone, without the correction, would add up to 5e-5 rad).
+WINDOW_QUANTUM = 1 / 32
+
+#: Memory budget of the cache of quantised windows (bytes).
+WINDOW_CACHE_BYTES = 64 * 2 ** 20
+
+_window_cache = OrderedDict()
+_window_lock = threading.Lock()
+_window_nbytes = [0]
 
 
 def super_gaussian(r, radius, order=4):
@@ -123,7 +139,85 @@ class ExtractionWindow:
             delta = delta[:1]          # one window serves every frame
         dy = off[None, :, None] - delta[:, 1][:, None, None]
         dx = off[None, None, :] - delta[:, 0][:, None, None]
-        return super_gaussian(np.hypot(dx, dy), self.radius, self.order)
+        r2 = (dx * dx + dy * dy) / (self.radius * self.radius)
+        return np.exp(-(r2 ** (self.order / 2)))
+
+    def _weights_and_slopes(self, delta):
+        """Windows at *delta* (n, 2) and their derivatives along delta_x and delta_y:
+        shape (n, 3, size, size). For orders >= 2."""
+        off = np.arange(self.size) - self.size // 2
+        dy = off[None, :, None] - delta[:, 1][:, None, None]
+        dx = off[None, None, :] - delta[:, 0][:, None, None]
+        r2 = 1.0 / (self.radius * self.radius)
+        s = (dx * dx + dy * dy) * r2
+        p = self.order / 2
+        out = np.empty((len(delta), 3, self.size, self.size))
+        out[:, 0] = w = np.exp(-(s ** p))
+        # dw/d(delta_x) = 2 p w s^(p-1) (x - delta_x) / radius^2, likewise along y (p >= 1)
+        g = 2 * p * r2 * w * s ** (p - 1)
+        out[:, 1] = g * dx
+        out[:, 2] = g * dy
+        return out
+
+    def apply(self, cuts, delta, *, quantum=WINDOW_QUANTUM):
+        """Multiply cut-outs *cuts* (n, size, size) in place by their windows.
+
+        Windows are computed at each frame's *delta* rounded to *quantum*
+        pixels and kept, with their first derivatives, in a bounded
+        module-level cache; each frame's window is then the first-order
+        expansion ``w(q) + (delta - q) . grad w(q)``, so a sequence of frames
+        computes each window once and the result differs from the exact
+        window (*quantum* None or 0) by ~``(quantum / 2)**2`` times the
+        window's curvature (1e-7 relative for the default window).
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from kpifs import ExtractionWindow
+        >>> win = ExtractionWindow(8, 3.0)
+        >>> d = [[0.01, 0.0], [0.25, -0.49]]
+        >>> out = win.apply(np.ones((2, 8, 8)), d)
+        >>> bool(np.allclose(out, win.weights(d), rtol=0, atol=1e-4))
+        True
+        """
+        delta = np.atleast_2d(np.asarray(delta, float))
+        if not quantum or not 2 <= self.order < np.inf:
+            # exact windows; so too for orders below 2 (a cusp at the centre) and a hard
+            # disk (a step at the edge), where a first-order expansion is not good enough
+            cuts *= self.weights(delta)
+            return cuts
+        q = np.rint(delta / quantum).astype(np.int64)
+        keys, inverse = np.unique(q, axis=0, return_inverse=True)
+        inverse = inverse.ravel()
+        base = (self.size, self.radius, self.order, float(quantum))
+        found = {}
+        with _window_lock:
+            for k in map(tuple, keys):
+                w = _window_cache.get(base + k)
+                if w is not None:
+                    _window_cache.move_to_end(base + k)
+                    found[k] = w
+        missing = [k for k in map(tuple, keys) if k not in found]
+        if missing:
+            new = self._weights_and_slopes(np.array(missing, float) * quantum)
+            with _window_lock:
+                for k, w in zip(missing, new):
+                    found[k] = _window_cache[base + k] = w
+                    _window_nbytes[0] += w.nbytes
+                while _window_nbytes[0] > WINDOW_CACHE_BYTES and len(_window_cache) > 1:
+                    _window_nbytes[0] -= _window_cache.popitem(last=False)[1].nbytes
+        windows = [found[k] for k in map(tuple, keys)]
+        err = delta - q * quantum
+        buf = np.empty(cuts.shape[1:])
+        tmp = np.empty(cuts.shape[1:])
+        for i, j in enumerate(inverse):     # one product per image: no stack of windows
+            w = windows[j]
+            np.multiply(w[1], err[i, 0], out=buf)
+            buf += w[0]
+            np.multiply(w[2], err[i, 1], out=tmp)
+            buf += tmp
+            cuts[i] *= buf
+        return cuts
 
     def at(self, separation, pixscale):
         """The window's value at *separation* (mas) for images of *pixscale* (mas).

@@ -60,10 +60,10 @@ def test_own_files_round_trip(sim, tmp_path):
         np.testing.assert_array_equal(a, b)
     assert u.allclose(back.wavelengths, kpd.wavelengths, rtol=1e-15)
     assert back.window == kpd.window and back.pixscale == kpd.pixscale
-    # CVIS-DATA holds (real, imag): phases and amplitudes come back to rounding
-    np.testing.assert_allclose(back.amplitudes, kpd.amplitudes, rtol=1e-13)
+    # CVIS-DATA holds (real, imag) in float32: phases and amplitudes to single precision
+    np.testing.assert_allclose(back.amplitudes, kpd.amplitudes, rtol=3e-7, atol=1e-8)
     dphi = (back.phases - kpd.phases + np.pi) % (2 * np.pi) - np.pi
-    assert np.abs(dphi).max() < 1e-12
+    assert np.abs(dphi).max() < 1e-5
     assert back.meta["detpa_source"] == "--pa" and back.meta["layout"] == "kpifs"
     with fits.open(path) as h:
         hdr = h[0].header

@@ -8,10 +8,12 @@ low-resolution spectrum). Uncertainties come from the Jacobian at the optimum.
 """
 import numpy as np
 from astropy import units as u
-from scipy import optimize
 
+from .._lazy import lazy_module
 from ..exceptions import KpifsError
 from ..kernel import MAS
+
+optimize = lazy_module("scipy.optimize")
 
 __all__ = ["fit_binary"]
 

@@ -24,10 +24,13 @@ print.
 import numpy as np
 from astropy import units as u
 from astropy.table import QTable
-from scipy import optimize, stats
 
+from .._lazy import lazy_module
 from ..exceptions import KpifsError
 from .stats import check_probability, energy_threshold
+
+optimize = lazy_module("scipy.optimize")
+stats = lazy_module("scipy.stats")
 
 __all__ = ["spectrum_shape", "limit_np", "energy_lambda", "limit_energy", "limit_binary",
            "limit_energy_correlated", "radial_curves", "pfa_to_sigma", "sigma_to_pfa",

@@ -24,9 +24,8 @@ import logging
 import numpy as np
 from astropy import units as u
 from astropy.table import QTable
-from scipy import stats
-from scipy.ndimage import maximum_filter
 
+from .._lazy import lazy_module
 from .._utils import to_quantity
 from ..data import DetectionGrid
 from ..exceptions import KpifsError
@@ -34,6 +33,9 @@ from ..kernel import MAS
 from ..window import ExtractionWindow
 from .limits import spectrum_shape
 from .stats import binary_pfa, binary_statistic
+
+stats = lazy_module("scipy.stats")
+ndimage = lazy_module("scipy.ndimage")
 
 __all__ = ["DetectionModel"]
 
@@ -285,8 +287,8 @@ class DetectionModel:
             min_distance = self.wavelengths.to_value(u.m).min() / diam / MAS
         size = max(3, 2 * int(np.ceil(min_distance / step)) + 1)
         tt = np.nan_to_num(t, nan=-np.inf)
-        peaks = (tt == maximum_filter(tt, size=size, mode="constant", cval=-np.inf)) & \
-            (tt >= threshold) & self.grid.valid
+        local_max = ndimage.maximum_filter(tt, size=size, mode="constant", cval=-np.inf)
+        peaks = (tt == local_max) & (tt >= threshold) & self.grid.valid
         iy, ix = np.nonzero(peaks)
         order = np.argsort(-tt[iy, ix])
         iy, ix = iy[order], ix[order]

@@ -5,8 +5,8 @@ import warnings
 import numpy as np
 from astropy import units as u
 from astropy.table import vstack
-from scipy import stats
 
+from .._lazy import lazy_module
 from ..covariance import empirical_covariance, whiten, whitening_matrix
 from ..data import DetectionGrid, DetectionResult, KernelPhaseData
 from ..exceptions import KpifsError, KpifsWarning
@@ -18,6 +18,8 @@ from .limits import (energy_lambda, limit_binary, limit_energy, limit_energy_cor
 from .maps import DetectionModel
 from .null import NullCalibration, check_draws, energy_null
 from .stats import TESTS, check_probability, energy_threshold
+
+stats = lazy_module("scipy.stats")
 
 __all__ = ["detect", "default_grid"]
 

@@ -13,14 +13,16 @@ import logging
 import numpy as np
 from astropy import units as u
 from astropy.table import QTable
-from scipy import stats
 
+from .._lazy import lazy_module
 from ..covariance import empirical_covariance
 from ..extract import extract_kernel_phases
 from ..kernel import KernelModel
 from ..pupil import make_pupil
 from ..simulate import simulate_scene
 from .stats import TESTS, auc, monte_carlo_roc, roc_curve
+
+stats = lazy_module("scipy.stats")
 
 __all__ = ["paper_experiment", "theory_roc", "whitened_signal"]
 

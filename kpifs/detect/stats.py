@@ -15,9 +15,13 @@ Model (per channel ``i``, whitened): ``H0: y_i = e_i``, ``H1: y_i = x_i + e_i`` 
   for one channel.
 """
 import numpy as np
-from scipy import optimize, special, stats
 
+from .._lazy import lazy_module
 from ..exceptions import KpifsError
+
+optimize = lazy_module("scipy.optimize")
+special = lazy_module("scipy.special")
+stats = lazy_module("scipy.stats")
 
 __all__ = ["TESTS", "check_probability", "np_threshold", "np_pd", "energy_threshold",
            "energy_pd", "binary_pfa", "binary_threshold", "binary_statistic", "np_statistic",
