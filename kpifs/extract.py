@@ -77,6 +77,7 @@ class _Plan:
         # the model's arrays in the layout the products want, made once per extraction
         self.uv_t = np.ascontiguousarray(self.model.uv.to_value(u.m).T)
         self.kernel_t = self.model.kernel.T
+        self.longest = float(np.hypot(*self.uv_t).max()) if self.uv_t.size else 1.0
 
 
 def _check_inputs(data, pupil, *, wavelengths, pixscale, centres, mask, window, centroid,
@@ -124,44 +125,107 @@ def _check_inputs(data, pupil, *, wavelengths, pixscale, centres, mask, window, 
                  fourier)
 
 
+#: A slice with more than this fraction of non-finite pixels is a bad frame.
+MAX_BAD_FRACTION = 0.5
+#: Negative pixels summing to more than this fraction of the positive flux of a
+#: slice are worth a warning (over-subtracted background, wrong sign).
+NEGATIVE_FLUX_WARN = 0.1
+#: The fewest good frames a cube of at least that many frames must keep.
+MIN_GOOD_FRAMES = 3
+
+
+def _slice_quality(sl, finite):
+    """Why each image of a batch is unusable (``''`` when it is usable)."""
+    n_pix = sl.shape[1] * sl.shape[2]
+    clean = np.where(finite, sl, 0.0)
+    n_bad = n_pix - finite.sum(axis=(1, 2))
+    total = clean.sum(axis=(1, 2))
+    why = np.full(len(sl), "", dtype=object)
+    why[total <= 0] = "no positive flux"
+    why[n_bad > MAX_BAD_FRACTION * n_pix] = "mostly non-finite"
+    why[~clean.any(axis=(1, 2))] = "empty"
+    return why
+
+
+def _core_hit(finite, bc, radius):
+    """True for each image with a non-finite pixel within *radius* pixels of its centre."""
+    ny, nx = finite.shape[1:]
+    y, x = np.ogrid[:ny, :nx]
+    hit = np.zeros(len(finite), bool)
+    for i in np.flatnonzero(~finite.all(axis=(1, 2))):
+        near = (x - bc[i, 0]) ** 2 + (y - bc[i, 1]) ** 2 <= radius ** 2
+        hit[i] = not finite[i][near].all()
+    return hit
+
+
+@dataclass
+class _BatchResult:
+    """What `_extract_batch` gives back for frames ``f0:f1`` of one channel."""
+
+    kp: np.ndarray
+    phases: np.ndarray
+    amplitudes: np.ndarray
+    centres: np.ndarray
+    bad: np.ndarray               # (nbatch,) object: '' or why the image is unusable
+    n_bad_pixels: int = 0
+    n_inf: int = 0
+    n_clipped: int = 0
+    core_nan: int = 0
+    negative: int = 0
+
+
 def _extract_batch(plan, iw, f0, f1, op):
     """Kernel phases of frames ``f0:f1`` at channel *iw* with the Fourier operator *op*.
 
-    Returns ``(kp, phases, amplitudes, centres, n_bad, n_clipped)`` for the batch.
+    Unusable images (empty, mostly non-finite, no positive flux, centre off the
+    image) are reported in ``bad`` and give NaN rows; the caller decides.
     """
-    win, source = plan.window, plan.source
+    win = plan.window
     nx, ny = plan.cube.shape[3], plan.cube.shape[2]
     sl = np.array(plan.cube[f0:f1, iw], dtype=float)
     release_pages(plan.cube)      # memory-mapped input: keep only this batch resident
+    nb = f1 - f0
     if plan.mask is not None:
         sl[plan.mask[f0:f1, iw]] = np.nan
     finite = np.isfinite(sl)
     all_finite = finite.all()
-    n_bad = 0
+    res = _BatchResult(np.full((nb, plan.model.n_kp), np.nan),
+                       np.full((nb, plan.model.n_uv), np.nan),
+                       np.full((nb, plan.model.n_uv), np.nan),
+                       np.full((nb, 2), np.nan), _slice_quality(sl, finite))
     if not all_finite:
-        n_bad = int(sl.size - finite.sum())
+        res.n_bad_pixels = int(sl.size - finite.sum())
+        res.n_inf = int(np.isinf(sl).sum())
         sl[~finite] = np.nan
-    empty = ~(sl if all_finite else np.where(finite, sl, 0.0)).any(axis=(1, 2))
-    if empty.any():
-        fr = int(np.argmax(empty))
-        raise KpifsError(f"{source}: frame {f0 + fr}, channel {iw} "
-                         f"({plan.wavelengths[iw]:.3f}) is empty (all zero or non-finite): "
-                         f"{empty.sum()} such frame(s) at this channel")
+    neg = np.where(finite & (sl < 0), sl, 0.0).sum(axis=(1, 2))
+    pos = np.where(finite & (sl > 0), sl, 0.0).sum(axis=(1, 2))
+    res.negative = int(np.sum((res.bad == "") & (-neg > NEGATIVE_FLUX_WARN * pos)))
+    good = np.flatnonzero(res.bad == "")
+    if not len(good):
+        return res
+    sl, finite = sl[good], finite[good]
     bc = find_centres(sl, method=plan.centroid) if plan.centres is None \
-        else plan.centres[f0:f1, iw]
+        else plan.centres[f0:f1, iw][good]
+    off = ((bc[:, 0] < -0.5) | (bc[:, 0] > nx - 0.5) | (bc[:, 1] < -0.5)
+           | (bc[:, 1] > ny - 0.5) | ~np.all(np.isfinite(bc), axis=1))
+    if off.any():
+        res.bad[good[off]] = "star centre outside the image"
+        good, sl, finite, bc = good[~off], sl[~off], finite[~off], bc[~off]
+        if not len(good):
+            return res
     if not all_finite:
+        # a filled PSF core is invented data: say so (the first Airy ring, at least 2 px)
+        lam_d = (plan.wavelengths[iw].to_value(u.m) / plan.longest
+                 / (plan.pixscale.to_value(u.mas) * MAS))
+        res.core_nan = int(_core_hit(finite, bc, max(2.0, 1.22 * lam_d)).sum())
         if plan.bad_pixels == "fill":
             fill_bad_pixels(sl)
         else:
             sl[~finite] = 0.0
-    if (np.any((bc[:, 0] < -0.5) | (bc[:, 0] > nx - 0.5) | (bc[:, 1] < -0.5)
-               | (bc[:, 1] > ny - 0.5)) or not np.all(np.isfinite(bc))):
-        raise KpifsError(f"{source}: a star centre lies outside the {ny}x{nx} image "
-                         f"(channel {iw})")
     # the edge matters where the window still weighs more than 1/e
     edge = np.minimum.reduce([bc[:, 0] + 0.5, nx - 0.5 - bc[:, 0],
                               bc[:, 1] + 0.5, ny - 0.5 - bc[:, 1]])
-    n_clipped = int(np.sum(edge < win.radius))
+    res.n_clipped = int(np.sum(edge < win.radius))
     cut, delta = cut_out(sl, bc, win.size)
     win.apply(cut, delta, quantum=WINDOW_QUANTUM)
     re, im = op.apply(cut)
@@ -175,13 +239,49 @@ def _extract_batch(plan, iw, f0, f1, op):
     re += im
     amps = np.sqrt(re, out=re)
     amps /= cut.sum(axis=(1, 2))[:, None]
-    return ph @ plan.kernel_t, ph, amps, bc, n_bad, n_clipped
+    res.kp[good] = ph @ plan.kernel_t
+    res.phases[good], res.amplitudes[good], res.centres[good] = ph, amps, bc
+    return res
+
+
+def _ranges(idx):
+    """``[0, 1, 2, 5, 7, 8]`` -> ``'0-2, 5, 7-8'`` (frame lists in messages and cards)."""
+    out, idx = [], sorted(int(i) for i in idx)
+    for i in idx:
+        if out and i == out[-1][1] + 1:
+            out[-1][1] = i
+        else:
+            out.append([i, i])
+    return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in out)
+
+
+def _bad_frames(bad, wavelengths, policy, source):
+    """Frames to drop from the per-image reasons *bad* ``(nframe, nwave)``; refuse per *policy*."""
+    nframe = bad.shape[0]
+    drop = np.flatnonzero((bad != "").any(axis=1))
+    if not len(drop):
+        return drop
+    reasons = {}
+    for f in drop:
+        iw = int(np.flatnonzero(bad[f] != "")[0])
+        reasons.setdefault(f"{bad[f, iw]} (first at {wavelengths[iw]:.3f})", []).append(f)
+    what = "; ".join(f"frame(s) {_ranges(v)}: {k}" for k, v in reasons.items())
+    if policy == "fail":
+        raise KpifsError(f"{source}: {len(drop)} bad frame(s) of {nframe}: {what} "
+                         f"(use bad_frames='drop' / --bad-frames drop to leave them out)")
+    n_good = nframe - len(drop)
+    if n_good == 0 or n_good < min(MIN_GOOD_FRAMES, nframe):
+        raise KpifsError(f"{source}: only {n_good} good frame(s) of {nframe} ({what}): too few "
+                         f"to use")
+    warnings.warn(f"{source}: {len(drop)} bad frame(s) of {nframe} dropped: {what}",
+                  KpifsWarning, stacklevel=3)
+    return drop
 
 
 def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, centres=None,
                           mask=None, centroid="com", bad_pixels="fill", on_nyquist="drop",
                           batch_size=256, header=None, source="<array>", keep_phases=True,
-                          detpa=None, progress=False, fourier="auto"):
+                          detpa=None, progress=False, fourier="auto", bad_frames="drop"):
     """Kernel phases of every frame and channel of an IFS cube.
 
     Parameters
@@ -225,6 +325,13 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
         carried into the result.
     progress : bool
         Show a progress bar over the channels (on a terminal).
+    bad_frames : {'drop', 'fail'}
+        What to do with a frame that is unusable at some channel (empty, more
+        than half non-finite, no positive flux, centre outside the image):
+        ``'drop'`` leaves it out with a `~kpifs.exceptions.KpifsWarning` naming
+        the frames (a cube left with fewer than 3 good frames is refused),
+        ``'fail'`` refuses the cube. The result's ``meta['dropped_frames']``
+        lists the input indices of the frames left out.
     fourier : {'auto', 'separable', 'nufft', 'dense'}
         How the Fourier transform at the uv points is computed (see
         `kpifs.fourier`); every path gives the same phases to ~1e-9 rad.
@@ -258,11 +365,14 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
         if detpa.shape != (nframe,):
             raise KpifsError(f"{source}: {detpa.size} detector position angle(s) for {nframe} "
                              f"frame(s)")
+    if bad_frames not in ("drop", "fail"):
+        raise KpifsError(f"bad_frames must be 'drop' or 'fail', got {bad_frames!r}")
     kp = np.empty((nframe, nwave, km.n_kp))
     phases = np.empty((nframe, nwave, km.n_uv)) if keep_phases else None
     amps = np.empty((nframe, nwave, km.n_uv)) if keep_phases else None
     used_centres = np.empty((nframe, nwave, 2))
-    n_bad = n_clipped = 0
+    bad = np.full((nframe, nwave), "", dtype=object)
+    count = dict.fromkeys(("n_bad_pixels", "n_inf", "n_clipped", "core_nan", "negative"), 0)
     uv = km.uv.to_value(u.m)
     prad = plan.pixscale.to_value(u.mas) * MAS
     # wavelength outermost: each operator is built (or fetched) once per call
@@ -272,27 +382,51 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
                               method=plan.fourier)
         for f0 in range(0, nframe, batch_size):
             f1 = min(nframe, f0 + batch_size)
-            k, ph, am, bc, nb, nc = _extract_batch(plan, iw, f0, f1, op)
-            kp[f0:f1, iw] = k
-            used_centres[f0:f1, iw] = bc
-            n_bad += nb
-            n_clipped += nc
+            res = _extract_batch(plan, iw, f0, f1, op)
+            kp[f0:f1, iw] = res.kp
+            used_centres[f0:f1, iw] = res.centres
+            bad[f0:f1, iw] = res.bad
+            for k in count:
+                count[k] += getattr(res, k)
             if keep_phases:
-                phases[f0:f1, iw] = ph
-                amps[f0:f1, iw] = am
-    if n_clipped:
+                phases[f0:f1, iw] = res.phases
+                amps[f0:f1, iw] = res.amplitudes
+    drop = _bad_frames(bad, wl, bad_frames, source)
+    keep = np.setdiff1d(np.arange(nframe), drop)
+    n_slices = len(keep) * nwave
+    if count["n_clipped"]:
         warnings.warn(f"{source}: the star is closer to the image edge than the window radius "
-                      f"({win.radius:.1f} pixels) in {n_clipped} of {nframe * nwave} "
+                      f"({win.radius:.1f} pixels) in {count['n_clipped']} of {n_slices} "
                       f"slice(s); the edge cuts the window (use a smaller --window-radius)",
                       KpifsWarning, stacklevel=2)
-    if n_bad:
-        log.info("%s: %d bad or NaN pixels excluded from the Fourier sums", source, n_bad)
-    frame_idx, wave_idx = np.meshgrid(np.arange(nframe), np.arange(nwave), indexing="ij")
-    ctab = QTable([frame_idx.ravel(), np.broadcast_to(wl, (nframe, nwave)).ravel(),
+    if count["core_nan"]:
+        warnings.warn(f"{source}: bad or NaN pixels on the PSF core in {count['core_nan']} of "
+                      f"{n_slices} slice(s): their kernel phases rest on "
+                      f"{'interpolated' if bad_pixels == 'fill' else 'missing'} core pixels",
+                      KpifsWarning, stacklevel=2)
+    if count["n_inf"]:
+        warnings.warn(f"{source}: {count['n_inf']} infinite pixel value(s), treated as bad "
+                      f"pixels", KpifsWarning, stacklevel=2)
+    if count["negative"]:
+        warnings.warn(f"{source}: negative pixels hold more than "
+                      f"{NEGATIVE_FLUX_WARN:.0%} of the positive flux in {count['negative']} "
+                      f"slice(s) (background over-subtracted?)", KpifsWarning, stacklevel=2)
+    if count["n_bad_pixels"]:
+        log.info("%s: %d bad or NaN pixels excluded from the Fourier sums", source,
+                 count["n_bad_pixels"])
+    if len(drop):
+        kp, used_centres = kp[keep], used_centres[keep]
+        if keep_phases:
+            phases, amps = phases[keep], amps[keep]
+        if detpa is not None:
+            detpa = detpa[keep]
+    frame_idx, wave_idx = np.meshgrid(keep, np.arange(nwave), indexing="ij")
+    ctab = QTable([frame_idx.ravel(), np.broadcast_to(wl, (len(keep), nwave)).ravel(),
                    used_centres[..., 0].ravel(), used_centres[..., 1].ravel()],
                   names=("frame", "wavelength", "x", "y"))
     ctab["x"].unit = ctab["y"].unit = u.pix
     meta = {"source": str(source), "centroid": centroid if centres is None else "given",
-            "n_bad_pixels": n_bad, "bad_pixels": bad_pixels}
+            "n_bad_pixels": count["n_bad_pixels"], "bad_pixels": bad_pixels,
+            "bad_frames": bad_frames, "dropped_frames": [int(f) for f in drop]}
     return KernelPhaseData(kp, wl, plan.pixscale, km, window=win, phases=phases,
                            amplitudes=amps, centres=ctab, header=header, detpa=detpa, meta=meta)

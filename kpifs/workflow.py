@@ -89,6 +89,7 @@ class ExtractOptions:
     window_order: float = 4.0
     centroid: str = "com"
     bad_pixels: str = "fill"
+    bad_frames: str = "drop"
     on_nyquist: str = "drop"
     mask: object = None
     # covariance
@@ -312,7 +313,8 @@ def extract_observation(files, options=None, *, model=None, progress=False):
         kpd = extract_kernel_phases(
             cube.data, km, wavelengths=cube.wavelengths, pixscale=cube.pixscale,
             window=window, mask=mask, centroid=options.centroid,
-            bad_pixels=options.bad_pixels, on_nyquist=options.on_nyquist,
+            bad_pixels=options.bad_pixels, bad_frames=options.bad_frames,
+            on_nyquist=options.on_nyquist,
             header=cube.header, source=cube.name, detpa=detpa, progress=progress)
     kpd.meta["instrument"] = cube.instrument
     kpd.meta["detpa_source"] = pa_source

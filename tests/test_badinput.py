@@ -46,6 +46,23 @@ def corpus(tmp_path_factory):
     bad[3] = 0
     f["zeroframe"] = d / "zeroframe.fits"
     fits.writeto(f["zeroframe"], bad, hdr)
+    bad = data.copy()
+    bad[1] = np.nan
+    bad[3, 2] = -np.abs(bad[3, 2])                       # a sign-flipped slice: no flux
+    f["twobad"] = d / "twobad.fits"
+    fits.writeto(f["twobad"], bad, hdr)
+    cy, cx = np.unravel_index(np.argmax(data[0, 0]), data.shape[2:])
+    bad = data.copy()
+    bad[0, 0, 5, 5] = np.inf
+    f["infpix"] = d / "infpix.fits"
+    fits.writeto(f["infpix"], bad, hdr)
+    bad = data.copy()
+    bad[:, :, cy - 1:cy + 2, cx - 1:cx + 2] = np.nan      # saturated core masked
+    f["corenan"] = d / "corenan.fits"
+    fits.writeto(f["corenan"], bad, hdr)
+    bad = data - 0.5 * data.max(axis=(2, 3), keepdims=True) / data.shape[3]
+    f["negative"] = d / "negative.fits"                   # background over-subtracted
+    fits.writeto(f["negative"], bad, hdr)
     edge = np.roll(data, (-17, -17), axis=(2, 3))          # star 3 pixels from a corner
     f["edge"] = d / "edge.fits"
     fits.writeto(f["edge"], edge, hdr)
@@ -177,9 +194,23 @@ CASES = [
      2, "wrong unit"),
     ("wavelength file unit", lambda f: ["extract", f["target"], "--wavelengths",
                                         f["wl_unknown"]], 2, "cannot tell the unit"),
-    ("all-NaN slice", lambda f: ["extract", f["nanslice"]], 2,
-     "nanslice.fits: frame 2, channel 1"),
-    ("all-zero frame", lambda f: ["extract", f["zeroframe"]], 2, "zeroframe.fits: frame 3"),
+    ("all-NaN slice dropped", lambda f: ["extract", f["nanslice"]], 0,
+     "nanslice.fits: 1 bad frame(s) of 4 dropped: frame(s) 2: empty (first at 1.600 um)"),
+    ("all-NaN slice, --bad-frames fail", lambda f: ["extract", f["nanslice"], "--bad-frames",
+                                                   "fail"], 2,
+     "nanslice.fits: 1 bad frame(s) of 4: frame(s) 2: empty"),
+    ("all-zero frame dropped", lambda f: ["extract", f["zeroframe"]], 0,
+     "zeroframe.fits: 1 bad frame(s) of 4 dropped: frame(s) 3: empty"),
+    ("two bad frames of four", lambda f: ["extract", f["twobad"]], 2,
+     "twobad.fits: only 2 good frame(s) of 4 (frame(s) 1: empty"),
+    ("sign-flipped slice named", lambda f: ["extract", f["twobad"], "--bad-frames", "fail"], 2,
+     "frame(s) 3: no positive flux"),
+    ("infinite pixel", lambda f: ["extract", f["infpix"]], 0,
+     "infpix.fits: 1 infinite pixel value(s), treated as bad pixels"),
+    ("NaN patch on the core", lambda f: ["extract", f["corenan"]], 0,
+     "corenan.fits: bad or NaN pixels on the PSF core in 12 of 12 slice(s)"),
+    ("negative flux", lambda f: ["extract", f["negative"]], 0,
+     "negative.fits: negative pixels hold more than 10% of the positive flux"),
     ("calibrator channels", lambda f: ["extract", f["target"], "--calibrator",
                                        f["twochan"]], 2, "twochannels.fits has channels"),
     ("calibrator pixel scale", lambda f: ["extract", f["target"], "--calibrator",

@@ -113,8 +113,9 @@ def bad_files(tmp_path, sim_dir):
 
 
 @pytest.mark.parametrize("key, extra, match", [
-    ("nan", [], "nanframe.fits: frame 1, channel 0"),
-    ("zero", [], "zeroframe.fits: frame 0, channel 2"),
+    ("nan", ["--bad-frames", "fail"], "nanframe.fits: 1 bad frame(s) of 4: frame(s) 1: empty "
+                                      "(first at 1.520 um)"),
+    ("zero", ["--bad-frames", "fail"], "zeroframe.fits: 1 bad frame(s) of 4: frame(s) 0: empty"),
     ("trunc", [], "truncated.fits"),
     ("nowl", ["--pixscale", "10mas"], "no wavelengths"),
     ("nowl", ["--wavelengths", "1.6um", "--pixscale", "10mas"], "1 wavelength(s) given"),

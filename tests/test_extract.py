@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 import astropy.units as u
+from astropy.io import fits
 
 from kpifs import (ExtractionWindow, KernelModel, KpifsError, KpifsWarning, extract_kernel_phases,
                    make_pupil)
@@ -149,3 +150,49 @@ def test_unknown_pupil_name(paper_wavelengths):
     with pytest.raises(KpifsError, match="unknown pupil 'keck'"):
         extract_kernel_phases(np.ones((3, 8, 8)), "keck", wavelengths=paper_wavelengths,
                               pixscale=PIX)
+
+
+def test_bad_frames_dropped_and_recorded(subaru_model, paper_wavelengths, rng, tmp_path):
+    cube = simulate_psf("subaru", paper_wavelengths, pixscale=PIX, shape=(40, 40))
+    frames = cube[None] * (1 + 0.01 * rng.standard_normal((6, 3, 1, 1)))
+    frames += 1e-4 * frames.max() * rng.standard_normal(frames.shape)
+    bad = frames.copy()
+    bad[1, 2] = np.nan                   # readout glitch at one channel
+    bad[4] = 0.0                         # empty frame
+    args = dict(wavelengths=paper_wavelengths, pixscale=PIX, source="seq.fits",
+                detpa=np.arange(6.0), batch_size=4)
+    with pytest.warns(KpifsWarning, match=r"seq.fits: 2 bad frame\(s\) of 6 dropped: "
+                                          r"frame\(s\) 1: empty.*frame\(s\) 4: empty"):
+        kpd = extract_kernel_phases(bad, subaru_model, **args)
+    keep = [0, 2, 3, 5]
+    ref = extract_kernel_phases(frames[keep], subaru_model, wavelengths=paper_wavelengths,
+                                pixscale=PIX)
+    np.testing.assert_allclose(kpd.kp, ref.kp, atol=1e-12)
+    np.testing.assert_array_equal(kpd.detpa, keep)
+    assert sorted(set(kpd.centres["frame"])) == keep
+    assert kpd.meta["dropped_frames"] == [1, 4] and kpd.meta["bad_frames"] == "drop"
+    path = kpd.write(tmp_path / "kp.fits")
+    hdr = fits.getheader(path)
+    assert hdr["BADFRMS"] == "drop" and hdr["NDROPFR"] == 2
+    assert any("left out (bad): 1, 4" in str(h) for h in hdr["HISTORY"])
+    with pytest.raises(KpifsError, match=r"seq.fits: 2 bad frame\(s\) of 6: frame\(s\) 1"):
+        extract_kernel_phases(bad, subaru_model, bad_frames="fail", **args)
+    with pytest.raises(KpifsError, match="bad_frames must be"):
+        extract_kernel_phases(bad, subaru_model, bad_frames="ignore", **args)
+
+
+def test_warnings_for_suspicious_pixels(subaru_model, paper_wavelengths):
+    cube = np.repeat(simulate_psf("subaru", paper_wavelengths, pixscale=PIX,
+                                  shape=(40, 40))[None], 3, axis=0)
+    args = dict(wavelengths=paper_wavelengths, pixscale=PIX, source="c.fits")
+    core = cube.copy()
+    core[0, 1, 19:22, 19:22] = np.nan
+    with pytest.warns(KpifsWarning, match="PSF core in 1 of 9 slice"):
+        extract_kernel_phases(core, subaru_model, **args)
+    far = cube.copy()
+    far[0, 1, 2, 3] = np.inf
+    with pytest.warns(KpifsWarning, match="1 infinite pixel") as rec:
+        extract_kernel_phases(far, subaru_model, **args)
+    assert not any("PSF core" in str(w.message) for w in rec)
+    with pytest.warns(KpifsWarning, match="negative pixels hold more than 10%"):
+        extract_kernel_phases(cube - 0.3 * cube.max() / 40, subaru_model, **args)

@@ -13,7 +13,8 @@ def extract_options(args):
         ("offset", "offset"), ("min_transmission", "min_transmission"), ("grey", "grey"),
         ("hexagonal", "hexagonal"), ("window_size", "window_size"),
         ("window_radius", "window_radius"), ("centroid", "centroid"),
-        ("bad_pixels", "bad_pixels"), ("on_nyquist", "nyquist"), ("shrinkage", "shrinkage"),
+        ("bad_pixels", "bad_pixels"), ("bad_frames", "bad_frames"),
+        ("on_nyquist", "nyquist"), ("shrinkage", "shrinkage"),
         ("joint_covariance", "joint_covariance"), ("covariance", "covariance"))
         if hasattr(args, a)}
     return ExtractOptions(**get)

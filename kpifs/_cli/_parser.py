@@ -93,6 +93,9 @@ def _extraction_options(p):
                    help="star-centre method (default com)")
     g.add_argument("--bad-pixels", default="fill", choices=("fill", "exclude"),
                    help="interpolate bad pixels (default) or leave them out")
+    g.add_argument("--bad-frames", default="drop", choices=("drop", "fail"),
+                   help="frames empty, mostly NaN or without flux: drop them with a warning "
+                        "(default) or refuse the cube")
     g.add_argument("--nyquist", default="drop", choices=("drop", "raise"),
                    help="uv points beyond the Nyquist limit: drop (warn) or refuse")
     g = p.add_argument_group("covariance")

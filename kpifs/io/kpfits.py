@@ -415,6 +415,13 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
     hdr["NWAVE"] = (nwave, "number of wavelengths")
     hdr["NKP"] = (nkp, "number of kernel phases")
     hdr["NUV"] = (km.n_uv, "number of uv points")
+    if kpd.meta.get("bad_frames"):
+        dropped = list(kpd.meta.get("dropped_frames") or [])
+        hdr["BADFRMS"] = (str(kpd.meta["bad_frames"]), "bad-frame policy (drop or fail)")
+        hdr["NDROPFR"] = (len(dropped), "bad input frames left out")
+        if dropped:
+            hdr.add_history(f"kpifs {VERSION}: input frames left out (bad): "
+                            + ", ".join(map(str, dropped)))
     for i, name in enumerate(inputs, 1):
         hdr[f"KPIN{i}"] = card(name, "input file")
     for i, name in enumerate(kpd.meta.get("calibrators", []), 1):
@@ -890,6 +897,9 @@ def _read_data(hdul, path, detpa):
         meta["n_target_frames"] = int(hdr["NFRTGT"])
     if _number(hdr.get("PASPAN")) is not None:
         meta["detpa_span"] = _number(hdr["PASPAN"])
+    if "BADFRMS" in hdr:
+        meta["bad_frames"] = str(hdr["BADFRMS"])
+        meta["n_dropped_frames"] = int(hdr.get("NDROPFR", 0))
     return {"model": model, "kp": kp, "wavelengths": wl, "bandwidth": bw,
             "pixscale": pixscale, "covariance": cov, "kp_err": kp_err,
             "joint_covariance": jcov, "covariance_rows": rows, "detpa": pa,
