@@ -187,7 +187,8 @@ def test_warnings_for_suspicious_pixels(subaru_model, paper_wavelengths):
     args = dict(wavelengths=paper_wavelengths, pixscale=PIX, source="c.fits")
     core = cube.copy()
     core[0, 1, 19:22, 19:22] = np.nan
-    with pytest.warns(KpifsWarning, match="PSF core in 1 of 9 slice"):
+    with pytest.warns(KpifsWarning, match=r"PSF core \(more than 10% of the flux "
+                                          r"interpolated\) in 1 of 9"):
         extract_kernel_phases(core, subaru_model, **args)
     far = cube.copy()
     far[0, 1, 2, 3] = np.inf
