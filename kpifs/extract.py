@@ -133,17 +133,21 @@ NEGATIVE_FLUX_WARN = 0.1
 MIN_GOOD_FRAMES = 3
 
 
-def _slice_quality(sl, finite):
-    """Why each image of a batch is unusable (``''`` when it is usable)."""
+def _slice_quality(sl, finite, all_finite):
+    """Why each image of a batch is unusable (``''`` when it is usable), and its flux.
+
+    Returns ``(why, negative)``: *negative* the flux of the negative pixels.
+    """
     n_pix = sl.shape[1] * sl.shape[2]
-    clean = np.where(finite, sl, 0.0)
-    n_bad = n_pix - finite.sum(axis=(1, 2))
+    clean = sl if all_finite else np.where(finite, sl, 0.0)
     total = clean.sum(axis=(1, 2))
+    negative = np.minimum(clean, 0.0).sum(axis=(1, 2))
     why = np.full(len(sl), "", dtype=object)
     why[total <= 0] = "no positive flux"
-    why[n_bad > MAX_BAD_FRACTION * n_pix] = "mostly non-finite"
+    if not all_finite:
+        why[n_pix - finite.sum(axis=(1, 2)) > MAX_BAD_FRACTION * n_pix] = "mostly non-finite"
     why[~clean.any(axis=(1, 2))] = "empty"
-    return why
+    return why, total, negative
 
 
 #: Interpolated (bad) pixels carrying more than this fraction of a slice's flux
@@ -183,17 +187,17 @@ def _extract_batch(plan, iw, f0, f1, op):
         sl[plan.mask[f0:f1, iw]] = np.nan
     finite = np.isfinite(sl)
     all_finite = finite.all()
+    why, total, neg = _slice_quality(sl, finite, all_finite)
     res = _BatchResult(np.full((nb, plan.model.n_kp), np.nan),
                        np.full((nb, plan.model.n_uv), np.nan),
                        np.full((nb, plan.model.n_uv), np.nan),
-                       np.full((nb, 2), np.nan), _slice_quality(sl, finite))
+                       np.full((nb, 2), np.nan), why)
     if not all_finite:
         res.n_bad_pixels = int(sl.size - finite.sum())
         res.n_inf = int(np.isinf(sl).sum())
         sl[~finite] = np.nan
-    neg = np.where(finite & (sl < 0), sl, 0.0).sum(axis=(1, 2))
-    pos = np.where(finite & (sl > 0), sl, 0.0).sum(axis=(1, 2))
-    res.negative = int(np.sum((res.bad == "") & (-neg > NEGATIVE_FLUX_WARN * pos)))
+    # total = positive + negative flux
+    res.negative = int(np.sum((why == "") & (-neg > NEGATIVE_FLUX_WARN * (total - neg))))
     good = np.flatnonzero(res.bad == "")
     if not len(good):
         return res

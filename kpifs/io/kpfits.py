@@ -500,10 +500,12 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
     hp.header["COMMENT"] = "position angle (East of North) of the detector +y axis, per frame"
     hdus.append(hp)
     if kpd.phases is not None and kpd.amplitudes is not None:
-        ph, amp = np.asarray(kpd.phases, float), np.asarray(kpd.amplitudes, float)
+        ph, amp = np.asarray(kpd.phases), np.asarray(kpd.amplitudes)
         # diagnostics, stored in float32 (~1e-7 relative): half the file and the write
-        hv = fits.ImageHDU(np.stack([amp * np.cos(ph), amp * np.sin(ph)]).astype(np.float32),
-                           name="CVIS-DATA")
+        cv = np.empty((2,) + ph.shape, np.float32)
+        np.multiply(amp, np.cos(ph), out=cv[0], casting="same_kind")
+        np.multiply(amp, np.sin(ph), out=cv[1], casting="same_kind")
+        hv = fits.ImageHDU(cv, name="CVIS-DATA")
         hv.header["CVISFORM"] = ("REIM", "real and imaginary parts")
         hv.header["COMMENT"] = ("flux-normalised complex visibilities (2, nframe, nwave, nuv): "
                                 "real, imaginary")
