@@ -19,6 +19,7 @@ from astropy import units as u
 
 from .covariance import calibrated_covariance, empirical_covariance, hartlap_factor
 from .data import KernelPhaseData
+from .errormodel import fit_error_model
 from .exceptions import KpifsError, KpifsWarning
 
 __all__ = ["calibrate", "check_compatible", "mean_detpa", "MAX_DETPA_SPAN"]
@@ -114,7 +115,12 @@ def _mean_and_cov(kpd, shrinkage, joint, debias=True):
     return kpd.kp[0], cov, 1
 
 
-def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True):
+#: Error models of `calibrate`.
+ERROR_MODELS = ("auto", "modes", "frames")
+
+
+def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True,
+              error_model="auto", n_modes=0.5, residual="auto"):
     """Calibrated kernel phases of a target, with their covariance.
 
     Parameters
@@ -132,7 +138,16 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True
     debias : bool
         Scale sample covariances by the Hartlap factor ``(N-1)/(N-p-2)``
         (`~kpifs.covariance.hartlap_factor`), so that data whitened with the
-        result have unit variance on average, as the detection tests assume.
+        result have unit variance on average, as the detection tests assume
+        (``error_model='frames'`` only).
+    error_model : {'auto', 'modes', 'frames'}
+        ``'modes'``: the model of `kpifs.errormodel` (temporal correlation,
+        calibration residual, the leading modes only), jointly across channels;
+        ``'frames'``: the frames' sample covariance / N (independent frames,
+        no calibration residual). ``'auto'``: 'modes' when every star has
+        several frames, else 'frames' (single frames with KP-COV).
+    n_modes, residual
+        Options of `~kpifs.errormodel.fit_error_model`.
 
     Returns
     -------
@@ -162,6 +177,14 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True
         raise KpifsError("no calibrator given")
     for cal in calibrators:
         check_compatible(target, cal)
+    if error_model not in ERROR_MODELS:
+        raise KpifsError(f"unknown error model {error_model!r}: use one of {ERROR_MODELS}")
+    if error_model == "auto":
+        error_model = "modes" if min(k.n_frame for k in [target, *calibrators]) > 1 \
+            else "frames"
+    if error_model == "modes":
+        return _calibrate_modes(target, calibrators, n_modes=n_modes, residual=residual,
+                                joint=joint)
     t_mean, t_cov, n_t = _mean_and_cov(target, shrinkage, False, False)
     cal_stats = [_mean_and_cov(c, shrinkage, False, False) for c in calibrators]
     c_mean = np.mean([m for m, _, _ in cal_stats], axis=0)
@@ -179,10 +202,33 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True
             jcov = jcov * _effective_hartlap([tj] + [c for _, c, _ in cj], frames,
                                              target.n_kp * target.n_wave, _name(target))
     rows = _covariance_rows(target, calibrators, h)
+    meta = {"error_model": {"model": "frames", "hartlap": float(h)}}
+    return _result(target, calibrators, t_mean - c_mean, cov, jcov, rows, meta,
+                   [n for _, _, n in cal_stats])
+
+
+def _calibrate_modes(target, calibrators, *, n_modes, residual, joint):
+    """`calibrate` with the error model of `kpifs.errormodel`."""
+    for kpd in [target, *calibrators]:
+        if kpd.n_frame < MIN_FRAMES:
+            raise KpifsError(f"{_name(kpd)}: {kpd.n_frame} frames are too few to estimate the "
+                             f"noise of {kpd.n_kp} kernel phases (at least {MIN_FRAMES} per "
+                             f"star; false alarms would not be controlled)")
+    em = fit_error_model(target.kp, [c.kp for c in calibrators], n_modes=n_modes,
+                         residual=residual, source=_name(target))
+    d = target.kp.mean(axis=0) - np.mean([c.kp.mean(axis=0) for c in calibrators], axis=0)
+    return _result(target, calibrators, d, em.covariance(),
+                   em.covariance(joint=True) if joint else None, em.rows,
+                   {"error_model": em.meta()}, [c.n_frame for c in calibrators])
+
+
+def _result(target, calibrators, d, cov, jcov, rows, extra, n_cal):
+    """The calibrated `~kpifs.KernelPhaseData` (one frame) and its provenance."""
+    n_t = target.n_frame
     names = [_name(c) for c in calibrators]
     meta = dict(target.meta)
     meta.update(calibrated=True, calibrators=names, n_target_frames=n_t,
-                n_calibrator_frames=[n for _, _, n in cal_stats])
+                n_calibrator_frames=n_cal, **extra)
     detpa = None
     if target.detpa is not None:
         pa, span = mean_detpa(target.detpa)
@@ -199,7 +245,7 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True
                           f"mean angle {pa:.1f} deg", KpifsWarning, stacklevel=2)
     log.info("calibrated %s (%d frames) with %d calibrator(s)", _name(target), n_t,
              len(calibrators))
-    return KernelPhaseData((t_mean - c_mean)[None], target.wavelengths, target.pixscale,
+    return KernelPhaseData(d[None], target.wavelengths, target.pixscale,
                            target.kernel_model, window=target.window, covariance=cov,
                            joint_covariance=jcov,
                            covariance_rows=rows, header=target.header, detpa=detpa,

@@ -328,6 +328,8 @@ def _read_detection(path):
             "calibrators": [hdr[k] for k in hdr if k.startswith("KPCAL") and k[5:].isdigit()],
             "spectrum": [hdr[f"SPEC{i}"] for i in range(1, nwave + 1) if f"SPEC{i}" in hdr],
             "source": str(path)}
+    if "CHI2RED" in hdr:
+        meta.update(chi2_red=hdr["CHI2RED"], noise_scale=hdr.get("NOISESC", 1.0))
     return DetectionResult(grid=grid, test=hdr["TEST"], pfa=hdr["PFA"], pd=hdr["PD"],
                            statistic=stat, pfa_local=images["PFA_LOCAL"],
                            pfa_global=images["PFA"], contrast=images["CONTRAST"],

@@ -128,7 +128,7 @@ class DetectOptions:
     seed: int = 0
     shrinkage: str = "auto"
     fit: bool = True
-    max_candidates: int = 5
+    max_candidates: int = 20
     allow_uncalibrated: bool = False
 
     def validate(self):

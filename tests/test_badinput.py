@@ -338,7 +338,8 @@ CASES = [
     # warnings: the job runs, the message says what happened
     ("star at the edge", lambda f: ["extract", f["edge"]], 0, "closer to the image edge"),
     ("fewer frames than kernels", lambda f: ["extract", f["target"], "--calibrator",
-                                             f["cal"]], 0, "Ledoit-Wolf shrinkage"),
+                                             f["cal"]], 0,
+     "too few frames ([4, 4]) to measure the calibration residual"),
     ("Nyquist-limited channel", lambda f: ["extract", *f["charis_tgt"], "--calibrator",
                                            *f["charis_cal"]], 0, "beyond the Nyquist limit"),
 ]

@@ -160,10 +160,10 @@ def test_calibration_covariance_and_null_chi2(psf, coarse_model):
         c = extract_kernel_phases(noise_frames(psf, 600, 100 + seed), coarse_model,
                                   wavelengths=WL, pixscale=PIX, centres=(20, 20),
                                   keep_phases=False, source=f"c{seed}")
-        raw = calibrate(t, c, debias=False)
+        raw = calibrate(t, c, debias=False, error_model="frames")
         np.testing.assert_allclose(raw.covariance, empirical_covariance(t.kp) / 400
                                    + empirical_covariance(c.kp) / 600)
-        res = calibrate(t, c)            # Hartlap-debiased: whitened variance 1 on average
+        res = calibrate(t, c, error_model="frames")   # debiased: whitened variance 1 on average
         h = res.covariance[0, 0, 0] / raw.covariance[0, 0, 0]
         # Welch-Satterthwaite: ~400 + 600 - 2 effective frames
         assert hartlap_factor(1000, t.n_kp) < h < hartlap_factor(800, t.n_kp)
@@ -189,7 +189,7 @@ def test_several_calibrators_average(subaru_model):
                                [1.6, 1.7] * u.um, PIX, subaru_model, meta={"source": name})
     tgt = kpd(0.05, 800, "tgt")
     cals = [kpd(0.01, 800, "c1"), kpd(0.03, 800, "c2")]
-    res = calibrate(tgt, cals, debias=False)
+    res = calibrate(tgt, cals, debias=False, error_model="frames")
     assert np.mean(res.kp) == pytest.approx(0.03, abs=1e-3)
     # variance of the calibrated mean: s^2/N_t + (s^2/N_1 + s^2/N_2) / 4
     expected = 1e-4 / 800 + (1e-4 / 800 + 1e-4 / 800) / 4
@@ -226,7 +226,7 @@ def test_kpfits_round_trip_with_covariance(tmp_path, subaru_model):
     c = KernelPhaseData(rng.normal(0, 0.01, (30, 2, subaru_model.n_kp)), [1.6, 1.7] * u.um,
                         PIX, subaru_model, meta={"source": "c.fits"})
     with pytest.warns(KpifsWarning, match="shrinkage"):
-        res = calibrate(t, c, joint=True)
+        res = calibrate(t, c, joint=True, error_model="frames")
     path = tmp_path / "cal.fits"
     res.write(path, inputs=["t.fits"])
     back = KernelPhaseData.read(path)

@@ -17,7 +17,8 @@ from kpifs.io.sphere import SPHERE_DETPA_OFFSET
 from kpifs.simulate import simulate_scene
 from kpifs.workflow import ExtractOptions, extract_observation
 
-pytestmark = pytest.mark.filterwarnings("ignore:.*Nyquist limit", "ignore:.*Ledoit-Wolf")
+pytestmark = pytest.mark.filterwarnings("ignore:.*Nyquist limit", "ignore:.*Ledoit-Wolf",
+                                        "ignore:.*to measure the calibration residual")
 
 
 @pytest.fixture(scope="module")

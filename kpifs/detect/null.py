@@ -103,9 +103,9 @@ class NullCalibration:
         self.noise_rows = noise_rows
         self.progress = progress
 
-    def _key(self):
+    def _key(self, form=None):
         h = hashlib.sha1(self.model.key().encode())
-        h.update(f"{self.form}|{self.n_draws}|{self.seed}|{self.spectrum!r}".encode())
+        h.update(f"{form or self.form}|{self.n_draws}|{self.seed}|{self.spectrum!r}".encode())
         if self.noise_rows is not None:
             h.update(np.ascontiguousarray(self.noise_rows).tobytes())
         return h.hexdigest()
@@ -117,55 +117,68 @@ class NullCalibration:
         if key in _CACHE:
             _CACHE[key] = _CACHE.pop(key)        # most recently used
             return _CACHE[key]
-        maxima = self._draw()
-        _CACHE[key] = maxima
+        for form, maxima in self._draw().items():
+            _CACHE[self._key(form)] = maxima
         while len(_CACHE) > _MAX_CACHE:
             _CACHE.pop(next(iter(_CACHE)))
-        return maxima
+        return _CACHE[key]
 
     def _draw(self, batch=1000):
-        """The draws. A signature at ``-pos`` is minus that at ``pos``, so on a
-        symmetric grid only half the positions are projected."""
+        """The draws, by form: the two binary forms come from the same projections
+        (limits need both). A signature at ``-pos`` is minus that at ``pos``, so on a
+        symmetric grid only half the positions are projected; with fewer noise rows
+        than kernel phases the rows are projected once and the draws combine them."""
         model, form, rows = self.model, self.form, self.noise_rows
         rng = as_rng(self.seed)
         q, p = len(model.wavelengths), model.kernel_model.n_kp
         positions, mirrored = model.half_positions()
         unit = model._unit_signatures(positions)                          # (q, npos, p)
+        forms = (form,) if form == "NP" else ("B", "B-paper")
         if form == "NP":
             mfw = model._mf_weights(self.spectrum).reshape(q, -1)[:, positions]
             mfw = mfw.astype(np.float32)
-        maxima = np.empty(self.n_draws)
+        # z = eps @ unit^T with eps = coef @ rows: project the rows once when they are few
+        via_rows = rows is not None and len(rows) < p
+        if via_rows:
+            proj = np.einsum("rip,inp->irn", rows.astype(np.float32), unit)   # (q, nrow, npos)
+        maxima = {f: np.empty(self.n_draws) for f in forms}
         starts = progress_bar(range(0, self.n_draws, batch), desc=f"calibrating sup-{form}",
                               unit="batch", enabled=self.progress)
         for a in starts:
             b = min(self.n_draws, a + batch)
-            t_pos = np.zeros((b - a, len(positions)), np.float32)
-            t_neg = np.zeros_like(t_pos) if mirrored else None
+            t_pos = {f: np.zeros((b - a, len(positions)), np.float32) for f in forms}
+            t_neg = {f: np.zeros_like(t_pos[f]) for f in forms} if mirrored else None
             if rows is not None:
                 coef = rng.standard_normal((b - a, len(rows)), dtype=np.float32)
-                joint = coef @ rows.reshape(len(rows), -1).astype(np.float32)
-                joint = joint.reshape(b - a, q, p)
+                if not via_rows:
+                    joint = (coef @ rows.reshape(len(rows), -1).astype(np.float32)).reshape(
+                        b - a, q, p)
             for i in range(q):
-                if rows is None:
-                    eps = rng.standard_normal((b - a, p), dtype=np.float32)
+                if via_rows:
+                    z = coef @ proj[i]
                 else:
-                    eps = joint[:, i]
-                z = eps @ unit[i].T
+                    eps = (rng.standard_normal((b - a, p), dtype=np.float32) if rows is None
+                           else joint[:, i])
+                    z = eps @ unit[i].T
                 if form == "NP":
-                    t_pos += mfw[i] * z
+                    t_pos["NP"] += mfw[i] * z
                     continue
                 zp = np.maximum(z, 0)
-                t_pos += zp * zp if form == "B" else zp
+                t_pos["B"] += zp * zp
+                t_pos["B-paper"] += zp
                 if mirrored:
                     zn = np.maximum(-z, 0)
-                    t_neg += zn * zn if form == "B" else zn
-            if form == "NP" and mirrored:
-                t_neg = -t_pos
-            best = t_pos.max(axis=1)
-            if mirrored:
-                best = np.maximum(best, t_neg.max(axis=1))
-            maxima[a:b] = best
-        maxima.sort()
+                    t_neg["B"] += zn * zn
+                    t_neg["B-paper"] += zn
+            for f in forms:
+                if f == "NP" and mirrored:
+                    t_neg[f] = -t_pos[f]
+                best = t_pos[f].max(axis=1)
+                if mirrored:
+                    best = np.maximum(best, t_neg[f].max(axis=1))
+                maxima[f][a:b] = best
+        for f in forms:
+            maxima[f].sort()
         return maxima
 
     def _tail(self):

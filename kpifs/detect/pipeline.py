@@ -78,7 +78,7 @@ def _prepare(kpd, shrinkage, allow_uncalibrated):
 
 
 def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
-           n_draws=30000, seed=0, shrinkage="auto", fit=True, max_candidates=5,
+           n_draws=30000, seed=0, shrinkage="auto", fit=True, max_candidates=20,
            allow_uncalibrated=False, progress=False):
     """Search calibrated kernel phases for a companion.
 
@@ -110,7 +110,11 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
     max_candidates : int
         Candidates are searched one at a time: the strongest peak above the
         threshold is fitted and its model subtracted before the map is
-        recomputed, so that side lobes of a companion are not reported.
+        recomputed, so that side lobes of a companion are not reported. Each
+        is judged, and its errors given, with the noise scaled by the reduced
+        chi-square of the residual (``chi2_red`` column, never below 1); maps
+        and limits use that of the final residual (``result.meta['chi2_red']``).
+        A warning says when the search stops at this number.
     allow_uncalibrated : bool
         Search data that no calibrator star was subtracted from.
 
@@ -151,7 +155,15 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
                            spectrum=spectrum if form == "NP" else None, noise_rows=rows,
                            progress=progress)
     threshold = null.threshold(pfa)
+    cands, kappa = _sequential_search(model, kp, w, kpd, threshold=threshold, null=null,
+                                      spectrum=spectrum, fit=fit, max_candidates=max_candidates,
+                                      dof=int(rank.sum()))
+    # the noise level the data show beyond the model (reduced chi-square of the residual
+    # after the candidates): statistics, errors and limits are scaled by it, never down
+    scale = max(1.0, kappa)
     t, c, cerr = model.maps(y, form, spectrum)
+    t = t / scale ** _POWER[form]
+    cerr = cerr * np.sqrt(scale)
     valid = grid.valid
     pglob = np.where(valid, null.pfa(t), np.nan)
     ploc = np.where(valid, model.local_pfa(t, form), np.nan)
@@ -181,11 +193,10 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
     if form == "NP":
         limits["NP"] = (threshold - stats.norm.isf(pd)) / np.sqrt(
             np.tensordot(a ** 2, model.norm2, axes=(0, 0)))
-    limits = {k: np.where(valid, v, np.nan) for k, v in limits.items()}
+    limits = {k: np.where(valid, v * np.sqrt(scale), np.nan) for k, v in limits.items()}
     curves = radial_curves(limits, grid)
-    cands = _sequential_search(model, kp, w, kpd, threshold=threshold, null=null,
-                               spectrum=spectrum, fit=fit, max_candidates=max_candidates)
     meta = {"test": test, "pfa": pfa, "pd": pd, "n_draws": n_draws, "seed": seed,
+            "chi2_red": kappa, "noise_scale": scale, "error_model": kpd.meta.get("error_model"),
             "calibrators": kpd.meta.get("calibrators", []),
             "source": kpd.meta.get("source", ""), "spectrum": a.tolist(),
             "lambda_energy": energy_lambda(pfa, pd, dof),
@@ -217,12 +228,31 @@ def _correlated_inputs(model, rows, a, energy, te, seed):
     return corr.reshape(shape + (q, q)), lim.reshape(shape)
 
 
-def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max_candidates):
-    """Strongest peak above threshold, fitted and subtracted, until none is left."""
+#: How each statistic scales with the noise variance (B: a sum of squares).
+_POWER = {"B": 1.0, "B-paper": 0.5, "NP": 0.5}
+
+
+def _chi2_red(residual, w, dof, n_par):
+    """Reduced chi-square of whitened kernel phases with *n_par* fitted parameters."""
+    return float(np.sum(whiten(residual, w) ** 2) / max(dof - n_par, 1))
+
+
+def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max_candidates,
+                       dof):
+    """Strongest peak above threshold, fitted and subtracted, until none is left.
+
+    Each peak is judged on its statistic scaled by the reduced chi-square of
+    the whitened residual once its model is subtracted (never scaled down), and
+    its errors are scaled likewise: a calibration residual the error model
+    missed inflates the chi-square instead of passing as companions. Returns
+    the candidates and the reduced chi-square of the final residual.
+    """
     rows = []
     residual = kp.copy()
     form = null.form
-    for _ in range(max_candidates):
+    q = kp.shape[0]
+    n_par = 2 + q
+    while len(rows) < max_candidates:
         tab = model.candidates(whiten(residual, w), threshold=threshold, form=form, null=null,
                                spectrum=spectrum)
         if not len(tab):
@@ -237,23 +267,45 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
             x, y, c = r["x"], r["y"], np.asarray(r["contrast"])
         x, y = x.to_value(u.mas), y.to_value(u.mas)
         att = 1.0 if kpd.window is None else float(kpd.window.at(np.hypot(x, y), kpd.pixscale))
-        residual = residual - kpd.kernel_model.binary_kernel_phases([x, y] * u.mas, c * att,
-                                                                    kpd.wavelengths)
+        after = residual - kpd.kernel_model.binary_kernel_phases([x, y] * u.mas, c * att,
+                                                                 kpd.wavelengths)
+        kappa = _chi2_red(after, w, dof, n_par * (len(rows) + 1))
+        scale = max(1.0, kappa)
+        stat = float(row["statistic"][0]) / scale ** _POWER[form]
+        if stat < threshold:
+            log.info("peak at (%.1f, %.1f) mas: statistic %.2f / chi2_red %.2f is below the "
+                     "threshold %.2f", x, y, float(row["statistic"][0]), kappa, threshold)
+            break
+        pfa, tail = null.pfa(np.array([stat]), return_method=True)
+        row["statistic"] = [stat]
+        row["pfa_global"], row["pfa_global_tail"] = pfa, tail
+        row["pfa_local"] = model.local_pfa(np.array([stat]), form)
+        row["contrast_err"] = row["contrast_err"] * np.sqrt(scale)
+        if fit:
+            for col in ("fit_x_err", "fit_y_err", "fit_contrast_err"):
+                row[col] = row[col] * np.sqrt(scale)
+        row["chi2_red"] = [kappa]
+        residual = after
         rows.append(row)
+    if len(rows) == max_candidates:
+        warnings.warn(f"{kpd.name}: the search stopped at max_candidates = {max_candidates}; "
+                      f"more peaks may lie above the threshold", KpifsWarning, stacklevel=3)
+    kappa = _chi2_red(residual, w, dof, n_par * len(rows))
     if not rows:
         empty = model.candidates(whiten(kp, w), threshold=np.inf, form=form, null=null,
                                  spectrum=spectrum)
         if fit:
             for col in ("fit_x", "fit_y", "fit_x_err", "fit_y_err"):
                 empty[col] = [] * u.mas
-            q = kp.shape[0]
             empty["fit_contrast"] = np.zeros((0, q))
             empty["fit_contrast_err"] = np.zeros((0, q))
             empty["fit_chi2"] = np.zeros(0)
-        return empty
+        empty["chi2_red"] = np.zeros(0)
+        return empty, kappa
     out = vstack(rows)
     out.meta = rows[0].meta
-    return out
+    out.meta["chi2_red"] = kappa
+    return out, kappa
 
 
 def _refine(cands, kp, w, kpd, noise_rows=None):

@@ -61,6 +61,19 @@ KPCOV_COPY_LIMIT = 64 * 2 ** 20
 # INSTRUME and TELESCOP of kpifs's instrument readers (when the header has none)
 _INSTRUMENT_CARDS = {"charis": ("CHARIS", "Subaru"), "sphere": ("SPHERE", "ESO-VLT-U3")}
 # telescope name -> diameter (m), the table fouriever uses when DIAM is absent
+#: Error-model parameters (``meta['error_model']``) <-> primary header cards.
+_ERROR_MODEL_CARDS = {
+    "model": ("EMMODEL", "error model: modes (kpifs.errormodel) or frames"),
+    "n_modes": ("EMNMODES", "modes of the frame scatter kept"),
+    "dof": ("EMDOF", "degrees of freedom nu = sum (N_s - 1)"),
+    "mode_fraction": ("EMFRAC", "modes kept / nu"),
+    "residual_method": ("EMRESID", "calibration-residual estimator"),
+    "residual_fraction": ("EMRFRAC", "residual share of the modelled variance"),
+    "tau_max": ("EMTAUMAX", "largest autocorrelation time (frames)"),
+    "tau_mean": ("EMTAU", "mean autocorrelation time (frames)"),
+    "inflation": ("EMINFL", "variance / independent-frame variance (mean)"),
+    "hartlap": ("EMHARTL", "Hartlap factor applied (frames model)"),
+}
 _TELESCOPE_DIAMETERS = (("ESO-VLT", 8.2), ("KECK", 10.95))
 
 # cards of an input header that describe its data array and must not be copied
@@ -433,6 +446,11 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
                              "[deg] DETPA span of the averaged target frames")
         hdr.add_history(f"kpifs {VERSION}: calibrated with "
                         f"{len(kpd.meta.get('calibrators', []))} calibrator(s)")
+    em = kpd.meta.get("error_model") or {}
+    for key, (name, comment) in _ERROR_MODEL_CARDS.items():
+        if em.get(key) is not None:
+            value = em[key]
+            hdr[name] = (round(value, 6) if isinstance(value, float) else value, comment)
     for line in history:
         hdr.add_history(line)
     hdr.add_history(f"kpifs {VERSION}: kernel phases of {kpd.meta.get('source', '?')}")
@@ -899,6 +917,9 @@ def _read_data(hdul, path, detpa):
         meta["n_target_frames"] = int(hdr["NFRTGT"])
     if _number(hdr.get("PASPAN")) is not None:
         meta["detpa_span"] = _number(hdr["PASPAN"])
+    em = {key: hdr[name] for key, (name, _) in _ERROR_MODEL_CARDS.items() if name in hdr}
+    if em:
+        meta["error_model"] = em
     if "BADFRMS" in hdr:
         meta["bad_frames"] = str(hdr["BADFRMS"])
         meta["n_dropped_frames"] = int(hdr.get("NDROPFR", 0))

@@ -68,6 +68,11 @@ def detection_hdulist(result, *, header=None, inputs=()):
         hdr[f"SPEC{i}"] = (float(a), "companion spectrum shape used for limits")
     hdr["NULLCHAN"] = (result.meta.get("null_channels", "independent"),
                        "channel model: null, B/E limits")
+    if result.meta.get("chi2_red") is not None:
+        hdr["CHI2RED"] = (round(float(result.meta["chi2_red"]), 6),
+                          "reduced chi2 of the whitened residual")
+        hdr["NOISESC"] = (round(float(result.meta.get("noise_scale", 1.0)), 6),
+                          "max(1, CHI2RED): variance scale of maps, limits")
     cals = result.meta.get("calibrators", [])
     hdr["CALIB"] = (len(cals) > 0, "calibrated with a calibrator star")
     for i, c in enumerate(cals, 1):
@@ -110,7 +115,7 @@ def detection_hdulist(result, *, header=None, inputs=()):
 _PRODUCT_CARDS = {"KPIFSVER", "CONTENT", "TEST", "MAPTEST", "PFA", "PD", "THRESH", "NDRAWS",
                   "PFAFLOOR",
                   "MCSEED", "NCAND", "ESTAT", "EDOF", "EPFA", "ETHRESH", "GRIDMIN", "GRIDMAX",
-                  "NULLCHAN", "CALIB"}
+                  "NULLCHAN", "CALIB", "CHI2RED", "NOISESC"}
 _PRODUCT_PREFIXES = ("WAVE", "SPEC", "KPCAL", "KPIN")
 
 

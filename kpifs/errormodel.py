@@ -1,0 +1,325 @@
+"""Error model of calibrated mean kernel phases from few, temporally correlated frames.
+
+On sky, the frames of a sequence are correlated in time (quasi-static
+aberrations drift), the calibrator never matches the target exactly, and there
+are often fewer frames than kernel phases. The covariance of the calibrated
+mean ``d = mean(T) - (1/M) sum_m mean(C_m)`` is therefore modelled, channel by
+channel, in a reduced basis:
+
+.. math:: {\\rm Cov}(d) = V^T {\\rm diag}(c) V, \\qquad
+          c_k = \\sum_s w_s^2 \\tau_{s,k} \\lambda^{\\rm cv}_{s,k} / N_s + r_k
+
+- ``V`` (K x p): the K leading modes of the pooled frame deviations of all
+  stars at that channel (weights ``w`` = 1 for the target, 1/M per calibrator). Only these
+  modes are used (dimension control): from ``nu = sum_s (N_s - 1)`` frames no
+  more than ~nu directions of a covariance are measured; K = ``n_modes`` x nu
+  (default 0.5).
+- ``lambda_cv``: the frame variance of each star along each mode, *cross-
+  validated* (modes from all but one time block, variance from the held-out
+  block): in-sample eigenvalues of few frames are biased low (the reason for
+  Hartlap-type factors); this removes the bias without assuming Wishart laws.
+- ``tau``: integrated autocorrelation time per star and group of modes, by
+  batch means (batches of ~sqrt(N) consecutive frames), at least 1: the
+  variance of a mean of correlated frames is ``tau lambda / N``.
+- ``r``: the calibration residual (the null hypothesis ``y = r + eps`` of
+  Ceau et al. 2019), measured on the data: from the differences between
+  calibrators when there are several ('cal-vs-cal'), otherwise from the
+  differences between the halves of each star's sequence ('split-halves'),
+  in excess of what the frame noise predicts, as a fraction of the frame
+  variance per group of modes. With too few frames for either, it is left to
+  the reduced chi-square of the detection (``'chi2'``, with a warning).
+
+The channels are tied together by the covariance rows: the pooled frame
+deviations projected on each channel's modes and rescaled, mode by mode, to
+the modelled variances, so that their Gram matrix is the model in every
+channel and carries the channels' mutual correlations as the frames show them
+(one optical-path error seen at every wavelength). The products store them
+(KP-COVROWS); detection whitens with their per-channel blocks and draws its
+Monte-Carlo null from them, so the two always agree (whitening channel by
+channel projects the data exactly on the modelled subspace: a joint basis
+would not). The remaining overall scale is measured at detection time by the
+reduced chi-square of the whitened residual.
+"""
+import logging
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .exceptions import KpifsError, KpifsWarning
+
+__all__ = ["ErrorModel", "fit_error_model", "RESIDUAL_METHODS"]
+
+log = logging.getLogger(__name__)
+
+#: Calibration-residual estimators (``'auto'`` picks the first that the data allow).
+RESIDUAL_METHODS = ("auto", "cal-vs-cal", "split-halves", "chi2", "none")
+#: Fewest frames of every star for cross-validation and batch means.
+MIN_FRAMES_CV = 6
+#: Fewest frames of every star for the split-halves residual.
+MIN_FRAMES_SPLIT = 8
+
+
+@dataclass
+class ErrorModel:
+    """Covariance model of calibrated mean kernel phases (see `kpifs.errormodel`).
+
+    Attributes
+    ----------
+    rows : ndarray (sum N_s, q, p)
+        Covariance rows: ``rows[:, i]^T rows[:, i]`` is the modelled covariance
+        of the mean at channel i, and cross products tie the channels.
+    variance : ndarray (q K,)
+        Modelled variance ``c_k`` along each mode, channel after channel.
+    naive_variance : ndarray (q K,)
+        What independent frames and in-sample eigenvalues would give.
+    tau : ndarray (n_stars, q n_groups)
+        Integrated autocorrelation times (target first).
+    residual : ndarray (q K,)
+        Calibration-residual variance ``r_k``.
+    residual_method : str
+    n_modes, dof : int
+        K (per channel) and ``nu = sum (N_s - 1)``.
+    """
+
+    rows: np.ndarray
+    variance: np.ndarray
+    naive_variance: np.ndarray
+    tau: np.ndarray
+    residual: np.ndarray
+    residual_method: str
+    n_modes: int
+    dof: int
+    mode_fraction: float
+    beta: np.ndarray = field(default=None)
+
+    @property
+    def inflation(self):
+        """Mean ratio of the modelled to the naive variance over the modes."""
+        return float(np.mean(self.variance / self.naive_variance))
+
+    def covariance(self, *, joint=False):
+        """Per-channel covariances (q, p, p), or the joint one (q p, q p) with *joint*."""
+        k, q, p = self.rows.shape
+        if joint:
+            r = self.rows.reshape(k, q * p)
+            return r.T @ r
+        return np.einsum("kip,kiq->ipq", self.rows, self.rows)
+
+    def meta(self):
+        """Plain numbers for product headers and ``meta['error_model']``."""
+        return {"model": "modes", "n_modes": int(self.n_modes), "dof": int(self.dof),
+                "mode_fraction": float(self.mode_fraction),
+                "residual_method": self.residual_method,
+                "tau_max": float(np.max(self.tau)), "tau_mean": float(np.mean(self.tau)),
+                "residual_fraction": float(np.sum(self.residual) / np.sum(self.variance)),
+                "inflation": self.inflation}
+
+
+def _groups(k, n_groups):
+    """Contiguous groups of mode ranks (about equal sizes, at least 3 modes each)."""
+    return np.array_split(np.arange(k), max(1, min(n_groups, k // 3)))
+
+
+def _per_mode(values, groups):
+    return np.concatenate([np.full(len(g), v) for g, v in zip(groups, values)])
+
+
+def _cross_validated(sets, w, n, k, n_blocks):
+    """Frame variance of each set along the K leading modes, held-out time blocks."""
+    blocks = [np.array_split(np.arange(ni), min(n_blocks, ni // 2)) for ni in n]
+    nb = min(len(b) for b in blocks)
+    num, den = np.zeros((len(sets), k)), np.zeros(len(sets))
+    for b in range(nb):
+        train, held = [], []
+        for si, (x, ni) in enumerate(zip(sets, n)):
+            idx = blocks[si][b]
+            xt = np.delete(x, idx, axis=0)
+            train.append(w[si] * (xt - xt.mean(0)) / np.sqrt(ni * (len(xt) - 1)))
+            held.append(x[idx] - x[idx].mean(0))
+        vb = np.linalg.svd(np.vstack(train), full_matrices=False)[2][:k]
+        for si, h in enumerate(held):
+            num[si] += np.sum((h @ vb.T) ** 2, 0)
+            den[si] += len(h) - 1
+    return num / den[:, None]
+
+
+def _smooth(ratio, width=5):
+    if ratio.shape[1] <= width:
+        return ratio
+    ker = np.ones(width) / width
+    pad = width // 2
+    return np.array([np.convolve(np.pad(r, pad, mode="edge"), ker, "valid")[:ratio.shape[1]]
+                     for r in ratio])
+
+
+def _tau(proj, lam, n, groups):
+    """Autocorrelation time per set and group of modes by batch means (>= 1)."""
+    tau = np.ones((len(proj), len(groups)))
+    for si, (a, ni) in enumerate(zip(proj, n)):
+        bl = max(2, int(round(np.sqrt(ni))))
+        nbat = ni // bl
+        if nbat < 3:
+            continue
+        bm = a[:nbat * bl].reshape(nbat, bl, -1).mean(1)
+        r = bl * bm.var(0, ddof=1) / np.where(lam[si] > 0, lam[si], np.inf)
+        tau[si] = [max(1.0, float(np.mean(r[g]))) for g in groups]
+    return tau
+
+
+def _channel_model(sets, w, n, k, n_groups, cv_blocks, residual):
+    """The modes, variances and parameters of one channel (`fit_error_model`)."""
+    nu = int(np.sum(n - 1))
+    means = [x.mean(0) for x in sets]
+    devs = [x - mu for x, mu in zip(sets, means)]
+    pooled = np.vstack([wi * dv / np.sqrt(ni * (ni - 1)) for wi, dv, ni in zip(w, devs, n)])
+    _, s, vt = np.linalg.svd(pooled, full_matrices=False)
+    e_all = s ** 2
+    rank = int(np.sum(e_all > 1e-12 * e_all[0])) if e_all.size and e_all[0] > 0 else 0
+    if rank == 0:
+        return None
+    k = int(np.clip(k, 1, max(1, min(rank, nu - 2))))
+    v, e = vt[:k], e_all[:k]
+    proj = [dv @ v.T for dv in devs]
+    lam = np.array([np.sum(a ** 2, 0) / (ni - 1) for a, ni in zip(proj, n)])   # (S, K)
+    groups = _groups(k, n_groups)
+    if np.all(n >= MIN_FRAMES_CV):
+        lcv = _cross_validated(sets, w, n, k, cv_blocks)
+        ratio = _smooth(np.where(lam > 0, lcv / np.where(lam > 0, lam, 1.0), 1.0))
+        lcv = lam * np.maximum(ratio, 1.0)
+        tau = _tau(proj, lam, n, groups)
+    else:
+        lcv, tau = lam, np.ones((len(sets), len(groups)))
+    tau_k = np.stack([_per_mode(ti, groups) for ti in tau])
+    noise = np.sum((w ** 2 / n)[:, None] * tau_k * lcv, 0)
+    beta = np.zeros((1, len(groups)))
+    if residual == "cal-vs-cal":
+        fr = []
+        for a in range(1, len(sets)):
+            for b in range(a + 1, len(sets)):
+                delta = (means[a] - means[b]) @ v.T
+                pred = tau_k[a] * lcv[a] / n[a] + tau_k[b] * lcv[b] / n[b]
+                fr.append((delta ** 2 - pred) / (lam[a] + lam[b]))
+        frac = np.mean(fr, axis=0)
+        beta = np.clip([[np.mean(frac[g]) for g in groups]], 0, None)
+        r_k = np.sum((w ** 2)[:, None] * _per_mode(beta[0], groups) * lam, 0)
+    elif residual == "split-halves":
+        beta = np.zeros((len(sets), len(groups)))
+        for si, (x, ni) in enumerate(zip(sets, n)):
+            h = ni // 2
+            delta = (x[:h].mean(0) - x[h:].mean(0)) @ v.T
+            pred = tau_k[si] * lcv[si] * (1 / h + 1 / (ni - h))
+            frac = (delta ** 2 - pred) / (2 * lam[si])
+            beta[si] = np.clip([np.mean(frac[g]) for g in groups], 0, None)
+        r_k = np.sum((w ** 2)[:, None] * np.stack([_per_mode(b, groups) for b in beta]) * lam, 0)
+    else:
+        r_k = np.zeros(k)
+    return {"v": v, "c": noise + r_k, "e": e, "tau": tau, "beta": beta, "r": r_k, "k": k}
+
+
+def fit_error_model(target, calibrators, *, n_modes=0.5, residual="auto", n_groups=4,
+                    cv_blocks=10, source="target"):
+    """Fit the error model of `kpifs.errormodel` to the frames of a target and calibrators.
+
+    The modes are those of each channel (so that whitening channel by channel
+    projects the data exactly onto the modelled subspace); the covariance rows
+    are the pooled frame deviations projected on them and rescaled to the
+    modelled variances, so that they carry the channels' mutual correlations
+    as the frames show them.
+
+    Parameters
+    ----------
+    target : array-like (N_t, q, p)
+        Kernel phases of the target's frames, in time order.
+    calibrators : list of array-like (N_c, q, p)
+        Kernel phases of each calibrator's frames, in time order.
+    n_modes : float or int
+        Modes kept per channel: a fraction of ``nu = sum (N_s - 1)`` (float <= 1)
+        or a number.
+    residual : {'auto', 'cal-vs-cal', 'split-halves', 'chi2', 'none'}
+        Calibration-residual estimator. ``'auto'``: 'cal-vs-cal' with two or
+        more calibrators, else 'split-halves' when every star has at least
+        `MIN_FRAMES_SPLIT` frames, else 'chi2' (left to the detection's reduced
+        chi-square, with a `~kpifs.KpifsWarning`).
+    n_groups : int
+        Groups of mode ranks sharing one autocorrelation time and one residual fraction.
+    cv_blocks : int
+        Time blocks of the cross-validation.
+
+    Returns
+    -------
+    `ErrorModel`
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.errormodel import fit_error_model
+    >>> rng = np.random.default_rng(0)
+    >>> mix = rng.standard_normal((6, 2 * 40))          # 6 aberration modes, 2 channels
+    >>> def frames(n):                                     # drifting: a random walk
+    ...     drift = np.cumsum(rng.standard_normal((n, 6)), axis=0) * 0.3
+    ...     return (drift @ mix + rng.standard_normal((n, 80))).reshape(n, 2, 40)
+    >>> em = fit_error_model(frames(40), [frames(40)])
+    >>> em.rows.shape, em.n_modes, em.residual_method, bool(em.tau.max() > 1.5)
+    ((80, 2, 40), 39, 'split-halves', True)
+    """
+    if residual not in RESIDUAL_METHODS:
+        raise KpifsError(f"unknown residual estimator {residual!r}: use one of "
+                         f"{RESIDUAL_METHODS}")
+    t = np.asarray(target, float)
+    cals = [np.asarray(c, float) for c in calibrators]
+    if not cals:
+        raise KpifsError(f"{source}: the error model needs at least one calibrator")
+    shape = t.shape[1:]
+    for x in [t] + cals:
+        if x.ndim != 3 or x.shape[1:] != shape:
+            raise KpifsError(f"{source}: frame sets of shapes {t.shape} and {x.shape} do not "
+                             f"match")
+        if len(x) < 3:
+            raise KpifsError(f"{source}: {len(x)} frame(s) are too few for an error model")
+    q, p = shape
+    m = len(cals)
+    sets = [t] + cals
+    w = np.array([1.0] + [1.0 / m] * m)
+    n = np.array([len(x) for x in sets])
+    nu = int(np.sum(n - 1))
+    k = int(np.floor(n_modes * nu)) if isinstance(n_modes, float) and n_modes <= 1 \
+        else int(n_modes)
+    method = residual
+    if method == "auto":
+        method = ("cal-vs-cal" if m >= 2 else
+                  "split-halves" if np.all(n >= MIN_FRAMES_SPLIT) else "chi2")
+    if method == "cal-vs-cal" and m < 2:
+        raise KpifsError(f"{source}: 'cal-vs-cal' needs two calibrators or more")
+    if method == "split-halves" and not np.all(n >= 4):
+        raise KpifsError(f"{source}: 'split-halves' needs at least 4 frames per star")
+    pooled = np.concatenate([wi * (x - x.mean(0)) / np.sqrt(ni * (ni - 1))
+                             for wi, x, ni in zip(w, sets, n)])         # (sum N, q, p)
+    rows = np.zeros_like(pooled)
+    chans = []
+    for i in range(q):
+        ch = _channel_model([x[:, i] for x in sets], w, n, k, n_groups, cv_blocks, method)
+        if ch is None:
+            raise KpifsError(f"{source}: the frames do not vary at channel {i}: no noise to "
+                             f"model")
+        # pooled deviations on the channel's modes, each mode rescaled to its model variance
+        coef = (pooled[:, i] @ ch["v"].T) * np.sqrt(ch["c"] / ch["e"])
+        rows[:, i] = coef @ ch["v"]
+        chans.append(ch)
+    if method == "chi2":
+        warnings.warn(f"{source}: too few frames ({n.tolist()}) to measure the calibration "
+                      f"residual between calibrators or halves of a sequence: it is left to "
+                      f"the reduced chi-square of the detection (errors and limits are "
+                      f"scaled by it)", KpifsWarning, stacklevel=2)
+    c = np.concatenate([ch["c"] for ch in chans])
+    e = np.concatenate([ch["e"] for ch in chans])
+    tau = np.concatenate([ch["tau"] for ch in chans], axis=1)
+    kk = int(np.max([ch["k"] for ch in chans]))
+    log.info("%s: error model of %d modes per channel (nu = %d): autocorrelation times up to "
+             "%.2f, residual by %s, variance x%.2f over independent frames", source, kk, nu,
+             float(tau.max()), method, float(np.mean(c / e)))
+    return ErrorModel(rows=rows, variance=c, naive_variance=e, tau=tau,
+                      residual=np.concatenate([ch["r"] for ch in chans]),
+                      residual_method=method, n_modes=kk, dof=nu,
+                      mode_fraction=float(kk / nu),
+                      beta=np.concatenate([ch["beta"] for ch in chans], axis=1))

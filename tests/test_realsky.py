@@ -1,0 +1,116 @@
+"""Honest statistics on the real PHARO frames (issue 14): no false alarm when eps Her
+calibrates itself, alpha Oph's companion alone, and injection-recovery into real frames
+with pulls of unit scatter and limits that match detection."""
+import numpy as np
+import pytest
+import astropy.units as u
+
+from kpifs import KernelModel, extract_kernel_phases, make_pupil
+from kpifs.calibrate import calibrate
+from kpifs.detect import detect
+from kpifs.io import read_cube
+from kpifs.window import ExtractionWindow
+
+pytestmark = [pytest.mark.realdata, pytest.mark.slow]
+
+PIX = 25 * u.mas
+WL = [2.145] * u.um
+
+
+@pytest.fixture(scope="module")
+def pharo(real_data):
+    km = KernelModel.from_pupil(make_pupil("pharo", step=0.16 * u.m))
+    out = {"model": km}
+    for role, name in (("alpha_oph", "pharo_tgt_cube_alphaOph.fits"),
+                       ("eps_her", "pharo_ca2_cube_epsHer.fits")):
+        with read_cube(real_data / name, wavelengths=WL, pixscale=PIX) as cube:
+            out[role] = np.array(cube.data, float)
+    out["window"] = ExtractionWindow.default(out["eps_her"].shape[-2:])
+    return out
+
+
+def _kp(pharo, frames):
+    return extract_kernel_phases(frames, pharo["model"], wavelengths=WL, pixscale=PIX,
+                                 window=pharo["window"], keep_phases=False)
+
+
+def _search(pharo, target, calibrator, seed=0):
+    return detect(calibrate(_kp(pharo, target), _kp(pharo, calibrator)), pfa=1e-3, seed=seed)
+
+
+@pytest.mark.parametrize("split", ["halves", "halves swapped", "odd/even", "even/odd",
+                                   "quarters 1/3", "quarters 2/4"])
+def test_eps_her_calibrating_itself_gives_no_candidate(pharo, split):
+    f = pharo["eps_her"]
+    t, c = {"halves": (f[:50], f[50:]), "halves swapped": (f[50:], f[:50]),
+            "odd/even": (f[1::2], f[::2]), "even/odd": (f[::2], f[1::2]),
+            "quarters 1/3": (f[:25], f[50:75]), "quarters 2/4": (f[25:50], f[75:])}[split]
+    res = _search(pharo, t, c)
+    # before the error model: 5 candidates (the cap) in every split
+    assert len(res.candidates) == 0, res.candidates
+    assert res.meta["error_model"]["model"] == "modes"
+
+
+def test_alpha_oph_companion_alone(pharo):
+    res = _search(pharo, pharo["alpha_oph"], pharo["eps_her"])
+    tab = res.candidates
+    assert len(tab) == 1, tab
+    sep = float(np.hypot(tab["fit_x"][0].value, tab["fit_y"][0].value))
+    assert abs(sep - 124) < 10
+    c, err = float(tab["fit_contrast"][0][0]), float(tab["fit_contrast_err"][0][0])
+    # the calibration residual between two stars inflates the fit (chi2_red ~ 50): the
+    # error says so (was 1.9e-4 on 0.028)
+    assert 0.025 < c < 0.045 and 1e-3 < err < 6e-3
+    assert tab["chi2_red"][0] > 5
+
+
+def _shift(imgs, dx, dy, pad=32):
+    ny, nx = imgs.shape[-2:]
+    big = np.zeros(imgs.shape[:-2] + (ny + 2 * pad, nx + 2 * pad))
+    big[..., pad:pad + ny, pad:pad + nx] = imgs
+    fy = np.fft.fftfreq(ny + 2 * pad)[:, None]
+    fx = np.fft.fftfreq(nx + 2 * pad)[None, :]
+    out = np.fft.ifft2(np.fft.fft2(big) * np.exp(-2j * np.pi * (fx * dx + fy * dy))).real
+    return out[..., pad:pad + ny, pad:pad + nx]
+
+
+def test_injections_into_eps_her(pharo):
+    """20 companions (100-600 mas, contrasts 2e-3 to 3e-2) injected into frames 0-49 as
+    shifted, scaled copies of the frames themselves; frames 50-99 calibrate."""
+    f = pharo["eps_her"]
+    cal = _kp(pharo, f[50:])
+    rng = np.random.default_rng(7)
+    pulls, found, strong_err, false = [], [], [], 0
+    for i in range(20):
+        r, th = rng.uniform(100, 600), rng.uniform(0, 2 * np.pi)
+        x, y = r * np.cos(th), r * np.sin(th)
+        c = float(np.exp(rng.uniform(np.log(2e-3), np.log(3e-2))))
+        tgt = _kp(pharo, f[:50] + c * _shift(f[:50], x / 25, y / 25))
+        res = detect(calibrate(tgt, cal), pfa=1e-3, seed=i)
+        tab = res.candidates
+        g, lim = res.grid, res.limits["B"]
+        k = np.nanargmin(np.where(np.isnan(lim), np.inf, np.hypot(g.X - x, g.Y - y)))
+        ratio = c / float(lim.ravel()[k])
+        d = np.hypot(tab["fit_x"].value - x, tab["fit_y"].value - y) if len(tab) else []
+        hit = [j for j in range(len(tab)) if d[j] < 40]
+        false += len(tab) - len(hit)
+        found.append((ratio, bool(hit)))
+        if hit:
+            row = tab[hit[0]]
+            pulls += [(float(row["fit_contrast"][0]) - c) / float(row["fit_contrast_err"][0]),
+                      (row["fit_x"].value - x) / row["fit_x_err"].value,
+                      (row["fit_y"].value - y) / row["fit_y_err"].value]
+            fc, ec = float(row["fit_contrast"][0]), float(row["fit_contrast_err"][0])
+            if fc / ec > 20:                         # a strong detection: 5 % errors
+                strong_err.append(fc / c - 1)
+    rms = float(np.sqrt(np.mean(np.square(pulls))))
+    assert false == 0
+    assert 0.7 < rms < 1.6, rms                   # before: pulls of ~6 sigma
+    # within 10 % for most; the binary pupil model (partly covered cells left out) biases
+    # some low by up to ~17 % (the pupil-model issue): the median is what the errors show
+    assert len(strong_err) >= 3 and np.all(np.abs(strong_err) < 0.2), strong_err
+    assert abs(np.median(strong_err)) < 0.05
+    above = [hit for ratio, hit in found if ratio > 2]
+    below = [hit for ratio, hit in found if ratio < 0.5]
+    assert len(above) >= 5 and all(above)          # twice the P_D = 0.5 limit: found
+    assert not any(below)                          # half of it: not found
