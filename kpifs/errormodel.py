@@ -80,6 +80,15 @@ class ErrorModel:
     residual_method : str
     n_modes, dof : int
         K (per channel) and ``nu = sum (N_s - 1)``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.errormodel import fit_error_model
+    >>> rng = np.random.default_rng(1)
+    >>> em = fit_error_model(rng.standard_normal((30, 1, 50)), [rng.standard_normal((30, 1, 50))])
+    >>> em.covariance().shape, em.n_modes, em.dof, em.meta()["residual_method"]
+    ((1, 50, 50), 29, 58, 'split-halves')
     """
 
     rows: np.ndarray

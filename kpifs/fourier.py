@@ -138,6 +138,16 @@ class FourierOperator:
         Floating-point operations per image of the matrix products (0 for nufft).
     nbytes : int
         Memory held by the operator.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.fourier import fourier_operator
+    >>> uv = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])    # baselines (m)
+    >>> op = fourier_operator(uv, 1.6e-6, 4.85e-8, (8, 8), method="dense")
+    >>> re, im = op.apply(np.ones((2, 8, 8)))
+    >>> op.method, re.shape
+    ('dense', (2, 3))
     """
 
     def __init__(self, uv, wavelength, pixscale, shape, method, *, dtype=np.float64,
@@ -328,7 +338,15 @@ def fourier_operator(uv, wavelength, pixscale, shape, *, method="auto", dtype=np
 
 
 def clear_cache():
-    """Empty the module-level cache of Fourier operators."""
+    """Empty the module-level cache of Fourier operators.
+
+    Examples
+    --------
+    >>> from kpifs.fourier import cache_info, clear_cache
+    >>> clear_cache()
+    >>> cache_info()[0]
+    0
+    """
     with _cache_lock:
         _cache.clear()
 

@@ -225,10 +225,12 @@ def test_every_public_object_has_a_runnable_example():
     import importlib
     import inspect
     mods = ["kpifs", "kpifs.pupil", "kpifs.kernel", "kpifs.window", "kpifs.data",
-            "kpifs.prepare", "kpifs.extract", "kpifs.simulate", "kpifs.io", "kpifs.io.wavelengths",
+            "kpifs.prepare", "kpifs.extract", "kpifs.fourier", "kpifs.simulate", "kpifs.io",
+            "kpifs.io.wavelengths",
             "kpifs.io.angles", "kpifs.io.charis", "kpifs.io.sphere",
             "kpifs.io.layouts", "kpifs.io.products", "kpifs.io.kpfits", "kpifs.calibrate",
-            "kpifs.covariance", "kpifs.detect", "kpifs.detect.stats", "kpifs.detect.limits",
+            "kpifs.covariance", "kpifs.errormodel", "kpifs.detect", "kpifs.detect.stats",
+            "kpifs.detect.limits",
             "kpifs.detect.fit", "kpifs.detect.null", "kpifs.detect.maps", "kpifs.detect.roc",
             "kpifs.plotting", "kpifs.workflow", "kpifs.batch", "kpifs.demo", "kpifs.cli"]
     missing = []
