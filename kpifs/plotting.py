@@ -13,7 +13,7 @@ from astropy import units as u
 from ._utils import atomic_write
 
 __all__ = ["plot_detection_map", "plot_contrast_curves", "plot_candidate_spectrum",
-           "plot_roc", "save_detection_plots", "save_roc_plots"]
+           "plot_roc", "plot_injection_limits", "save_detection_plots", "save_roc_plots"]
 
 
 def _save(fig, path, *, dpi=100):
@@ -88,6 +88,43 @@ def plot_contrast_curves(result, *, ax=None):
     ax.set_xlabel("separation (mas)")
     ax.set_ylabel("limiting contrast")
     ax.set_title(f"P_FA = {result.pfa:g}, P_D = {result.pd:g}")
+    ax.legend(fontsize=8)
+    return fig
+
+
+def plot_injection_limits(table, *, analytic=None, ax=None):
+    """Empirical 50 % limit from injections (points: found / not found) beside the analytic one.
+
+    *table* is `~kpifs.inject.injection_limits`'s; *analytic* a
+    `~kpifs.DetectionResult` of the same data without injections (its B median curve).
+
+    Examples
+    --------
+    >>> import astropy.units as u
+    >>> from astropy.table import QTable
+    >>> from kpifs.plotting import plot_injection_limits
+    >>> tab = QTable({"separation": [100, 100] * u.mas, "contrast": [1e-3, 3e-3],
+    ...               "n_injected": [4, 4], "n_detected": [0, 4], "pd": [0.0, 1.0]})
+    >>> tab.meta.update(limits=[1.7e-3], separations_mas=[100.0], pd=0.5, pfa=1e-3)
+    >>> plot_injection_limits(tab).axes[0].get_ylabel()
+    'contrast'
+    """
+    fig, ax = _axes(ax)
+    sep = np.asarray(table["separation"].to_value(u.mas))
+    c = np.asarray(table["contrast"], float)
+    p = np.asarray(table["pd"], float)
+    sc = ax.scatter(sep, c, c=p, cmap="RdYlGn", vmin=0, vmax=1, s=25, edgecolors="k",
+                    linewidths=0.3)
+    fig.colorbar(sc, ax=ax, label="fraction detected")
+    ax.plot(table.meta["separations_mas"], table.meta["limits"], "ko-",
+            label=f"injections, P_D = {table.meta.get('pd', 0.5):g}")
+    if analytic is not None and "B_median" in analytic.curves.colnames:
+        ax.plot(analytic.curves["separation"].to_value(u.mas), analytic.curves["B_median"],
+                "b--", label="analytic (B, median)")
+    ax.set_yscale("log")
+    ax.set_xlabel("separation (mas)")
+    ax.set_ylabel("contrast")
+    ax.set_title(f"P_FA = {table.meta.get('pfa', float('nan')):g}")
     ax.legend(fontsize=8)
     return fig
 

@@ -229,7 +229,8 @@ def test_every_public_object_has_a_runnable_example():
             "kpifs.io.wavelengths",
             "kpifs.io.angles", "kpifs.io.charis", "kpifs.io.sphere",
             "kpifs.io.layouts", "kpifs.io.products", "kpifs.io.kpfits", "kpifs.calibrate",
-            "kpifs.covariance", "kpifs.errormodel", "kpifs.detect", "kpifs.detect.stats",
+            "kpifs.covariance", "kpifs.errormodel", "kpifs.inject", "kpifs.detect",
+            "kpifs.detect.stats",
             "kpifs.detect.limits",
             "kpifs.detect.fit", "kpifs.detect.null", "kpifs.detect.maps", "kpifs.detect.roc",
             "kpifs.plotting", "kpifs.workflow", "kpifs.batch", "kpifs.demo", "kpifs.cli"]

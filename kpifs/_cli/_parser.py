@@ -42,6 +42,16 @@ every entry is reduced as 'kpifs extract TARGET --calibrator CAL' then 'kpifs de
 would with the same options; exit status 1 if any entry failed (see summary.ecsv);
 a rerun skips entries already done.
 """
+EPILOG_INJECT = """examples:
+  kpifs inject cube.fits --position 150,-80mas --contrast 5e-3 -o injected.fits
+  kpifs inject target/CRSA*_cube.fits --position 120,40mas --sky --contrast 2e-3,1.5e-3 \
+      -o injected.fits
+  kpifs inject tgt.fits --calibrator cal.fits --curve --separations 100,200,400mas \
+      --contrasts 1e-3,2e-3,5e-3,1e-2 --angles 6 -o curve.fits --plots figures
+an injected companion is each frame's own image, shifted and scaled (per channel);
+--curve reruns the whole reduction for every injection and writes the contrast at
+which half are found at --pfa beside the analytic limit.
+"""
 EPILOG_INFO = """examples:
   kpifs info target/CRSA00000000_cube.fits
   kpifs info kp.fits
@@ -168,6 +178,36 @@ def build_parser():
     _pupil_options(p)
     _extraction_options(p)
     _output(p, "output KPFITS file")
+
+    p = command("inject", "inject companions into cubes; injection contrast curve",
+                EPILOG_INJECT)
+    p.add_argument("cubes", nargs="+", metavar="CUBE", help="FITS cube(s) of the target")
+    p.add_argument("--position", help="companion offset x,y (detector) or dRA,dDec (--sky), "
+                                      "e.g. 150,-80mas")
+    p.add_argument("--sky", action="store_true",
+                   help="--position is on the sky (East positive), turned by each frame's "
+                        "detector position angle")
+    p.add_argument("--contrast", help="contrast, or one per channel (comma list)")
+    p.add_argument("--pa", metavar="DEG|LIST|FILE", help="detector position angles (see "
+                                                         "extract)")
+    p.add_argument("--curve", action="store_true",
+                   help="measure the injection contrast curve instead (needs --calibrator)")
+    p.add_argument("--calibrator", action="append", nargs="+", metavar="CUBE",
+                   help="with --curve: cube(s) of a calibrator (repeat for several)")
+    p.add_argument("--separations", default="100,200,400mas",
+                   help="with --curve: separations (default 100,200,400mas)")
+    p.add_argument("--contrasts", default="1e-3,2e-3,5e-3,1e-2,2e-2",
+                   help="with --curve: contrast ladder (default 1e-3,2e-3,5e-3,1e-2,2e-2)")
+    p.add_argument("--angles", type=int, default=6,
+                   help="with --curve: position angles per step (default 6)")
+    p.add_argument("--pfa", type=float, default=1e-3, help="global P_FA (default 1e-3)")
+    p.add_argument("--draws", type=int, default=10000, help="Monte-Carlo draws (default 10000)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the angles (default 0)")
+    p.add_argument("--plots", metavar="DIR", help="with --curve: write the figure there")
+    _cube_options(p)
+    _pupil_options(p)
+    _extraction_options(p)
+    _output(p, "output FITS file (injected cube, or the curve with --curve)")
 
     p = command("info", "describe a cube, KPFITS, model or detection file", EPILOG_INFO)
     p.add_argument("files", nargs="+", metavar="FILE")

@@ -1,0 +1,110 @@
+"""``kpifs inject``: companions made of each frame's own PSF; the injection contrast curve."""
+from pathlib import Path
+
+import numpy as np
+from astropy import units as u
+from astropy.io import fits
+from astropy.table import QTable
+
+from .._meta import VERSION
+from .._utils import check_output_dir, check_output_path, to_quantity, write_hdulist
+from ..exceptions import KpifsError
+from ..inject import inject_companion, injection_limits
+from ..io import parse_wavelengths, read_cube
+from ..io.angles import frame_detpa
+from ..io.layouts import write_plain_cube
+from ..plotting import _save, plot_injection_limits
+from ..workflow import (calibrate_observation, calibrator_options, detect_observation,
+                        extract_observation, kernel_model_for, DetectOptions)
+from ._options import extract_options
+
+
+def _floats(text, name, unit=None):
+    try:
+        if unit is not None:
+            return to_quantity(text, unit, name=name)
+        return np.array([float(v) for v in str(text).split(",")])
+    except (ValueError, TypeError) as exc:
+        raise KpifsError(f"{name}: cannot read {text!r} ({exc})") from None
+
+
+def _read(args, options):
+    wl = parse_wavelengths(options.wavelengths, source="--wavelengths")
+    ps = (None if options.pixscale is None
+          else to_quantity(options.pixscale, u.mas, name="pixel scale"))
+    with read_cube(args.cubes, instrument=options.instrument, wavelengths=wl,
+                   pixscale=ps) as cube:
+        detpa = None if cube.detpa is None else cube.detpa.to_value(u.deg)
+        return (np.array(cube.data, float), cube.wavelengths, cube.pixscale, detpa,
+                cube.instrument, cube.name)
+
+
+def run(args):
+    options = extract_options(args)
+    check_output_path(args.output, overwrite=args.overwrite)
+    if args.plots:
+        check_output_dir(args.plots)
+    data, wl, ps, detpa, instrument, name = _read(args, options)
+    if args.pa is not None:
+        detpa = frame_detpa(args.pa, data.shape[0], source="--pa")
+    if not args.curve:
+        if args.position is None or args.contrast is None:
+            raise KpifsError("inject: give --position and --contrast (or --curve)")
+        pos = _floats(args.position, "--position", u.mas)
+        c = _floats(args.contrast, "--contrast")
+        out = inject_companion(data, position=pos, contrast=c if c.size > 1 else c[0],
+                               pixscale=ps, frame="sky" if args.sky else "detector",
+                               detpa=detpa)
+        cards = {"INJFRAME": ("sky" if args.sky else "detector", "frame of INJPOS1/2"),
+                 "INJPOS1": (float(pos.value[0]), "[mas] injected offset x or dRA"),
+                 "INJPOS2": (float(pos.value[1]), "[mas] injected offset y or dDec"),
+                 "INJSRC": (str(name)[:60], "cube the companion was injected into")}
+        for i, v in enumerate(np.broadcast_to(c, (len(wl),)), 1):
+            cards[f"INJC{i}"] = (float(v), f"injected contrast, channel {i}")
+        write_plain_cube(args.output, out, wl, ps, cards=cards, overwrite=args.overwrite)
+        with fits.open(args.output, mode="update") as h:
+            h[0].header.add_history(f"kpifs {VERSION}: companion injected into {name}")
+        print(f"injected a companion at {args.position} ({'sky' if args.sky else 'detector'}) "
+              f"with contrast {args.contrast} into {name} -> {args.output}")
+        return 0
+    if not args.calibrator:
+        raise KpifsError("inject --curve: give the calibrator's cubes (--calibrator)")
+    model = kernel_model_for(options, instrument)
+    cals = [extract_observation(c, calibrator_options(options), model=model)
+            for c in args.calibrator]
+    window = options.window_for(data.shape)
+    seps = _floats(args.separations, "--separations", u.mas)
+    ladder = _floats(args.contrasts, "--contrasts")
+    tab = injection_limits(data, cals, cals[0].kernel_model, wavelengths=wl, pixscale=ps,
+                           window=window, separations=seps, contrasts=ladder,
+                           n_angles=args.angles, pfa=args.pfa, seed=args.seed,
+                           n_draws=args.draws, progress=not args.quiet)
+    target = extract_observation(args.cubes, options, model=model)
+    analytic = detect_observation(calibrate_observation(target, cals, options),
+                                  DetectOptions(pfa=args.pfa, draws=args.draws, seed=args.seed))
+    ana = np.interp(seps.value, analytic.curves["separation"].to_value(u.mas),
+                    analytic.curves["B_median"], left=np.nan, right=np.nan)
+    lim = QTable({"separation": seps, "limit_injection": tab.meta["limits"],
+                  "limit_analytic": ana})
+    hdr = fits.Header()
+    hdr["CONTENT"] = ("KPIFS-INJECTION", "kpifs injection-recovery contrast curve")
+    hdr["KPIFSVER"] = (VERSION, "kpifs version")
+    hdr["PFA"] = (args.pfa, "global false-alarm probability of the detections")
+    hdr["PD"] = (0.5, "detection probability of the limits")
+    hdr["NANGLES"] = (args.angles, "position angles per separation and contrast")
+    hdr["SEED"] = (args.seed, "seed of the position angles")
+    hdr.add_history(f"kpifs {VERSION}: injections into {name}")
+    t1 = fits.table_to_hdu(tab)
+    t1.name = "INJECTIONS"
+    t2 = fits.table_to_hdu(lim)
+    t2.name = "LIMITS"
+    write_hdulist(fits.HDUList([fits.PrimaryHDU(header=hdr), t1, t2]), args.output,
+                  overwrite=args.overwrite)
+    print(f"injection curve of {name} (P_FA {args.pfa:g}, P_D 0.5) -> {args.output}")
+    for s, a, b in zip(seps.value, tab.meta["limits"], ana):
+        print(f"  {s:.0f} mas: injections {a:.2e}, analytic {b:.2e}")
+    if args.plots:
+        Path(args.plots).mkdir(parents=True, exist_ok=True)
+        _save(plot_injection_limits(tab, analytic=analytic), f"{args.plots}/injection_limits.png")
+        print(f"  figure in {args.plots}/")
+    return 0

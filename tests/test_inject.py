@@ -1,0 +1,69 @@
+"""Companions injected into cubes (kpifs.inject, kpifs inject)."""
+import hashlib
+
+import numpy as np
+import pytest
+import astropy.units as u
+from astropy.io import fits
+
+from kpifs import KpifsError
+from kpifs.cli import main
+from kpifs.inject import inject_companion, shift_images, sky_to_detector
+
+
+def _gauss(x0, y0, n=48, s=2.5):
+    y, x = np.mgrid[:n, :n]
+    return np.exp(-((x - x0) ** 2 + (y - y0) ** 2) / (2 * s ** 2))
+
+
+def test_subpixel_shift_is_exact_for_band_limited_images():
+    out = shift_images(_gauss(20.0, 24.0), 2.3, -1.7)
+    np.testing.assert_allclose(out, _gauss(22.3, 22.3), atol=2e-6)
+    # nothing wraps round: a shift off the edge leaves zeros, not the other side
+    assert np.abs(shift_images(_gauss(44.0, 24.0), 10.0, 0.0)[:, :20]).max() < 1e-6
+
+
+def test_inject_detector_and_sky():
+    cube = np.stack([_gauss(24.0, 24.0)] * 2)[None].repeat(2, axis=0)     # (2, 2, 48, 48)
+    det = inject_companion(cube, position=[30, -20] * u.mas, contrast=[0.1, 0.2],
+                           pixscale=10 * u.mas)
+    want = np.array([0.1, 0.2])[None, :, None, None] * _gauss(27.0, 22.0)[None, None]
+    np.testing.assert_allclose(det - cube, np.broadcast_to(want, cube.shape), atol=1e-6)
+    # on the sky, frames at different detector angles see the companion at their own
+    # detector offsets: x = -dRA cos t + dDec sin t, y = dRA sin t + dDec cos t
+    sky = inject_companion(cube, position=[30, -20] * u.mas, contrast=0.1, frame="sky",
+                           pixscale=10 * u.mas, detpa=[0.0, 90.0])
+    for f, t in enumerate((0.0, 90.0)):
+        x, y = sky_to_detector(30.0, -20.0, t)
+        np.testing.assert_allclose(sky[f, 0] - cube[f, 0],
+                                   0.1 * _gauss(24 + x / 10, 24 + y / 10), atol=1e-6)
+    with pytest.raises(KpifsError, match="detector position angle"):
+        inject_companion(cube, position=[30, 0] * u.mas, contrast=0.1, frame="sky",
+                         pixscale=10 * u.mas)
+    with pytest.raises(KpifsError, match="contrasts must be finite"):
+        inject_companion(cube, position=[30, 0] * u.mas, contrast=-1, pixscale=10 * u.mas)
+    with pytest.raises(KpifsError, match="two finite offsets"):
+        inject_companion(cube, position=[30] * u.mas, contrast=0.1, pixscale=10 * u.mas)
+
+
+def test_inject_command(tmp_path, capsys):
+    assert main(["simulate", "--preset", "paper", "--frames", "3", "--contrasts", "0,0,0",
+                 "-q", "-o", str(tmp_path / "sim")]) == 0
+    src = tmp_path / "sim" / "target.fits"
+    before = hashlib.sha256(src.read_bytes()).hexdigest()
+    out = tmp_path / "inj.fits"
+    assert main(["inject", str(src), "--position", "52.1,-31.26mas", "--contrast",
+                 "0.01,0.02,0.03", "-o", str(out)]) == 0
+    assert hashlib.sha256(src.read_bytes()).hexdigest() == before
+    with fits.open(out) as h, fits.open(src) as s:
+        hdr = h[0].header
+        assert (hdr["INJPOS1"], hdr["INJC3"], hdr["INJFRAME"]) == (52.1, 0.03, "detector")
+        diff = h[0].data.astype(float) - s[0].data.astype(float)
+    # the companion is the frame shifted by (5, -3) pixels of 10.42 mas, scaled per channel
+    peak = np.unravel_index(np.argmax(diff[0, 2]), diff.shape[2:])
+    star = np.unravel_index(np.argmax(fits.getdata(src)[0, 2]), diff.shape[2:])
+    assert (peak[0] - star[0], peak[1] - star[1]) == (-3, 5)
+    assert main(["inject", str(src), "--position", "52mas", "--contrast", "0.01", "-o",
+                 str(tmp_path / "x.fits")]) == 2
+    assert main(["inject", str(src), "--contrast", "0.01", "-o", str(out)]) == 2
+    assert "exists" in capsys.readouterr().err
