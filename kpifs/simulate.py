@@ -175,6 +175,14 @@ class SceneParameters:
     instrument: str = "generic"
     field: str = None          # 'charis': the lenslet array's tilted square field
     n_dead: int = 0            # dead spaxels (garbage values, zero inverse variance)
+    # quasi-static aberrations, as on sky: a part that drifts from frame to frame (AR(1)
+    # screens of this rms, correlation exp(-1/drift_time) between consecutive frames,
+    # one process per star), a static part common to both stars, and a static part
+    # seen by the calibrator only (target != calibrator: a calibration residual)
+    drift_rms: u.Quantity = 0 * u.nm
+    drift_time: float = 10.0
+    static_rms: u.Quantity = 0 * u.nm
+    static_diff_rms: u.Quantity = 0 * u.nm
 
     def bandwidths(self):
         wl = self.wavelengths.to_value(u.um)
@@ -289,7 +297,49 @@ class SimulatedObservation:
         for i, c in enumerate(np.broadcast_to(p.contrasts, p.wavelengths.shape), 1):
             cards[f"KPSIMC{i}"] = (float(c), f"true contrast, channel {i}")
         cards["KPSIMWFE"] = (float(p.wavefront_rms.to_value(u.nm)), "[nm] rms wavefront error")
+        for key, value, comment in (
+                ("KPSIMDRF", p.drift_rms, "[nm] rms of the drifting aberrations"),
+                ("KPSIMSTA", p.static_rms, "[nm] rms of the common static aberrations"),
+                ("KPSIMSTD", p.static_diff_rms, "[nm] rms of the calibrator-only static")):
+            if u.Quantity(value, u.nm).value > 0:
+                cards[key] = (float(u.Quantity(value, u.nm).value), comment)
+        if u.Quantity(p.drift_rms, u.nm).value > 0:
+            cards["KPSIMDRT"] = (float(p.drift_time), "[frames] correlation time of the drift")
         return cards
+
+
+class _QuasiStatic:
+    """Slow aberrations of `SceneParameters` (none, and no random draw, when all are 0)."""
+
+    def __init__(self, params, pimg, dx, rng):
+        self.rng, self.npup, self.dx, self.mask = rng, params.npup, dx, pimg > 0
+        self.drift = params.drift_rms.to_value(u.m)
+        self.rho = float(np.exp(-1.0 / params.drift_time))
+        self.state = {}
+        stat, diff = params.static_rms.to_value(u.m), params.static_diff_rms.to_value(u.m)
+        self.static = {"target": self._screen(stat), "calibrator": self._screen(stat)}
+        if stat > 0:
+            self.static["calibrator"] = self.static["target"]        # common to both stars
+        d = self._screen(diff)
+        if d is not None:
+            base = self.static["calibrator"]
+            self.static["calibrator"] = d if base is None else base + d
+
+    def _screen(self, rms):
+        if rms <= 0:
+            return None
+        return phase_screens(self.npup, self.dx, 1, rms=rms, mask=self.mask, seed=self.rng)[0]
+
+    def add(self, opd, which):
+        parts = [opd, self.static[which]]
+        if self.drift > 0:
+            new = self._screen(self.drift)
+            prev = self.state.get(which)
+            self.state[which] = new if prev is None else (
+                self.rho * prev + np.sqrt(1 - self.rho ** 2) * new)
+            parts.append(self.state[which])
+        parts = [p for p in parts if p is not None]
+        return sum(parts) if parts else None
 
 
 def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
@@ -331,6 +381,10 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
     params.companion_offset = to_quantity(params.companion_offset, u.mas, name="offset")
     params.wavefront_rms = to_quantity(params.wavefront_rms, u.nm, name="wavefront rms")
     params.exptime = to_quantity(params.exptime, u.s, name="exposure time")
+    for name in ("drift_rms", "static_rms", "static_diff_rms"):
+        setattr(params, name, to_quantity(getattr(params, name), u.nm, name=name))
+    if not params.drift_time > 0:
+        raise KpifsError(f"drift_time must be > 0 frames, got {params.drift_time}")
     params.contrasts = np.broadcast_to(np.asarray(params.contrasts, float),
                                        params.wavelengths.shape).copy()
     if params.n_frames < 1:
@@ -348,11 +402,13 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
                             enabled=progress)
     screens_rms = params.wavefront_rms.to_value(u.m)
     cubes = {k: np.empty((nf, nw) + shape, np.float32) for k in ("target", "calibrator")}
+    slow = _QuasiStatic(params, pimg, dx, rng)
     for n in iterator:
         which = "target" if n < nf else "calibrator"
         i = n % nf
         opd = phase_screens(params.npup, dx, 1, rms=screens_rms, mask=pimg > 0,
                             seed=rng)[0] if screens_rms > 0 else None
+        opd = slow.add(opd, which)
         jit = rng.normal(0, params.jitter, 2) * p_rad
         for iw, lam in enumerate(wl_m):
             fieldp = pimg if opd is None else pimg * np.exp(2j * np.pi * opd / lam)

@@ -60,6 +60,8 @@ EPILOG_SIMULATE = """examples:
   kpifs simulate --preset paper --frames 100 -o sim
   kpifs simulate --preset charis --layout charis --frames 5 -o charis_sim
   kpifs simulate --preset sphere --layout sphere -o sphere_sim
+  kpifs simulate --preset charis --frames 40 --drift 40nm --drift-time 8 \
+      --static-diff 15nm -o unkind     # drifting aberrations, target != calibrator
 """
 
 TESTS = ("B", "B-paper", "NP", "E")
@@ -225,6 +227,13 @@ def build_parser():
     p.add_argument("--wavefront", help="rms wavefront error, e.g. 100nm")
     p.add_argument("--shape", type=int, help="image side in pixels (preset default)")
     p.add_argument("--exptime", help="exposure time per frame, e.g. 1s (default 0.1s)")
+    g = p.add_argument_group("quasi-static aberrations (as on sky; default none)")
+    g.add_argument("--drift", help="rms of aberrations drifting from frame to frame, e.g. 30nm")
+    g.add_argument("--drift-time", type=float,
+                   help="their correlation time in frames (default 10)")
+    g.add_argument("--static", help="rms of static aberrations common to both stars")
+    g.add_argument("--static-diff", help="rms of static aberrations of the calibrator only "
+                                         "(a calibration residual), e.g. 10nm")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     _output(p, "output directory")
 

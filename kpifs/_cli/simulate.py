@@ -35,6 +35,12 @@ def run(args):
         over["shape"] = (args.shape, args.shape)
     if args.exptime is not None:
         over["exptime"] = to_quantity(args.exptime, u.s, name="--exptime")
+    for opt, name in (("drift", "drift_rms"), ("static", "static_rms"),
+                      ("static_diff", "static_diff_rms")):
+        if getattr(args, opt) is not None:
+            over[name] = to_quantity(getattr(args, opt), u.nm, name=f"--{opt.replace('_', '-')}")
+    if args.drift_time is not None:
+        over["drift_time"] = args.drift_time
     obs = simulate_scene(args.preset, seed=args.seed, progress=not args.quiet, **over)
     paths = write_observation(obs, args.output, layout=args.layout, overwrite=args.overwrite)
     n = sum(len(v) for v in paths.values())
