@@ -76,8 +76,8 @@ def test_injections_into_eps_her(pharo):
         r, th = rng.uniform(100, 600), rng.uniform(0, 2 * np.pi)
         x, y = r * np.cos(th), r * np.sin(th)
         c = float(np.exp(rng.uniform(np.log(2e-3), np.log(3e-2))))
-        tgt = _kp(pharo, inject_companion(f[:50, None], position=[x, y] * u.mas, contrast=c,
-                                          pixscale=PIX)[:, 0])
+        tgt = _kp(pharo, inject_companion(f[:50], position=[x, y] * u.mas, contrast=c,
+                                          pixscale=PIX))
         res = detect(calibrate(tgt, cal), pfa=1e-3, seed=i)
         tab = res.candidates
         g, lim = res.grid, res.limits["B"]
