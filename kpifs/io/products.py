@@ -12,7 +12,7 @@ from .._meta import VERSION
 from .._utils import write_hdulist
 from ..exceptions import KpifsError
 from .cube import open_fits
-from .kpfits import card
+from ._kpfits_common import card
 
 __all__ = ["detection_hdulist", "write_detection", "read_detection_parts"]
 
