@@ -15,10 +15,8 @@ are searched). The steps are functions that every interface calls:
   commands ``kpifs extract … --calibrator …`` and ``kpifs detect`` would.
 """
 import dataclasses
-import hashlib
 import json
 import logging
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -38,6 +36,8 @@ from .io.angles import frame_detpa, parse_angles
 from .io.readers import read_cube
 from .io.wavelengths import parse_wavelengths
 from .kernel import load_kernel_model
+from .provenance import (combined_digest, inputs_digest, observation_digest, options_record,
+                         products_digest)
 from .window import ExtractionWindow
 
 __all__ = ["ExtractOptions", "DetectOptions", "DEFAULT_PUPIL", "kernel_model_for",
@@ -154,90 +154,6 @@ def calibrator_options(options):
     True
     """
     return dataclasses.replace(options, pa=None)
-
-
-def options_record(options):
-    """The options as a dict of plain values (units written out), for provenance.
-
-    Examples
-    --------
-    >>> from kpifs.workflow import ExtractOptions, options_record
-    >>> options_record(ExtractOptions(step="0.8m"))["step"]
-    '0.8m'
-    """
-    out = {}
-    for f in dataclasses.fields(options):
-        v = getattr(options, f.name)
-        if isinstance(v, u.Quantity):
-            v = v.to_string() if v.isscalar else [q.to_string() for q in v]
-        elif isinstance(v, np.ndarray):
-            v = "sha1:" + hashlib.sha1(np.ascontiguousarray(v).tobytes()).hexdigest()[:12]
-        elif isinstance(v, Path):
-            v = str(v)
-        elif not isinstance(v, (int, float, str, bool, list, tuple, type(None))):
-            v = repr(v)
-        out[f.name] = v
-    return out
-
-
-def _digest(payload):
-    text = json.dumps(payload, sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:20]
-
-
-def inputs_digest(files):
-    """A digest of input files: their absolute paths, sizes and modification times.
-
-    Examples
-    --------
-    >>> import tempfile, pathlib
-    >>> from kpifs.workflow import inputs_digest
-    >>> p = pathlib.Path(tempfile.mkdtemp()) / "a.fits"
-    >>> _ = p.write_bytes(b"x")
-    >>> inputs_digest([p]) == inputs_digest([str(p)]), len(inputs_digest([p]))
-    (True, 20)
-    """
-    stats = []
-    for f in files:
-        try:
-            st = os.stat(f)
-            stats.append([os.path.abspath(f), st.st_size, st.st_mtime_ns])
-        except OSError:
-            stats.append([os.path.abspath(f), None, None])
-    return _digest(stats)
-
-
-def observation_digest(target, calibrators, extract_options, detect_options):
-    """The ``KPHASH`` that `process_observation` gives the products of these inputs and
-    options (without running anything).
-
-    Examples
-    --------
-    >>> from kpifs.workflow import DetectOptions, ExtractOptions, observation_digest
-    >>> len(observation_digest(["t.fits"], [["c.fits"]], ExtractOptions(), DetectOptions()))
-    20
-    """
-    inputs = _digest([inputs_digest(target)] + [inputs_digest(c) for c in calibrators])
-    return products_digest(options_record(extract_options), inputs,
-                           options_record(detect_options))
-
-
-def products_digest(extract_record, inputs, detect_record):
-    """Digest of what makes a detection product: extraction options, input digest(s) and
-    detection options (``KPHASH`` in the products; ``kpifs batch`` redoes an entry whose
-    digest changed).
-
-    Examples
-    --------
-    >>> from kpifs.workflow import (DetectOptions, ExtractOptions, options_record,
-    ...                             products_digest)
-    >>> a = products_digest(options_record(ExtractOptions()), "x", options_record(DetectOptions()))
-    >>> b = products_digest(options_record(ExtractOptions()), "x",
-    ...                     options_record(DetectOptions(pfa=1e-4)))
-    >>> a == b
-    False
-    """
-    return _digest({"extract": extract_record, "inputs": inputs, "detect": detect_record})
 
 
 def kernel_model_for(options, instrument="generic"):
@@ -368,9 +284,9 @@ def calibrate_observation(target, calibrators=(), options=None):
     if calibrators:
         result = calibrate(target, calibrators, shrinkage=options.shrinkage,
                            joint=options.joint_covariance)
-        result.header["KPINHASH"] = (_digest([k.header.get("KPINHASH", k.name)
-                                              for k in [target] + calibrators]),
-                                     "digest of the input files")
+        digest = combined_digest([k.header.get("KPINHASH", k.name)
+                                  for k in [target] + calibrators])
+        result.header["KPINHASH"] = (digest, "digest of the input files")
         return result
     if options.covariance or options.joint_covariance:
         if target.n_frame < 2:

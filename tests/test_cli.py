@@ -233,7 +233,8 @@ def test_every_public_object_has_a_runnable_example():
             "kpifs.detect.stats",
             "kpifs.detect.limits",
             "kpifs.detect.fit", "kpifs.detect.null", "kpifs.detect.maps", "kpifs.detect.roc",
-            "kpifs.plotting", "kpifs.workflow", "kpifs.batch", "kpifs.demo", "kpifs.cli"]
+            "kpifs.plotting", "kpifs.workflow", "kpifs.provenance", "kpifs.batch", "kpifs.demo",
+            "kpifs.cli"]
     missing = []
     for m in mods:
         mod = importlib.import_module(m)

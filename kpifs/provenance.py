@@ -1,0 +1,110 @@
+"""Provenance of products: options as plain values and digests of options and inputs.
+
+``KPXOPTS``/``KPDOPTS`` (the options), ``KPINHASH`` (the inputs) and ``KPHASH``
+(all of them) in the products come from here; ``kpifs batch`` redoes an entry
+whose ``KPHASH`` changed. Reached through `kpifs.workflow`.
+"""
+import dataclasses
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+from astropy import units as u
+
+__all__ = ["options_record", "combined_digest", "inputs_digest", "observation_digest",
+           "products_digest"]
+
+
+def options_record(options):
+    """The options as a dict of plain values (units written out), for provenance.
+
+    Examples
+    --------
+    >>> from kpifs.workflow import ExtractOptions, options_record
+    >>> options_record(ExtractOptions(step="0.8m"))["step"]
+    '0.8m'
+    """
+    out = {}
+    for f in dataclasses.fields(options):
+        v = getattr(options, f.name)
+        if isinstance(v, u.Quantity):
+            v = v.to_string() if v.isscalar else [q.to_string() for q in v]
+        elif isinstance(v, np.ndarray):
+            v = "sha1:" + hashlib.sha1(np.ascontiguousarray(v).tobytes()).hexdigest()[:12]
+        elif isinstance(v, Path):
+            v = str(v)
+        elif not isinstance(v, (int, float, str, bool, list, tuple, type(None))):
+            v = repr(v)
+        out[f.name] = v
+    return out
+
+
+def combined_digest(payload):
+    """A short digest of any JSON-able *payload* (digests of several inputs, ...).
+
+    Examples
+    --------
+    >>> from kpifs.provenance import combined_digest
+    >>> a, b = combined_digest(["a", "b"]), combined_digest(["b", "a"])
+    >>> a == combined_digest(["a", "b"]) and a != b
+    True
+    """
+    text = json.dumps(payload, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+def inputs_digest(files):
+    """A digest of input files: their absolute paths, sizes and modification times.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> from kpifs.workflow import inputs_digest
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "a.fits"
+    >>> _ = p.write_bytes(b"x")
+    >>> inputs_digest([p]) == inputs_digest([str(p)]), len(inputs_digest([p]))
+    (True, 20)
+    """
+    stats = []
+    for f in files:
+        try:
+            st = os.stat(f)
+            stats.append([os.path.abspath(f), st.st_size, st.st_mtime_ns])
+        except OSError:
+            stats.append([os.path.abspath(f), None, None])
+    return combined_digest(stats)
+
+
+def observation_digest(target, calibrators, extract_options, detect_options):
+    """The ``KPHASH`` that `process_observation` gives the products of these inputs and
+    options (without running anything).
+
+    Examples
+    --------
+    >>> from kpifs.workflow import DetectOptions, ExtractOptions, observation_digest
+    >>> len(observation_digest(["t.fits"], [["c.fits"]], ExtractOptions(), DetectOptions()))
+    20
+    """
+    inputs = combined_digest([inputs_digest(target)] + [inputs_digest(c) for c in calibrators])
+    return products_digest(options_record(extract_options), inputs,
+                           options_record(detect_options))
+
+
+def products_digest(extract_record, inputs, detect_record):
+    """Digest of what makes a detection product: extraction options, input digest(s) and
+    detection options (``KPHASH`` in the products; ``kpifs batch`` redoes an entry whose
+    digest changed).
+
+    Examples
+    --------
+    >>> from kpifs.workflow import (DetectOptions, ExtractOptions, options_record,
+    ...                             products_digest)
+    >>> a = products_digest(options_record(ExtractOptions()), "x", options_record(DetectOptions()))
+    >>> b = products_digest(options_record(ExtractOptions()), "x",
+    ...                     options_record(DetectOptions(pfa=1e-4)))
+    >>> a == b
+    False
+    """
+    return combined_digest({"extract": extract_record, "inputs": inputs, "detect": detect_record})
