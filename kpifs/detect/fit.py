@@ -12,6 +12,7 @@ from astropy import units as u
 from .._lazy import lazy_module
 from ..exceptions import KpifsError
 from ..kernel import MAS
+from .sky import sky_to_detector
 
 optimize = lazy_module("scipy.optimize")
 
@@ -19,7 +20,8 @@ __all__ = ["fit_binary"]
 
 
 def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pixscale=None,
-               window=None, bounds_mas=None, noise_rows=None):
+               window=None, bounds_mas=None, noise_rows=None, detpa=None,
+               detpa_weights=None):
     """Fit position and per-channel contrasts of a companion.
 
     Parameters
@@ -44,12 +46,21 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
         data across channels). With them the uncertainties are the sandwich
         estimate ``(J^T J)^-1 (R_w J)^T (R_w J) (J^T J)^-1``, which accounts for
         correlations between channels; without, ``(J^T J)^-1``.
+    detpa : array-like, optional
+        Detector position angles (deg) of the frames (or PA bins,
+        `kpifs.detect.sky.pa_bins`) averaged in *kp*. With them the position
+        (*start* and the results) is the sky offset ``(dRA, dDec)`` and the
+        model is the weighted mean of the per-angle models
+        (`kpifs.detect.sky`); without, detector offsets.
+    detpa_weights : array-like, optional
+        Weights of *detpa* (default equal).
 
     Returns
     -------
     dict
-        ``x``, ``y`` (mas), ``x_err``, ``y_err``, ``contrast`` (q,), ``contrast_err``
-        (q,), ``chi2``, ``dof``, ``success``.
+        ``x``, ``y`` (mas; ``dRA``, ``dDec`` with *detpa*), ``x_err``, ``y_err``,
+        ``contrast`` (q,), ``contrast_err`` (q,), ``chi2``, ``dof``, ``success``,
+        ``frame`` (``'sky'`` or ``'detector'``).
 
     Examples
     --------
@@ -76,12 +87,27 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
             return 1.0
         return float(window.at(np.hypot(a, b), ps))
 
+    if detpa is None:
+        rot = None
+    else:
+        ang = np.atleast_1d(np.asarray(u.Quantity(detpa, u.deg).value, float))
+        rw = np.ones(ang.size) if detpa_weights is None else np.asarray(detpa_weights, float)
+        rot = (ang, rw / rw.sum())
+
     def model(params):
         a, b = params[:2]
         c = params[2:]
-        theta = 2 * np.pi * (a * MAS * uv[:, 0] + b * MAS * uv[:, 1])[None, :] / lam[:, None]
-        phi = np.angle(1 + (c * wfac(a, b))[:, None] * np.exp(-1j * theta))
-        return phi @ kern.T
+        if rot is None:
+            xs, ys, ws = np.array([a]), np.array([b]), np.ones(1)
+        else:
+            xs, ys = sky_to_detector(a, b, rot[0])
+            ws = rot[1]
+        cw = (c * wfac(a, b))[:, None]
+        out = 0.0
+        for xf, yf, wf in zip(xs, ys, ws):
+            theta = 2 * np.pi * (xf * MAS * uv[:, 0] + yf * MAS * uv[:, 1])[None, :] / lam[:, None]
+            out = out + wf * np.angle(1 + cw * np.exp(-1j * theta))
+        return out @ kern.T
 
     def resid(params):
         r = kp - model(params)
@@ -105,4 +131,5 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
     dof = int(np.count_nonzero(np.abs(whitening).sum(axis=2))) - (q + 2)
     return {"x": res.x[0], "y": res.x[1], "x_err": err[0], "y_err": err[1],
             "contrast": res.x[2:], "contrast_err": err[2:], "chi2": float(2 * res.cost),
-            "dof": dof, "success": bool(res.success)}
+            "dof": dof, "success": bool(res.success),
+            "frame": "detector" if rot is None else "sky"}
