@@ -134,3 +134,32 @@ def test_rotated_model_is_the_frame_mean(km):
     ref = sum(wt * km.binary_kernel_phases(list(sky_to_detector(40, -70, t)) * u.mas, 0.01, wl)
               for t, wt in zip(ang, [0.25, 0.5, 0.25]))
     np.testing.assert_allclose(m, ref, atol=1e-14)
+
+
+@pytest.mark.filterwarnings("ignore::kpifs.KpifsWarning")
+def test_cli_detect_reports_a_xara_binary_on_the_sky(km, tmp_path, capsys):
+    """`kpifs detect` on xara-written NIRC2-like files (target and calibrator, one
+    channel, 160 frames at DETPA 207 deg): the companion at 330 mas, PA 145 deg."""
+    from astropy.io import fits
+    from kpifs.cli import main
+    wl = [2.12] * u.um
+    detpa = np.full(160, 207.0)
+    tgt = _rotating_sequence(km, wl, 330.0, 145.0, 0.054, detpa, 0.02, seed=11)
+    cal = _rotating_sequence(km, wl, 330.0, 145.0, 0.0, detpa, 0.02, seed=12)
+    paths = [write_xara(tmp_path / f"{n}.fits",
+                        parts_of(KernelPhaseData(k, wl, 10 * u.mas, km)), detpa=detpa)
+             for n, k in (("t", tgt), ("c", cal))]
+    out = tmp_path / "det.fits"
+    rc = main(["detect", str(paths[0]), "--calibrator", str(paths[1]), "--pfa", "1e-3",
+               "--max-sep", "360mas", "-o", str(out)])
+    text = capsys.readouterr()
+    assert rc == 0, text.err
+    text = text.out
+    assert "East of North" in text
+    with fits.open(out) as h:
+        assert h[0].header["DETPA"] == pytest.approx(207.0)
+        cand = h["CANDIDATES"].data
+        assert len(cand) >= 1
+        assert cand["fit_separation"][0] == pytest.approx(330.0, rel=0.01)
+        assert abs(cand["fit_pa_sky"][0] - 145.0) < 1.0
+        assert cand["fit_dra"][0] == pytest.approx(330 * np.sin(np.deg2rad(145)), abs=3)

@@ -13,6 +13,7 @@ from ..exceptions import KpifsError, KpifsWarning
 from ..kernel import MAS, KernelModel
 from ..pupil import make_pupil
 from .fit import fit_binary
+from .sky import add_sky_columns
 from .limits import (energy_lambda, limit_binary, limit_energy, limit_energy_correlated,
                      limit_np, radial_curves, spectrum_shape)
 from .maps import DetectionModel
@@ -185,6 +186,7 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
     curves = radial_curves(limits, grid)
     cands = _sequential_search(model, kp, w, kpd, threshold=threshold, null=null,
                                spectrum=spectrum, fit=fit, max_candidates=max_candidates)
+    add_sky_columns(cands, kpd.detpa)
     meta = {"test": test, "pfa": pfa, "pd": pd, "n_draws": n_draws, "seed": seed,
             "calibrators": kpd.meta.get("calibrators", []),
             "source": kpd.meta.get("source", ""), "spectrum": a.tolist(),

@@ -25,7 +25,7 @@ from ..exceptions import KpifsError
 from ..kernel import MAS
 
 __all__ = ["sky_to_detector", "detector_to_sky", "separation_pa", "pa_bins",
-           "rotated_binary_kernel_phases"]
+           "rotated_binary_kernel_phases", "mean_angle", "add_sky_columns"]
 
 #: Largest motion of a companion within one position-angle bin, in finest fringes.
 SMEAR_FRACTION = 0.02
@@ -174,3 +174,71 @@ def rotated_binary_kernel_phases(kernel_model, sky_offset, contrast, wavelengths
         out = out + wi * kernel_model.binary_kernel_phases([xi, yi] * u.mas, contrast,
                                                            wavelengths)
     return out
+
+
+def mean_angle(detpa):
+    """Circular mean (deg) of angles, NaN ignored; NaN when none is known.
+
+    Examples
+    --------
+    >>> from kpifs.detect.sky import mean_angle
+    >>> round(float(mean_angle([359.0, 1.0, 3.0])) % 360, 6)
+    1.0
+    """
+    a = np.deg2rad(np.asarray(detpa, float).ravel())
+    a = a[np.isfinite(a)]
+    if a.size == 0:
+        return np.nan
+    return float(np.rad2deg(np.arctan2(np.sin(a).mean(), np.cos(a).mean())) % 360.0)
+
+
+def add_sky_columns(table, detpa):
+    """Add sky offsets and position angles to a candidate table (in place).
+
+    From the detector columns ``x``, ``y`` (and ``fit_x``, ``fit_y`` with their
+    errors when present) and the data's detector position angle (the circular
+    mean of *detpa*), adds ``dra``, ``ddec``, ``pa_sky`` (deg East of North)
+    and ``fit_dra``, ``fit_ddec``, ``fit_dra_err``, ``fit_ddec_err``,
+    ``fit_separation``, ``fit_pa_sky``, ``fit_pa_sky_err``. The angle used is
+    recorded in ``table.meta['detpa']``. Nothing is added when no angle is
+    known.
+
+    Examples
+    --------
+    >>> import astropy.units as u
+    >>> from astropy.table import QTable
+    >>> from kpifs.detect.sky import add_sky_columns
+    >>> t = QTable({"x": [-10.0] * u.mas, "y": [0.0] * u.mas})
+    >>> add_sky_columns(t, [0.0])
+    >>> round(float(t["dra"][0].value), 6), round(float(t["pa_sky"][0].value), 6)
+    (10.0, 90.0)
+    """
+    t = mean_angle(np.atleast_1d(np.asarray(detpa if detpa is not None else [], float)))
+    if not np.isfinite(t):
+        return
+    table.meta["detpa"] = t
+    table.meta["frame"] = "sky offsets: dRA East-positive, dDec; PA East of North"
+    for pre in ("", "fit_"):
+        if pre + "x" not in table.colnames:
+            continue
+        x = u.Quantity(table[pre + "x"], u.mas).value
+        y = u.Quantity(table[pre + "y"], u.mas).value
+        dra, ddec = detector_to_sky(x, y, t)
+        sep, pa = separation_pa(dra, ddec)
+        table[pre + "dra"] = dra * u.mas
+        table[pre + "ddec"] = ddec * u.mas
+        if pre:
+            table["fit_separation"] = sep * u.mas
+        table[pre + "pa_sky"] = pa * u.deg
+        if pre and "fit_x_err" in table.colnames:
+            c, s = np.cos(np.deg2rad(t)), np.sin(np.deg2rad(t))
+            xe = u.Quantity(table["fit_x_err"], u.mas).value
+            ye = u.Quantity(table["fit_y_err"], u.mas).value
+            table["fit_dra_err"] = np.hypot(c * xe, s * ye) * u.mas
+            table["fit_ddec_err"] = np.hypot(s * xe, c * ye) * u.mas
+            # PA error: the offset's error across the line of sight, over the separation
+            ux, uy = np.divide(-y, sep, out=np.zeros_like(sep), where=sep > 0), \
+                np.divide(x, sep, out=np.zeros_like(sep), where=sep > 0)
+            perp = np.hypot(ux * xe, uy * ye)
+            table["fit_pa_sky_err"] = np.rad2deg(
+                np.divide(perp, sep, out=np.full_like(sep, np.nan), where=sep > 0)) * u.deg
