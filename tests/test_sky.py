@@ -163,3 +163,34 @@ def test_cli_detect_reports_a_xara_binary_on_the_sky(km, tmp_path, capsys):
         assert cand["fit_separation"][0] == pytest.approx(330.0, rel=0.01)
         assert abs(cand["fit_pa_sky"][0] - 145.0) < 1.0
         assert cand["fit_dra"][0] == pytest.approx(330 * np.sin(np.deg2rad(145)), abs=3)
+
+
+@pytest.mark.filterwarnings("ignore::kpifs.KpifsWarning")
+def test_detect_refits_a_rotating_sequence_on_the_sky():
+    """Calibration passes the frames' angles on; detect refits the companion with the
+    rotating model: PA within 1 deg, separation within 1 % (40 deg of rotation)."""
+    from kpifs.calibrate import calibrate
+    from kpifs.data import DetectionGrid
+    from kpifs.detect import detect
+    km1 = KernelModel.from_pupil(make_pupil("subaru", step=1.0 * u.m))
+    wl = [1.55, 1.65, 1.75] * u.um
+    n = km1.n_kp + 30
+    detpa = np.linspace(100.0, 140.0, n)
+    sep, pa, c = 120.0, 145.0, 0.03
+    tgt = KernelPhaseData(_rotating_sequence(km1, wl, sep, pa, c, detpa, 0.01, seed=21), wl,
+                          10 * u.mas, km1, detpa=detpa)
+    cal = KernelPhaseData(_rotating_sequence(km1, wl, sep, pa, 0.0, detpa, 0.01, seed=22), wl,
+                          10 * u.mas, km1, detpa=detpa)
+    kpd = calibrate(tgt, [cal])
+    assert len(kpd.meta["detpa_frames"]) == n
+    grid = DetectionGrid.from_separation(150 * u.mas, 8 * u.mas, min_sep=30 * u.mas)
+    res = detect(kpd, grid=grid, n_draws=2000, seed=0, max_candidates=1)
+    row = res.candidates[0]
+    assert "rotating model" in res.candidates.meta["sky_fit"]
+    assert abs(row["fit_pa_sky"].to_value(u.deg) - pa) < 1.0
+    assert row["fit_separation"].to_value(u.mas) == pytest.approx(sep, rel=0.01)
+    # the detector fit rotated by the mean angle is biased by the smearing
+    _, pa_mean = separation_pa(*detector_to_sky(row["fit_x"].value, row["fit_y"].value,
+                                                res.candidates.meta["detpa"]))
+    assert abs(pa_mean - pa) > 5.0
+    assert np.all(np.isfinite([row["fit_dra_err"].value, row["fit_pa_sky_err"].value]))

@@ -14,6 +14,7 @@ from ..kernel import MAS, KernelModel
 from ..pupil import make_pupil
 from .fit import fit_binary
 from .sky import add_sky_columns
+from .skyfit import refit_on_sky
 from .limits import (energy_lambda, limit_binary, limit_energy, limit_energy_correlated,
                      limit_np, radial_curves, spectrum_shape)
 from .maps import DetectionModel
@@ -187,6 +188,8 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
     cands = _sequential_search(model, kp, w, kpd, threshold=threshold, null=null,
                                spectrum=spectrum, fit=fit, max_candidates=max_candidates)
     add_sky_columns(cands, kpd.detpa)
+    if fit:
+        refit_on_sky(cands, kp, w, kpd, noise_rows=null.noise_rows)
     meta = {"test": test, "pfa": pfa, "pd": pd, "n_draws": n_draws, "seed": seed,
             "calibrators": kpd.meta.get("calibrators", []),
             "source": kpd.meta.get("source", ""), "spectrum": a.tolist(),
