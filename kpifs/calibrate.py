@@ -234,6 +234,7 @@ def _result(target, calibrators, d, cov, jcov, rows, extra, n_cal):
         pa, span = mean_detpa(target.detpa)
         detpa = [pa]
         meta["detpa_span"] = None if np.isnan(span) else span
+        meta["detpa_frames"] = [float(v) for v in target.detpa]   # for the sky fit
         meta["detpa_source"] = (f"mean of {target.n_frame} target frame(s) "
                                 f"({target.meta.get('detpa_source', 'given')})")
         if span > MAX_DETPA_SPAN:

@@ -92,7 +92,8 @@ def write_xara(path, p, *, detpa=0.0, sigma=None, phases=None, amplitudes=None,
     hdus.append(fits.BinTableHDU.from_columns([
         fits.Column(name="CWAVEL", format="D", array=[p["wavelengths"][0]]),
         fits.Column(name="BWIDTH", format="D", array=[bw])], name="CWAVEL"))
-    hdus.append(fits.ImageHDU(np.array([float(detpa)] * nf), name="DETPA"))
+    angles = np.broadcast_to(np.asarray(detpa, float), (nf,)).copy()
+    hdus.append(fits.ImageHDU(angles, name="DETPA"))
     if phases is not None:
         hdus.append(fits.ImageHDU(_cvis(phases[:, :1], amplitudes[:, :1]), name="CVIS-DATA"))
     fits.HDUList(hdus).writeto(path)

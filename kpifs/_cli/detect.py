@@ -27,8 +27,14 @@ def run(args):
         x = row["fit_x"] if "fit_x" in row.colnames else row["x"]
         y = row["fit_y"] if "fit_y" in row.colnames else row["y"]
         how = " (extrapolated tail of the null)" if row["pfa_global_tail"] else ""
-        print(f"  ({x.to_value(u.mas):.1f}, {y.to_value(u.mas):.1f}) mas, separation "
-              f"{row['separation'].to_value(u.mas):.0f} mas, global P_FA "
+        sky = ""
+        if "pa_sky" in row.colnames:
+            pre = "fit_" if "fit_dra" in row.colnames else ""
+            sky = (f", dRA {row[pre + 'dra'].to_value(u.mas):.1f} dDec "
+                   f"{row[pre + 'ddec'].to_value(u.mas):.1f} mas, PA "
+                   f"{row[pre + 'pa_sky'].to_value(u.deg):.1f} deg East of North")
+        print(f"  detector ({x.to_value(u.mas):.1f}, {y.to_value(u.mas):.1f}) mas, separation "
+              f"{row['separation'].to_value(u.mas):.0f} mas{sky}, global P_FA "
               f"{row['pfa_global']:.1e}{how}")
     if args.plots:
         truth = None

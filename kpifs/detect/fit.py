@@ -12,6 +12,7 @@ from astropy import units as u
 from .._lazy import lazy_module
 from ..exceptions import KpifsError
 from ..kernel import MAS
+from .sky import sky_to_detector
 
 optimize = lazy_module("scipy.optimize")
 
@@ -19,7 +20,8 @@ __all__ = ["fit_binary"]
 
 
 def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pixscale=None,
-               window=None, bounds_mas=None, noise_rows=None):
+               window=None, bounds_mas=None, noise_rows=None, detpa=None,
+               detpa_weights=None, jacobian="analytic"):
     """Fit position and per-channel contrasts of a companion.
 
     Parameters
@@ -44,12 +46,24 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
         data across channels). With them the uncertainties are the sandwich
         estimate ``(J^T J)^-1 (R_w J)^T (R_w J) (J^T J)^-1``, which accounts for
         correlations between channels; without, ``(J^T J)^-1``.
+    detpa : array-like, optional
+        Detector position angles (deg) of the frames (or PA bins,
+        `kpifs.detect.sky.pa_bins`) averaged in *kp*. With them the position
+        (*start* and the results) is the sky offset ``(dRA, dDec)`` and the
+        model is the weighted mean of the per-angle models
+        (`kpifs.detect.sky`); without, detector offsets.
+    detpa_weights : array-like, optional
+        Weights of *detpa* (default equal).
+    jacobian : {'analytic', '2-point', '3-point'}
+        The Jacobian of the model: exact derivatives (default) or
+        scipy's finite differences.
 
     Returns
     -------
     dict
-        ``x``, ``y`` (mas), ``x_err``, ``y_err``, ``contrast`` (q,), ``contrast_err``
-        (q,), ``chi2``, ``dof``, ``success``.
+        ``x``, ``y`` (mas; ``dRA``, ``dDec`` with *detpa*), ``x_err``, ``y_err``,
+        ``contrast`` (q,), ``contrast_err`` (q,), ``chi2``, ``dof``, ``success``,
+        ``frame`` (``'sky'`` or ``'detector'``).
 
     Examples
     --------
@@ -76,16 +90,74 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
             return 1.0
         return float(window.at(np.hypot(a, b), ps))
 
+    if detpa is None:
+        rot = None
+    else:
+        ang = np.atleast_1d(np.asarray(u.Quantity(detpa, u.deg).value, float))
+        rw = np.ones(ang.size) if detpa_weights is None else np.asarray(detpa_weights, float)
+        rot = (ang, rw / rw.sum())
+
     def model(params):
         a, b = params[:2]
         c = params[2:]
-        theta = 2 * np.pi * (a * MAS * uv[:, 0] + b * MAS * uv[:, 1])[None, :] / lam[:, None]
-        phi = np.angle(1 + (c * wfac(a, b))[:, None] * np.exp(-1j * theta))
-        return phi @ kern.T
+        if rot is None:
+            xs, ys, ws = np.array([a]), np.array([b]), np.ones(1)
+        else:
+            xs, ys = sky_to_detector(a, b, rot[0])
+            ws = rot[1]
+        cw = (c * wfac(a, b))[:, None]
+        out = 0.0
+        for xf, yf, wf in zip(xs, ys, ws):
+            theta = 2 * np.pi * (xf * MAS * uv[:, 0] + yf * MAS * uv[:, 1])[None, :] / lam[:, None]
+            out = out + wf * np.angle(1 + cw * np.exp(-1j * theta))
+        return out @ kern.T
 
     def resid(params):
         r = kp - model(params)
         return np.einsum("wij,wj->wi", whitening, r).ravel()
+
+    def jac(params):
+        # phi = arg(1 + g e^{-i theta}), g = c w: d phi / d g = -sin(theta) / |z|^2,
+        # d phi / d theta = -(g cos(theta) + g^2) / |z|^2
+        a, b = params[:2]
+        c = params[2:]
+        wf = wfac(a, b)
+        if ps is None or window is None:
+            dw = (0.0, 0.0)
+        else:
+            h = 1e-4
+            dw = ((wfac(a + h, b) - wfac(a - h, b)) / (2 * h),
+                  (wfac(a, b + h) - wfac(a, b - h)) / (2 * h))
+        if rot is None:
+            xs, ys, ws, cs, sn = (np.array([a]), np.array([b]), np.ones(1),
+                                  np.array([-1.0]), np.array([0.0]))
+        else:
+            xs, ys = sky_to_detector(a, b, rot[0])
+            ws = rot[1]
+            cs, sn = -np.cos(np.deg2rad(rot[0])), np.sin(np.deg2rad(rot[0]))
+        # d(x, y)/d(a, b) = [[cs, sn], [sn, -cs]] (detector frame: identity)
+        g = (c * wf)[:, None]
+        k = 2 * np.pi * MAS / lam[:, None]
+        dphi = np.zeros((q + 2, q, uv.shape[0]))
+        for xf, yf, wt, cf, sf in zip(xs, ys, ws, cs, sn):
+            theta = k * (xf * uv[:, 0] + yf * uv[:, 1])[None, :]
+            ct, st = np.cos(theta), np.sin(theta)
+            z2 = 1 + 2 * g * ct + g ** 2
+            dg = -st / z2
+            dth = -(g * ct + g ** 2) / z2
+            if rot is None:
+                dxa, dya, dxb, dyb = 1.0, 0.0, 0.0, 1.0
+            else:
+                dxa, dya, dxb, dyb = cf, sf, sf, -cf
+            dphi[0] += wt * (dth * k * (dxa * uv[:, 0] + dya * uv[:, 1]) + dg * c[:, None] * dw[0])
+            dphi[1] += wt * (dth * k * (dxb * uv[:, 0] + dyb * uv[:, 1]) + dg * c[:, None] * dw[1])
+            dphi[2 + np.arange(q), np.arange(q)] += wt * dg * wf
+        out = np.zeros((q, p, q + 2))
+        # position: every channel; contrast j: channel j only
+        out[:, :, :2] = np.einsum("wij,nwj->win", whitening, dphi[:2] @ kern.T)
+        dc = dphi[2 + np.arange(q), np.arange(q)] @ kern.T            # (q, p)
+        out[np.arange(q), :, 2 + np.arange(q)] = np.einsum("wij,wj->wi", whitening, dc)
+        return -out.reshape(q * p, q + 2)
 
     x0 = np.concatenate([np.asarray(start, float), np.asarray(contrast0, float)])
     if x0.size != q + 2:
@@ -95,7 +167,10 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
     hi = np.concatenate([x0[:2] + half, np.full(q, 0.5)])
     x0 = np.clip(x0, lo + 1e-12, hi - 1e-12)
     scale = np.concatenate([[1.0, 1.0], np.maximum(np.abs(x0[2:]), 1e-5)])
-    res = optimize.least_squares(resid, x0, bounds=(lo, hi), x_scale=scale, method="trf")
+    if jacobian not in ("analytic", "2-point", "3-point"):
+        raise KpifsError(f"jacobian must be 'analytic', '2-point' or '3-point', got {jacobian!r}")
+    res = optimize.least_squares(resid, x0, jac=jac if jacobian == "analytic" else jacobian,
+                                 bounds=(lo, hi), x_scale=scale, method="trf")
     jac = res.jac
     cov = np.linalg.pinv(jac.T @ jac)
     if noise_rows is not None:
@@ -105,4 +180,5 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
     dof = int(np.count_nonzero(np.abs(whitening).sum(axis=2))) - (q + 2)
     return {"x": res.x[0], "y": res.x[1], "x_err": err[0], "y_err": err[1],
             "contrast": res.x[2:], "contrast_err": err[2:], "chi2": float(2 * res.cost),
-            "dof": dof, "success": bool(res.success)}
+            "dof": dof, "success": bool(res.success),
+            "frame": "detector" if rot is None else "sky"}

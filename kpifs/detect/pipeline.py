@@ -13,6 +13,8 @@ from ..exceptions import KpifsError, KpifsWarning
 from ..kernel import MAS, KernelModel
 from ..pupil import make_pupil
 from .fit import fit_binary
+from .sky import add_sky_columns
+from .skyfit import refit_on_sky
 from .limits import (energy_lambda, limit_binary, limit_energy, limit_energy_correlated,
                      limit_np, radial_curves, spectrum_shape)
 from .maps import DetectionModel
@@ -158,6 +160,13 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
     cands, kappa = _sequential_search(model, kp, w, kpd, threshold=threshold, null=null,
                                       spectrum=spectrum, fit=fit, max_candidates=max_candidates,
                                       dof=int(rank.sum()))
+    add_sky_columns(cands, kpd.detpa)
+    if fit and refit_on_sky(cands, kp, w, kpd, noise_rows=null.noise_rows) \
+            and "chi2_red" in cands.colnames:
+        # the rotating fit's errors, scaled like the detector fit's
+        k = np.sqrt(np.maximum(1.0, np.asarray(cands["chi2_red"], float)))
+        for col in ("fit_dra_err", "fit_ddec_err", "fit_pa_sky_err"):
+            cands[col] = cands[col] * k
     # the noise level the data show beyond the model (reduced chi-square of the residual
     # after the candidates): statistics, errors and limits are scaled by it, never down
     scale = max(1.0, kappa)

@@ -81,6 +81,9 @@ def detection_hdulist(result, *, header=None, inputs=()):
         hdr[f"KPIN{i}"] = card(name, "input file")
     hdr.add_history(f"kpifs {VERSION}: {result.test} search, P_FA {result.pfa:g}, "
                     f"P_D {result.pd:g}, {len(result.candidates)} candidate(s)")
+    if "detpa" in result.candidates.meta:
+        hdr["DETPA"] = (float(result.candidates.meta["detpa"]),
+                        "[deg] detector +y position angle, East of North")
     wcs_hdr = result.grid.wcs().to_header()
     q = len(result.wavelengths)
     wcs3 = wcs_hdr.copy()
@@ -104,6 +107,8 @@ def detection_hdulist(result, *, header=None, inputs=()):
     hdus.append(curves)
     cand = result.candidates.copy()
     cand.meta = {"TEST": result.test, "THRESH": float(result.threshold)}
+    if "detpa" in result.candidates.meta:
+        cand.meta["DETPA"] = float(result.candidates.meta["detpa"])
     ch = fits.table_to_hdu(cand)
     ch.name = "CANDIDATES"
     hdus.append(ch)
@@ -115,7 +120,7 @@ def detection_hdulist(result, *, header=None, inputs=()):
 _PRODUCT_CARDS = {"KPIFSVER", "CONTENT", "TEST", "MAPTEST", "PFA", "PD", "THRESH", "NDRAWS",
                   "PFAFLOOR",
                   "MCSEED", "NCAND", "ESTAT", "EDOF", "EPFA", "ETHRESH", "GRIDMIN", "GRIDMAX",
-                  "NULLCHAN", "CALIB", "CHI2RED", "NOISESC"}
+                  "NULLCHAN", "CALIB", "CHI2RED", "NOISESC", "DETPA"}
 _PRODUCT_PREFIXES = ("WAVE", "SPEC", "KPCAL", "KPIN")
 
 
