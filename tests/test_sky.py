@@ -166,9 +166,11 @@ def test_cli_detect_reports_a_xara_binary_on_the_sky(km, tmp_path, capsys):
 
 
 @pytest.mark.filterwarnings("ignore::kpifs.KpifsWarning")
-def test_detect_refits_a_rotating_sequence_on_the_sky():
-    """Calibration passes the frames' angles on; detect refits the companion with the
-    rotating model: PA within 1 deg, separation within 1 % (40 deg of rotation)."""
+@pytest.mark.parametrize("via_file", [False, True], ids=["memory", "kpfits"])
+def test_detect_refits_a_rotating_sequence_on_the_sky(tmp_path, via_file):
+    """Calibration passes the frames' angles on (in memory, or through the calibrated
+    KPFITS's DETPA-FR); detect refits the companion with the rotating model: PA within
+    1 deg, separation within 1 % (40 deg of rotation)."""
     from kpifs.calibrate import calibrate
     from kpifs.data import DetectionGrid
     from kpifs.detect import detect
@@ -182,6 +184,9 @@ def test_detect_refits_a_rotating_sequence_on_the_sky():
     cal = KernelPhaseData(_rotating_sequence(km1, wl, sep, pa, 0.0, detpa, 0.01, seed=22), wl,
                           10 * u.mas, km1, detpa=detpa)
     kpd = calibrate(tgt, [cal])
+    if via_file:
+        kpd = KernelPhaseData.read(kpd.write(tmp_path / "cal.fits"))
+        np.testing.assert_allclose(kpd.meta["detpa_frames"], detpa)
     assert len(kpd.meta["detpa_frames"]) == n
     grid = DetectionGrid.from_separation(150 * u.mas, 8 * u.mas, min_sep=30 * u.mas)
     res = detect(kpd, grid=grid, n_draws=2000, seed=0, max_candidates=1)

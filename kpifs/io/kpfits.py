@@ -12,7 +12,8 @@ BWIDTH, DWAVEL in m), DETPA ``(nframe,)`` deg (the position angle, East of
 North, of the detector +y axis), optional CVIS-DATA ``(2, nframe, nwave, nuv)``
 holding the real and imaginary parts of the flux-normalised visibilities
 (float32),
-and kpifs's own KP-COVROWS and KP-JCOV.
+and kpifs's own KP-COVROWS, KP-JCOV and DETPA-FR (calibrated data: the
+averaged target frames' angles, deg).
 
 It reads (`read_kpfits_parts`) the variants other tools write as well:
 BLM-MAT with one column fewer than sub-apertures (the first aperture is the
@@ -222,6 +223,12 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
     hp.header["PASRC"] = card(where, "where the angles come from")
     hp.header["COMMENT"] = "position angle (East of North) of the detector +y axis, per frame"
     hdus.append(hp)
+    if kpd.meta.get("detpa_frames") is not None:
+        # calibrated data: the averaged target frames' own angles, for fits on the sky
+        hf = fits.ImageHDU(np.asarray(kpd.meta["detpa_frames"], float), name="DETPA-FR")
+        hf.header["BUNIT"] = "deg"
+        hf.header["COMMENT"] = "detector position angle of each averaged target frame"
+        hdus.append(hf)
     if kpd.phases is not None and kpd.amplitudes is not None:
         ph, amp = np.asarray(kpd.phases), np.asarray(kpd.amplitudes)
         # diagnostics, stored in float32 (~1e-7 relative): half the file and the write

@@ -388,6 +388,8 @@ def _read_data(hdul, path, detpa):
     em = {key: hdr[name] for key, (name, _) in _ERROR_MODEL_CARDS.items() if name in hdr}
     if em:
         meta["error_model"] = em
+    if "DETPA-FR" in hdul and hdul["DETPA-FR"].data is not None:
+        meta["detpa_frames"] = [float(v) for v in np.ravel(hdul["DETPA-FR"].data)]
     if "BADFRMS" in hdr:
         meta["bad_frames"] = str(hdr["BADFRMS"])
         meta["n_dropped_frames"] = int(hdr.get("NDROPFR", 0))
