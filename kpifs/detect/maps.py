@@ -248,6 +248,11 @@ class DetectionModel:
         so that ``Z[k]^T Z[k]`` is the covariance of ``(z_1 ... z_q)`` at position
         ``k`` (channel correlations included).
         """
+        noise_rows = np.asarray(noise_rows, float)
+        key = hashlib.sha1(np.ascontiguousarray(noise_rows).tobytes()).hexdigest()
+        cached = getattr(self, "_row_projections", None)
+        if cached is not None and cached[0] == key:      # the null and the limits share it
+            return cached[1]
         rows = np.flatnonzero(self.grid.valid.ravel())
         nr = len(noise_rows)
         q = len(self.wavelengths)
@@ -256,6 +261,7 @@ class DetectionModel:
             unit = self._unit_signatures(rows[a:a + chunk]).astype(float)    # (q, n, p)
             for i in range(q):
                 out[a:a + chunk, :, i] = (noise_rows[:, i, :] @ unit[i].T).T
+        self._row_projections = (key, (rows, out))
         return rows, out
 
     def half_positions(self):

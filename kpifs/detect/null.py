@@ -132,7 +132,6 @@ class NullCalibration:
         rng = as_rng(self.seed)
         q, p = len(model.wavelengths), model.kernel_model.n_kp
         positions, mirrored = model.half_positions()
-        unit = model._unit_signatures(positions)                          # (q, npos, p)
         forms = (form,) if form == "NP" else ("B", "B-paper")
         if form == "NP":
             mfw = model._mf_weights(self.spectrum).reshape(q, -1)[:, positions]
@@ -140,7 +139,12 @@ class NullCalibration:
         # z = eps @ unit^T with eps = coef @ rows: project the rows once when they are few
         via_rows = rows is not None and len(rows) < p
         if via_rows:
-            proj = np.einsum("rip,inp->irn", rows.astype(np.float32), unit)   # (q, nrow, npos)
+            # the rows' projections on every valid position (the limits use them too)
+            valid, z = model.row_projections(rows)                        # (nvalid, nrow, q)
+            proj = np.ascontiguousarray(
+                z[np.searchsorted(valid, positions)].transpose(2, 1, 0), np.float32)
+        else:
+            unit = model._unit_signatures(positions)                      # (q, npos, p)
         maxima = {f: np.empty(self.n_draws) for f in forms}
         starts = progress_bar(range(0, self.n_draws, batch), desc=f"calibrating sup-{form}",
                               unit="batch", enabled=self.progress)
