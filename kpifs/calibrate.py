@@ -168,7 +168,7 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True
     ...                       10 * u.mas, km)
     >>> res = calibrate(tgt, cal)
     >>> res.kp.shape, res.covariance.shape == (2, km.n_kp, km.n_kp)
-    ((1, 2, 44), True)
+    ((1, 2, 37), True)
     """
     if isinstance(calibrators, KernelPhaseData):
         calibrators = [calibrators]

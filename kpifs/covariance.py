@@ -323,7 +323,7 @@ def propagated_covariance(images, variance, kernel_model, *, wavelengths, pixsca
     ...                             pixscale=10.42 * u.mas, centres=(16, 16),
     ...                             window=ExtractionWindow(32, 12.8))
     >>> cov.shape
-    (1, 44, 44)
+    (1, 37, 37)
     """
     wl = np.atleast_1d(to_quantity(wavelengths, u.m, name="wavelengths"))
     ps = to_quantity(pixscale, u.mas, name="pixel scale")

@@ -227,7 +227,7 @@ class KernelModel:
         self._rank = int(value)
 
     @classmethod
-    def from_pupil(cls, pupil, *, rtol=1e-9, uv_tol=None):
+    def from_pupil(cls, pupil, *, rtol=1e-9, uv_tol=None, min_redundancy=None):
         """Build the kernel model of a `~kpifs.pupil.PupilModel`.
 
         Parameters
@@ -239,6 +239,11 @@ class KernelModel:
         uv_tol : float, optional
             Baselines closer than this (m) are merged; default a thousandth of
             the grid step.
+        min_redundancy : float, optional
+            Leave out uv points whose redundancy is below this (default: the
+            pupil's ``meta['min_redundancy']``, 0.5 for kpifs's grey models,
+            else 0): made only of barely covered cells, they sample the real
+            transfer function where it is near zero.
         """
         if not isinstance(pupil, PupilModel):
             raise KpifsError(f"expected a PupilModel, got {type(pupil).__name__}")
@@ -250,7 +255,15 @@ class KernelModel:
                 step = np.min(d[d > 0])
             uv_tol = 1e-3 * step
         uv, red, A = _uv_from_pupil(xy, pupil.transmission, uv_tol)
-        km = cls(pupil, uv, red, A, rtol=rtol, meta={"rtol": rtol, "uv_tol_m": uv_tol})
+        if min_redundancy is None:
+            min_redundancy = float(pupil.meta.get("min_redundancy", 0.0))
+        keep = red >= min_redundancy
+        if keep.sum() < 2:
+            raise KpifsError(f"fewer than two uv points have redundancy >= {min_redundancy}")
+        uv, red, A = uv[keep], red[keep], A[keep]
+        km = cls(pupil, uv, red, A, rtol=rtol, meta={"rtol": rtol, "uv_tol_m": uv_tol,
+                                                      "min_redundancy": min_redundancy,
+                                                      "n_uv_low_redundancy": int((~keep).sum())})
         log.info("kernel model: %d sub-apertures, %d uv points", pupil.n_sub, km.n_uv)
         return km
 
@@ -298,6 +311,42 @@ class KernelModel:
         km = KernelModel(self.pupil, self._uv[keep], self.redundancy[keep], self.blm[keep],
                          rtol=self.meta.get("rtol", 1e-9), meta=self.meta)
         km.meta["n_uv_dropped"] = int((~keep).sum()) + self.meta.get("n_uv_dropped", 0)
+        return km
+
+    def transformed(self, *, rotation=0 * u.deg, scale=1.0):
+        """The same model turned by *rotation* and scaled by *scale* as a whole.
+
+        Sub-aperture positions and uv points rotate (counter-clockwise from +x
+        to +y) and scale together; redundancies, baseline mapping and kernel
+        are unchanged, so kernel phases of the new model are comparable with
+        the old one's. A *scale* ``f`` is the same as a pixel scale ``f``
+        times larger: this is how `~kpifs.modelcheck.check_pupil_model` tries
+        orientations and scales of the pupil on the detector.
+
+        Examples
+        --------
+        >>> import astropy.units as u
+        >>> from kpifs import KernelModel, make_pupil
+        >>> km = KernelModel.from_pupil(make_pupil("subaru", step=0.6 * u.m))
+        >>> km2 = km.transformed(rotation=90 * u.deg)
+        >>> bool(abs(km2.uv[0, 0] + km.uv[0, 1]) < 1e-9 * u.m), km2.n_kp == km.n_kp
+        (True, True)
+        """
+        ang = np.deg2rad(to_quantity(rotation, u.deg, name="rotation").value)
+        scale = float(scale)
+        if not np.isfinite(ang) or not (np.isfinite(scale) and scale > 0):
+            raise KpifsError(f"rotation must be finite and scale > 0, got {rotation}, {scale}")
+        if ang == 0 and scale == 1:
+            return self
+        rot = scale * np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+        pup = self.pupil
+        meta = dict(pup.meta, rotation_deg=pup.meta.get("rotation_deg", 0.0) + np.rad2deg(ang),
+                    scale=pup.meta.get("scale", 1.0) * scale)
+        new_pupil = PupilModel(pup.xy.value @ rot.T, pup.transmission,
+                               step=None if pup.step is None else pup.step * scale,
+                               name=pup.name, meta=meta)
+        km = KernelModel(new_pupil, self._uv @ rot.T, self.redundancy, self.blm,
+                         self._kernel, rank=self._rank, rtol=self._rtol, meta=self.meta)
         return km
 
     def for_wavelengths(self, wavelengths, pixscale, *, on_nyquist="drop", source=None):

@@ -95,7 +95,7 @@ def phase_screens(npup, dx, n, *, rms=100e-9, mask=None, cutoff=None, seed=None)
 
 
 def simulate_psf(pupil, wavelengths, *, pixscale, shape=(64, 64), npup=128, opd=None,
-                 centre=(0.0, 0.0), companions=(), pupil_rotation=0 * u.deg):
+                 centre=(0.0, 0.0), companions=(), pupil_rotation=0 * u.deg, supersample=1):
     """Noise-free images of a star (and companions) at each wavelength.
 
     Parameters
@@ -114,6 +114,10 @@ def simulate_psf(pupil, wavelengths, *, pixscale, shape=(64, 64), npup=128, opd=
         Sub-pixel offset of the star from pixel ``(nx // 2, ny // 2)``, in pixels.
     companions : sequence of ``((alpha, beta), contrast)``
         Offsets in mas (or Quantity) and contrasts (scalar or per wavelength).
+    pupil_rotation : `~astropy.units.Quantity`
+        Turn of the pupil (counter-clockwise from +x to +y).
+    supersample : int
+        Anti-aliasing of the pupil (`~kpifs.pupil.pupil_image`).
 
     Returns
     -------
@@ -130,7 +134,7 @@ def simulate_psf(pupil, wavelengths, *, pixscale, shape=(64, 64), npup=128, opd=
     """
     wl = np.atleast_1d(to_quantity(wavelengths, u.m, name="wavelengths").value)
     p = to_quantity(pixscale, u.mas, name="pixel scale").value * MAS
-    pimg, dx = pupil_image(pupil, npix=npup, rotation=pupil_rotation)
+    pimg, dx = pupil_image(pupil, npix=npup, rotation=pupil_rotation, supersample=supersample)
     out = np.empty((len(wl),) + tuple(shape))
     cen = (centre[0] * p, centre[1] * p)
     comps = [(to_quantity(off, u.mas, name="companion offset").value * MAS,
@@ -183,6 +187,9 @@ class SceneParameters:
     drift_time: float = 10.0
     static_rms: u.Quantity = 0 * u.nm
     static_diff_rms: u.Quantity = 0 * u.nm
+    # the pupil as the detector sees it: turned by this angle (counter-clockwise from +x
+    # to +y), as when a model is made for the textbook orientation
+    pupil_rotation: u.Quantity = 0 * u.deg
 
     def bandwidths(self):
         wl = self.wavelengths.to_value(u.um)
@@ -391,7 +398,8 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
         raise KpifsError("n_frames must be at least 1")
     rng = as_rng(seed)
     nf, nw = params.n_frames, len(params.wavelengths)
-    pimg, dx = pupil_image(params.telescope, npix=params.npup)
+    params.pupil_rotation = to_quantity(params.pupil_rotation, u.deg, name="pupil rotation")
+    pimg, dx = pupil_image(params.telescope, npix=params.npup, rotation=params.pupil_rotation)
     nphot = params.star_photons()
     wl_m = params.wavelengths.to_value(u.m)
     p_rad = params.pixscale.to_value(u.mas) * MAS

@@ -78,10 +78,13 @@ class ExtractOptions:
     # pupil and kernel model (pupil None: the instrument's telescope)
     pupil: object = None
     pupil_scale: object = None
-    step: object = field(default_factory=lambda: 0.38 * u.m)
-    offset: object = field(default_factory=lambda: [0.17, 0.11] * u.m)
-    min_transmission: float = 0.9
-    grey: bool = False
+    # (None: the pupil's default, `kpifs.pupil.MODEL_DEFAULTS`)
+    step: object = None
+    offset: object = None
+    min_transmission: float = None
+    grey: bool = None
+    min_redundancy: float = None
+    rotation: object = None
     hexagonal: bool = False
     # extraction
     window_size: int = None
@@ -167,13 +170,19 @@ def kernel_model_for(options, instrument="generic"):
     """
     pupil = options.pupil if options.pupil is not None else DEFAULT_PUPIL.get(instrument,
                                                                               "subaru")
-    offset = to_quantity(options.offset, u.m, name="grid offset")
-    if offset.size != 2:
-        raise KpifsError(f"the grid offset needs two values x,y, got {options.offset!r}")
-    return load_kernel_model(pupil, pupil_scale=options.pupil_scale,
-                             step=to_quantity(options.step, u.m, name="grid step"),
+    offset = None
+    if options.offset is not None:
+        offset = to_quantity(options.offset, u.m, name="grid offset")
+        if offset.size != 2:
+            raise KpifsError(f"the grid offset needs two values x,y, got {options.offset!r}")
+    step = None if options.step is None else to_quantity(options.step, u.m, name="grid step")
+    rotation = (None if options.rotation is None
+                else to_quantity(options.rotation, u.deg, name="pupil rotation"))
+    return load_kernel_model(pupil, pupil_scale=options.pupil_scale, step=step,
                              offset=offset, min_transmission=options.min_transmission,
-                             grey=options.grey, hexagonal=options.hexagonal)
+                             grey=options.grey, min_redundancy=options.min_redundancy,
+                             rotation=rotation,
+                             hexagonal=options.hexagonal)
 
 
 def _pixscale(options):
@@ -209,7 +218,7 @@ def extract_observation(files, options=None, *, model=None, progress=False):
     >>> files = write_observation(simulate_scene("paper", n_frames=2, npup=32),
     ...                           tempfile.mkdtemp())
     >>> extract_observation(files["target"], ExtractOptions(step="0.8m")).shape
-    (2, 3, 74)
+    (2, 3, 65)
     """
     options = options or ExtractOptions()
     files = [str(files)] if isinstance(files, (str, Path)) else [str(f) for f in files]

@@ -319,8 +319,8 @@ CASES = [
     ("info: corrupted KPFITS", lambda f: ["info", f["kp_corrupt"]], 2,
      "kp_corrupt.fits: checksum mismatch"),
     ("info: next command keeps the model", lambda f: ["info", f["target"], "--step", "0.8m",
-                                                      "--grey"], 0,
-     "--step 0.8m --offset 0.17m,0.11m --min-transmission 0.9 --grey"),
+                                                      "--binary", "--rotation", "1deg"], 0,
+     "--step 0.8m --binary --rotation 1deg"),
     # archives
     ("batch: missing manifest", lambda f: ["batch", f["adir"].parent / "none.csv"], 2,
      "none.csv: manifest not found"),

@@ -29,8 +29,9 @@ def test_binary_kernel_phases_match_analytic(subaru_model, paper_wavelengths, sh
     """Fixes the Fourier sign convention end to end (simulator -> extraction -> model)."""
     rel = _binary_residual(subaru_model, paper_wavelengths, shape)
     assert np.all(rel < tolerance), rel
-    # measured with the defaults: ~0.08 (40x40) and ~0.02 (64x64)
-    assert np.all(rel < tolerance / 2)
+    # measured with the default (grey) model: ~0.11 (40x40) and ~0.025 (64x64); the
+    # binary model: ~0.075 and ~0.017
+    assert np.all(rel < 0.65 * tolerance)
 
 
 def test_opposite_sign_would_fail(subaru_model, paper_wavelengths):
@@ -76,8 +77,30 @@ def test_kernel_phases_reject_aberrations(subaru_model):
     assert min(ratios) >= 4, ratios
 
 
-def test_subpixel_centre_is_dft_origin(subaru_model, paper_wavelengths):
-    """A star moved by a sub-pixel amount gives the same phases once centred."""
+def test_grey_model_rejects_edge_aberrations_better_than_binary(subaru_model):
+    """The default grey model models the light of partly covered cells, so its kernel
+    cancels their aberrations too: measured 40-80x rejection against ~10x for the
+    binary model (cells >= 90 % inside)."""
+    binary = KernelModel.from_pupil(make_pupil("subaru", grey=False))
+    lam = 1.6e-6
+    _, dx = pupil_image("subaru", npix=128)
+    rng = np.random.default_rng(5)
+    ratio = {"grey": [], "binary": []}
+    for _ in range(4):
+        cube = simulate_psf("subaru", [1.6] * u.um, pixscale=PIX, shape=(40, 40),
+                            opd=_smooth_opd(128, dx, 0.1, lam, rng))
+        for name, km in (("grey", subaru_model), ("binary", binary)):
+            kpd = extract_kernel_phases(cube, km, wavelengths=[1.6] * u.um, pixscale=PIX)
+            ratio[name].append(np.std(kpd.phases[0, 0]) / np.std(kpd.kp[0, 0]))
+    assert not subaru_model.pupil.is_binary
+    assert np.median(ratio["grey"]) > 2.5 * np.median(ratio["binary"]), ratio
+
+
+def test_subpixel_centre_is_dft_origin(paper_wavelengths):
+    """A star moved by a sub-pixel amount gives the same phases once centred (binary
+    model: a grey model's edge uv points, where the transfer is low, are sensitive to
+    the pixel sampling itself)."""
+    subaru_model = KernelModel.from_pupil(make_pupil("subaru", grey=False))
     base = simulate_psf("subaru", paper_wavelengths, pixscale=PIX, shape=(40, 40),
                         companions=[(OFFSET, 1e-2)])
     moved = simulate_psf("subaru", paper_wavelengths, pixscale=PIX, shape=(40, 40),

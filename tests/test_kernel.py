@@ -19,8 +19,8 @@ def test_kernel_annihilates_phase_transfer(subaru_model):
     assert km.rank == np.linalg.matrix_rank(km.tfm)
 
 
-def test_uv_points_half_plane_and_redundancy(subaru_model):
-    km = subaru_model
+def test_uv_points_half_plane_and_redundancy():
+    km = KernelModel.from_pupil(make_pupil("subaru", grey=False))
     u_, v_ = km.uv.value.T
     assert np.all((v_ > 1e-9) | ((np.abs(v_) < 1e-9) & (u_ > 0)))
     # every pair counted once: total redundancy = n(n-1)/2 for a binary model
@@ -40,9 +40,53 @@ def test_grey_model_kernel():
     assert not np.allclose(km.redundancy, np.round(km.redundancy))
 
 
+@pytest.mark.parametrize("pupil", ["subaru", "vlt", "pharo", "annular", "image"])
+def test_default_grey_models_have_exact_kernels(pupil, tmp_path):
+    """K R^-1 A = 0 with redundancies weighted by transmission products, for every
+    built-in pupil's default (grey) model and a pupil image."""
+    kw = dict(diameter=6 * u.m, obstruction=1.5 * u.m) if pupil == "annular" else {}
+    if pupil == "image":
+        img, dx = pupil_image("vlt", npix=160)
+        pupil = str(tmp_path / "pupil.fits")
+        fits.PrimaryHDU(img, header=fits.Header({"PUPSCALE": dx})).writeto(pupil)
+    pup = make_pupil(pupil, **kw)
+    km = KernelModel.from_pupil(pup)
+    assert not pup.is_binary
+    assert np.abs(km.kernel @ km.tfm).max() < 1e-10
+    assert km.kernel_residual() < 1e-12
+    np.testing.assert_allclose(km.kernel @ km.kernel.T, np.eye(km.n_kp), atol=1e-10)
+    # redundancy = sum of t_j t_k over the pairs of each uv point: over all uv points,
+    # every pair once
+    t = pup.transmission
+    j, k = np.triu_indices(pup.n_sub, 1)
+    every = KernelModel.from_pupil(pup, min_redundancy=0)
+    assert every.redundancy.sum() == pytest.approx(np.sum(t[j] * t[k]), rel=1e-12)
+    assert np.abs(every.kernel @ every.tfm).max() < 1e-10
+    # uv points made only of barely covered cells are left out, and counted
+    assert km.redundancy.min() >= 0.5 > every.redundancy.min()
+    assert every.n_uv - km.n_uv == km.meta["n_uv_low_redundancy"] > 0
+    assert km.n_kp == km.n_uv - km.rank
+
+
+def test_transformed_model_turns_and_scales_uv():
+    km = KernelModel.from_pupil(make_pupil("subaru", step=0.6 * u.m))
+    km2 = km.transformed(rotation=30 * u.deg, scale=1.02)
+    a = np.deg2rad(30)
+    rot = 1.02 * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    np.testing.assert_allclose(km2.uv.value, km.uv.value @ rot.T, atol=1e-12)
+    np.testing.assert_allclose(km2.pupil.xy.value, km.pupil.xy.value @ rot.T, atol=1e-12)
+    np.testing.assert_array_equal(km2.kernel, km.kernel)
+    assert km2.pupil.meta["rotation_deg"] == pytest.approx(30)
+    assert km.transformed() is km
+    with pytest.raises(KpifsError, match="scale"):
+        km.transformed(scale=0)
+
+
 def test_phase_transfer_sign_matches_optics():
     """A small pupil phase phi gives Fourier phases R^-1 A phi in the simulator's images."""
-    km = KernelModel.from_pupil(make_pupil("subaru", step=0.66 * u.m))
+    # binary: each cell's phase is the phase at its centre (a grey edge cell sees the
+    # phase of its covered part only)
+    km = KernelModel.from_pupil(make_pupil("subaru", step=0.66 * u.m, grey=False))
     npup = 132
     img, dx = pupil_image("subaru", npix=npup)
     lam = 1.6e-6
@@ -103,9 +147,10 @@ def test_fits_round_trip(tmp_path, subaru_model):
     subaru_model.write(path, overwrite=True)
 
 
-def test_read_foreign_model_without_unit_rows(tmp_path, subaru_model):
+def test_read_foreign_model_without_unit_rows(tmp_path):
     """Files of other tools: integer redundancies, non-normalised kernel rows, no BLM-MAT."""
     from kpifs.io.kpfits import model_hdus
+    subaru_model = KernelModel.from_pupil(make_pupil("subaru", grey=False))
     hdus = model_hdus(subaru_model)[:3]
     hdus[1].data["RED"] = np.round(hdus[1].data["RED"])
     hdus[2].data = hdus[2].data * 3.0

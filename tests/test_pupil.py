@@ -4,12 +4,12 @@ import astropy.units as u
 from astropy.io import fits
 
 from kpifs import KernelModel, KpifsError, make_pupil
-from kpifs.pupil import TELESCOPES, pupil_image
+from kpifs.pupil import MODEL_DEFAULTS, TELESCOPES, model_defaults, pupil_image
 
 
 def test_subaru_default_model_size():
-    pup = make_pupil("subaru")
-    # 0.38 m grid, cells >= 90 % inside the pupil (see module docs)
+    pup = make_pupil("subaru", grey=False)
+    # binary: 0.38 m grid, cells >= 90 % inside the pupil (see module docs)
     assert pup.n_sub == 242
     assert pup.is_binary
     assert not pup.is_centrosymmetric()
@@ -72,15 +72,58 @@ def test_pupil_from_fits_image(tmp_path):
 def test_rotation_turns_the_model():
     a = make_pupil("subaru", offset=(0, 0) * u.m, min_transmission=0.5)
     b = make_pupil("subaru", offset=(0, 0) * u.m, min_transmission=0.5, rotation=90 * u.deg)
-    # Subaru's vanes are not symmetric under a 90 degree turn: the models differ
-    assert a.n_sub != b.n_sub or not np.allclose(np.sort(a.xy.value, 0), np.sort(b.xy.value, 0))
+    # the whole model (grid and aperture) turns: same cells, positions turned by 90 deg
+    np.testing.assert_allclose(b.xy.value, a.xy.value @ np.array([[0, 1], [-1, 0]]),
+                               atol=1e-12)
+    np.testing.assert_array_equal(a.transmission, b.transmission)
+    # ... and sits on the turned pupil: every cell of b is (mostly) inside it
+    img_fn = TELESCOPES["subaru"].transmission
+    c, s = np.cos(np.pi / 2), np.sin(np.pi / 2)
+    x, y = b.xy.value.T
+    assert img_fn(c * x + s * y, -s * x + c * y).mean() > 0.9
+
+
+def test_per_pupil_defaults():
+    """Grey models by default, with each pupil's step (MODEL_DEFAULTS, with sources)."""
+    for name in ("subaru", "vlt", "pharo", "charis", "sphere", "scexao"):
+        d = MODEL_DEFAULTS[name]
+        assert d.grey and d.source
+        pup = make_pupil(name)
+        assert not pup.is_binary
+        assert pup.step.to_value(u.m) == d.step
+        assert pup.transmission.min() >= d.min_transmission
+        assert pup.meta["min_redundancy"] == d.min_redundancy
+    assert make_pupil("pharo").step == 0.16 * u.m
+    assert model_defaults("annular") is MODEL_DEFAULTS["generic"]
+    annulus = make_pupil("annular", diameter=4 * u.m, obstruction=1 * u.m)
+    assert not annulus.is_binary
+    # binary on request, with its own cut
+    binary = make_pupil("subaru", grey=False)
+    assert binary.is_binary and binary.meta["min_transmission"] == 0.9
+    assert binary.meta["min_redundancy"] == 0
+
+
+def test_grey_default_for_pupil_images(tmp_path):
+    img, dx = pupil_image("vlt", npix=200)
+    path = tmp_path / "pupil.fits"
+    fits.PrimaryHDU(img, header=fits.Header({"PUPSCALE": dx})).writeto(path)
+    pup = make_pupil(str(path), step=0.5 * u.m)
+    assert not pup.is_binary and pup.transmission.min() >= 0.2
+
+
+def test_supersampled_pupil_turns_smoothly():
+    # the anti-aliased pupil's area changes by far less than a pixel's between close angles
+    a, _ = pupil_image("subaru", npix=64, rotation=1.0 * u.deg, supersample=4)
+    b, _ = pupil_image("subaru", npix=64, rotation=1.05 * u.deg, supersample=4)
+    assert abs(a.sum() - b.sum()) < 0.5 and 0 < a.min() + 1 and 0 < a[a > 0].min() < 1
 
 
 @pytest.mark.parametrize("kwargs, match", [
     (dict(pupil="hubble"), "unknown pupil"),
     (dict(pupil="circular"), "diameter"),
     (dict(pupil="subaru", step=-1 * u.m), "step"),
-    (dict(pupil="subaru", step=5 * u.m), "fewer than two"),
+    (dict(pupil="subaru", step=5 * u.m, grey=False), "fewer than two"),
+    (dict(pupil="subaru", min_redundancy=-1), "min_redundancy"),
     (dict(pupil="subaru", min_transmission=1.5), "min_transmission"),
     (dict(pupil="subaru", step=0.4 * u.s), "wrong unit"),
 ])

@@ -15,7 +15,7 @@ from kpfits_layouts import sky_to_detector as layouts_sky_to_detector
 
 @pytest.fixture(scope="module")
 def km():
-    return KernelModel.from_pupil(make_pupil("subaru", step=0.6 * u.m))
+    return KernelModel.from_pupil(make_pupil("subaru", step=0.6 * u.m, grey=False))
 
 
 def test_convention_matches_angles_module_and_layouts():
@@ -174,7 +174,7 @@ def test_detect_refits_a_rotating_sequence_on_the_sky(tmp_path, via_file):
     from kpifs.calibrate import calibrate
     from kpifs.data import DetectionGrid
     from kpifs.detect import detect
-    km1 = KernelModel.from_pupil(make_pupil("subaru", step=1.0 * u.m))
+    km1 = KernelModel.from_pupil(make_pupil("subaru", step=1.0 * u.m, grey=False))
     wl = [1.55, 1.65, 1.75] * u.um
     n = km1.n_kp + 30
     detpa = np.linspace(100.0, 140.0, n)

@@ -11,6 +11,7 @@ def extract_options(args):
         ("pa", "pa"),
         ("pupil", "pupil"), ("pupil_scale", "pupil_scale"), ("step", "step"),
         ("offset", "offset"), ("min_transmission", "min_transmission"), ("grey", "grey"),
+        ("rotation", "rotation"), ("min_redundancy", "min_redundancy"),
         ("hexagonal", "hexagonal"), ("window_size", "window_size"),
         ("window_radius", "window_radius"), ("centroid", "centroid"),
         ("bad_pixels", "bad_pixels"), ("bad_frames", "bad_frames"),

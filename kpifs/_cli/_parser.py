@@ -16,6 +16,17 @@ EPILOG_KERNEL = """examples:
   kpifs kernel --pupil vlt --step 0.4m --offset 0.1m,0.05m --grey -o vlt_grey.fits
   kpifs kernel --pupil mypupil.fits --pupil-scale 0.02m -o model.fits
 """
+EPILOG_MODELCHECK = """Fits the turn of the pupil model and the pixel-scale factor to the Fourier
+amplitudes of a star without a known companion, and compares transmission
+cuts (and steps) by the calibrated reduced chi2 between two stars or between
+the two halves of one sequence; prints every model tried and the one it
+recommends, with the reason.
+
+examples:
+  kpifs model-check cal.fits --wavelengths 2.145um --pixscale 25mas --pupil pharo
+  kpifs model-check cal1.fits --calibrator cal2.fits --pupil subaru -o check.ecsv
+  kpifs model-check cal.fits --rotations -3,-2,-1,0,1,2,3 --scales 0.99,1,1.01
+"""
 EPILOG_EXTRACT = """examples:
   kpifs extract cube.fits --wavelengths 1.52um,1.60um,1.68um --pixscale 10.42mas \\
       --pupil subaru -o kp.fits
@@ -85,13 +96,25 @@ def _pupil_options(p):
                         "keyword or --pupil-scale) or kernel-model FITS (default: the "
                         "instrument's telescope, subaru for plain cubes)")
     g.add_argument("--pupil-scale", help="pupil image pixel size, e.g. 0.02m")
-    g.add_argument("--step", default="0.38m", help="pupil grid step (default 0.38m)")
-    g.add_argument("--offset", default="0.17m,0.11m",
+    g.add_argument("--step", default=None,
+                   help="pupil grid step (default: the pupil's, 0.38m for subaru and vlt, "
+                        "0.16m for pharo)")
+    g.add_argument("--offset", default=None,
                    help="grid offset x,y (default 0.17m,0.11m; 0,0 gives a "
                         "centro-symmetric model)")
-    g.add_argument("--min-transmission", type=float, default=0.9,
-                   help="keep cells at least this much inside the pupil (default 0.9)")
-    g.add_argument("--grey", action="store_true", help="keep fractional transmissions")
+    g.add_argument("--min-transmission", type=float, default=None,
+                   help="keep cells at least this much inside the pupil (default 0.2 for a "
+                        "grey model, 0.9 for a binary one)")
+    g.add_argument("--min-redundancy", type=float, default=None,
+                   help="grey model: leave out uv points of smaller redundancy (default 0.5)")
+    kind = g.add_mutually_exclusive_group()
+    kind.add_argument("--grey", dest="grey", action="store_const", const=True, default=None,
+                      help="keep fractional transmissions (the default)")
+    kind.add_argument("--binary", dest="grey", action="store_const", const=False,
+                      help="binary model: every kept cell counts 1")
+    g.add_argument("--rotation", default=None,
+                   help="turn of the whole model to the pupil on the detector, e.g. -2deg "
+                        "(kpifs model-check measures it; default 0)")
     g.add_argument("--hexagonal", action="store_true", help="hexagonal grid")
 
 
@@ -180,6 +203,29 @@ def build_parser():
     _pupil_options(p)
     _extraction_options(p)
     _output(p, "output KPFITS file")
+
+    p = command("model-check", "fit the pupil model to a star's frames; compare models",
+                EPILOG_MODELCHECK, module="modelcheck")
+    p.add_argument("cubes", nargs="+", metavar="CUBE",
+                   help="FITS cube(s) of a star without a known companion")
+    p.add_argument("--calibrator", nargs="+", metavar="CUBE",
+                   help="cube(s) of a second such star (default: compare the two halves "
+                        "of CUBE's frames)")
+    _cube_options(p)
+    p.add_argument("--pupil", default=None,
+                   help="telescope name or pupil image FITS (default: the instrument's "
+                        "telescope, subaru for plain cubes)")
+    p.add_argument("--rotations", default="-6,-4.5,-3,-1.5,0,1.5,3,4.5,6",
+                   help="coarse grid of model turns, deg (default -6 to 6 by 1.5)")
+    p.add_argument("--scales", default="0.97,0.98,0.99,1,1.01,1.02,1.03",
+                   help="coarse grid of pixel-scale factors (default 0.97 to 1.03)")
+    p.add_argument("--cuts", default="0.05,0.1,0.2,0.3,0.5",
+                   help="grey transmission cuts compared (the binary model too)")
+    p.add_argument("--steps", help="grid steps compared, m (default: the pupil's only)")
+    p.add_argument("--window", "--window-size", dest="window_size", type=int,
+                   help="cut-out size in pixels (default as extract)")
+    p.add_argument("--window-radius", type=float, help="super-Gaussian radius in pixels")
+    _output(p, "write the table of models tried (ECSV)", required=False)
 
     p = command("inject", "inject companions into cubes; injection contrast curve",
                 EPILOG_INJECT)

@@ -12,7 +12,9 @@ from ..workflow import DEFAULT_PUPIL, kernel_model_for
 from ._options import extract_options
 
 # model options the suggested next command repeats
-_MODEL_OPTIONS = ("pupil_scale", "step", "offset", "min_transmission", "grey", "hexagonal")
+_MODEL_OPTIONS = ("pupil_scale", "step", "offset", "min_transmission", "grey",
+                  "min_redundancy", "rotation",
+                  "hexagonal")
 
 
 def run(args):
@@ -150,7 +152,9 @@ def _given(args, opts, pupil):
     for name in _MODEL_OPTIONS:
         value = getattr(args, name)
         flag = f"--{name.replace('_', '-')}"
-        if isinstance(value, bool):
+        if name == "grey" and value is False:
+            given.append("--binary")
+        elif isinstance(value, bool):
             given += [flag] if value else []
         elif value is not None:
             given.append(f"{flag} {value}")

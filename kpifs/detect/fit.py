@@ -1,7 +1,7 @@
 """Non-linear fit of a binary model to calibrated kernel phases.
 
-The model in channel ``i`` is ``K arg(1 + c_i w(alpha, beta) exp(-2 pi i (alpha u +
-beta v) / lambda_i))`` (``w`` the extraction window's value at the companion) and
+The model in channel ``i`` is ``K arg(1 + c_i g(u) exp(-2 pi i (alpha u +
+beta v) / lambda_i))`` (``g`` the extraction window's gain at the companion, `kpifs.detect.gain`) and
 the residuals are whitened with the per-channel ``W_i``; the parameters are the
 offset ``(alpha, beta)`` in mas and one contrast per channel (the companion's
 low-resolution spectrum). Uncertainties come from the Jacobian at the optimum.
@@ -12,6 +12,7 @@ from astropy import units as u
 from .._lazy import lazy_module
 from ..exceptions import KpifsError
 from ..kernel import MAS
+from .gain import window_gain
 from .sky import sky_to_detector
 
 optimize = lazy_module("scipy.optimize")
@@ -21,7 +22,7 @@ __all__ = ["fit_binary"]
 
 def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pixscale=None,
                window=None, bounds_mas=None, noise_rows=None, detpa=None,
-               detpa_weights=None, jacobian="analytic"):
+               detpa_weights=None, jacobian="analytic", window_correction=True):
     """Fit position and per-channel contrasts of a companion.
 
     Parameters
@@ -57,6 +58,10 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
     jacobian : {'analytic', '2-point', '3-point'}
         The Jacobian of the model: exact derivatives (default) or
         scipy's finite differences.
+    window_correction : bool
+        Model the window's effect baseline by baseline
+        (`kpifs.detect.gain.window_gain`, default) instead of a single factor
+        ``w(r0)``: unbiased contrasts out to the window's edge.
 
     Returns
     -------
@@ -97,19 +102,34 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
         rw = np.ones(ang.size) if detpa_weights is None else np.asarray(detpa_weights, float)
         rot = (ang, rw / rw.sum())
 
+    def poses(a, b):
+        if rot is None:
+            return np.array([a]), np.array([b]), np.ones(1)
+        xs, ys = sky_to_detector(a, b, rot[0])
+        return np.atleast_1d(xs), np.atleast_1d(ys), rot[1]
+
+    # Per-pose complex correction g(u) / w(r0) of the window's gain
+    # (`kpifs.detect.gain`), computed at a reference position and held fixed while
+    # the optimiser moves: it varies on the window's scale, not the fringes'.
+    corr = [None]
+
+    def set_correction(a, b):
+        xs, ys, _ = poses(a, b)
+        if ps is None or window is None or not window_correction:
+            corr[0] = [1.0] * len(xs)
+            return
+        corr[0] = [window_gain(kernel_model, window, ps * u.mas, lam * u.m, (xf, yf))
+                   / max(wfac(xf, yf), 1e-12) for xf, yf in zip(xs, ys)]
+
     def model(params):
         a, b = params[:2]
         c = params[2:]
-        if rot is None:
-            xs, ys, ws = np.array([a]), np.array([b]), np.ones(1)
-        else:
-            xs, ys = sky_to_detector(a, b, rot[0])
-            ws = rot[1]
+        xs, ys, ws = poses(a, b)
         cw = (c * wfac(a, b))[:, None]
         out = 0.0
-        for xf, yf, wf in zip(xs, ys, ws):
+        for xf, yf, wf, cr in zip(xs, ys, ws, corr[0]):
             theta = 2 * np.pi * (xf * MAS * uv[:, 0] + yf * MAS * uv[:, 1])[None, :] / lam[:, None]
-            out = out + wf * np.angle(1 + cw * np.exp(-1j * theta))
+            out = out + wf * np.angle(1 + cw * cr * np.exp(-1j * theta))
         return out @ kern.T
 
     def resid(params):
@@ -117,8 +137,8 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
         return np.einsum("wij,wj->wi", whitening, r).ravel()
 
     def jac(params):
-        # phi = arg(1 + g e^{-i theta}), g = c w: d phi / d g = -sin(theta) / |z|^2,
-        # d phi / d theta = -(g cos(theta) + g^2) / |z|^2
+        # phi = arg(1 + c w h), h = corr e^{-i theta}, z = 1 + c w h:
+        # d phi / d(c w) = Im(h / z), d phi / d theta = -Re(c w h / z)
         a, b = params[:2]
         c = params[2:]
         wf = wfac(a, b)
@@ -128,23 +148,21 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
             h = 1e-4
             dw = ((wfac(a + h, b) - wfac(a - h, b)) / (2 * h),
                   (wfac(a, b + h) - wfac(a, b - h)) / (2 * h))
+        xs, ys, ws = poses(a, b)
         if rot is None:
-            xs, ys, ws, cs, sn = (np.array([a]), np.array([b]), np.ones(1),
-                                  np.array([-1.0]), np.array([0.0]))
+            cs, sn = np.array([-1.0]), np.array([0.0])
         else:
-            xs, ys = sky_to_detector(a, b, rot[0])
-            ws = rot[1]
             cs, sn = -np.cos(np.deg2rad(rot[0])), np.sin(np.deg2rad(rot[0]))
         # d(x, y)/d(a, b) = [[cs, sn], [sn, -cs]] (detector frame: identity)
         g = (c * wf)[:, None]
         k = 2 * np.pi * MAS / lam[:, None]
         dphi = np.zeros((q + 2, q, uv.shape[0]))
-        for xf, yf, wt, cf, sf in zip(xs, ys, ws, cs, sn):
+        for xf, yf, wt, cf, sf, cr in zip(xs, ys, ws, cs, sn, corr[0]):
             theta = k * (xf * uv[:, 0] + yf * uv[:, 1])[None, :]
-            ct, st = np.cos(theta), np.sin(theta)
-            z2 = 1 + 2 * g * ct + g ** 2
-            dg = -st / z2
-            dth = -(g * ct + g ** 2) / z2
+            hh = cr * np.exp(-1j * theta)
+            ratio = hh / (1 + g * hh)
+            dg = ratio.imag
+            dth = -(g * ratio).real
             if rot is None:
                 dxa, dya, dxb, dyb = 1.0, 0.0, 0.0, 1.0
             else:
@@ -169,8 +187,14 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
     scale = np.concatenate([[1.0, 1.0], np.maximum(np.abs(x0[2:]), 1e-5)])
     if jacobian not in ("analytic", "2-point", "3-point"):
         raise KpifsError(f"jacobian must be 'analytic', '2-point' or '3-point', got {jacobian!r}")
-    res = optimize.least_squares(resid, x0, jac=jac if jacobian == "analytic" else jacobian,
-                                 bounds=(lo, hi), x_scale=scale, method="trf")
+    kw = dict(jac=jac if jacobian == "analytic" else jacobian, bounds=(lo, hi),
+              x_scale=scale, method="trf")
+    set_correction(*x0[:2])
+    res = optimize.least_squares(resid, x0, **kw)
+    if window_correction and ps is not None and window is not None:
+        # once more with the correction at the fitted position
+        set_correction(*res.x[:2])
+        res = optimize.least_squares(resid, np.clip(res.x, lo + 1e-12, hi - 1e-12), **kw)
     jac = res.jac
     cov = np.linalg.pinv(jac.T @ jac)
     if noise_rows is not None:

@@ -52,7 +52,7 @@ def whitened_signal(kernel_model, whitening, wavelengths, offset, contrasts, *, 
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     >>> x = whitened_signal(km, np.eye(km.n_kp)[None], [1.6] * u.um, [80, 60] * u.mas, [1e-3])
     >>> x.shape
-    (1, 44)
+    (1, 37)
     """
     kp = kernel_model.binary_kernel_phases(offset, np.asarray(contrasts) * window_factor,
                                            wavelengths)

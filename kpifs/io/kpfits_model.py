@@ -70,7 +70,7 @@ def model_hdulist(model):
     >>> from kpifs.io.kpfits import model_hdulist
     >>> hdul = model_hdulist(KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m)))
     >>> hdul[0].header["CONTENT"], hdul[0].header["NKP"]
-    ('KPFITS1', 44)
+    ('KPFITS1', 37)
     """
     hdr = fits.Header()
     hdr["CONTENT"] = ("KPFITS1", "kernel-phase FITS exchange format")
@@ -187,7 +187,7 @@ def read_model_file(path):
     >>> path = tempfile.mkdtemp() + "/model.fits"
     >>> _ = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m)).write(path)
     >>> read_model_file(path)["kernel"].shape
-    (44, 66)
+    (37, 89)
     """
     try:
         with open_fits(path, verify=True) as hdul:

@@ -319,7 +319,7 @@ def read_kpfits_parts(path, *, detpa=None):
     >>> _ = KernelPhaseData(np.zeros((2, 1, km.n_kp)), [1.6] * u.um, 10 * u.mas, km).write(path)
     >>> parts = read_kpfits_parts(path)
     >>> parts["kp"].shape, parts["meta"]["layout"]
-    ((2, 1, 44), 'kpifs')
+    ((2, 1, 37), 'kpifs')
     """
     path = str(path)
     try:

@@ -1,0 +1,60 @@
+"""``kpifs model-check``: fit the pupil model's orientation and scale to a star's frames."""
+import numpy as np
+from astropy import units as u
+
+from .._utils import check_output_path, to_quantity, write_table
+from ..exceptions import KpifsError
+from ..io.readers import read_cube
+from ..io.wavelengths import parse_wavelengths
+from ..modelcheck import check_pupil_model
+from ..window import ExtractionWindow
+
+
+def _floats(text, name):
+    try:
+        return [float(v) for v in str(text).split(",") if v.strip()]
+    except ValueError:
+        raise KpifsError(f"{name} must be a comma list of numbers, "
+                         f"got {text!r}") from None
+
+
+def _read(files, args):
+    with read_cube(files, instrument=args.instrument,
+                   wavelengths=parse_wavelengths(args.wavelengths, source="--wavelengths"),
+                   pixscale=None if args.pixscale is None
+                   else to_quantity(args.pixscale, u.mas, name="pixel scale")) as cube:
+        return np.array(cube.data, float), cube.wavelengths, cube.pixscale, cube.instrument
+
+
+def run(args):
+    if args.output:
+        check_output_path(args.output, overwrite=args.overwrite)
+    data, wl, ps, instrument = _read(args.cubes, args)
+    cal = None
+    if args.calibrator:
+        cal, wl_c, _, _ = _read(args.calibrator, args)
+        if len(wl_c) != len(wl):
+            raise KpifsError(f"{args.calibrator[0]} has {len(wl_c)} "
+                             f"channels, {args.cubes[0]} {len(wl)}")
+    pupil = args.pupil or {"charis": "subaru", "sphere": "vlt"}.get(instrument, "subaru")
+    window = ExtractionWindow.default(data.shape, size=args.window_size,
+                                      radius=args.window_radius)
+    steps = None if args.steps is None else u.Quantity(_floats(args.steps, "--steps"), u.m)
+    chk = check_pupil_model(data, cal, wavelengths=wl, pixscale=ps, pupil=pupil,
+                            window=window,
+                            rotations=u.Quantity(_floats(args.rotations, "--rotations"), u.deg),
+                            scales=_floats(args.scales, "--scales"),
+                            cuts=_floats(args.cuts, "--cuts"), steps=steps)
+    if not args.quiet:
+        t = chk.table.copy()
+        for name in ("amp_mismatch", "chi2_red"):
+            t[name].info.format = ".4f"
+        for name in ("residual", "scatter"):
+            t[name].info.format = ".5f"
+        t["rotation"].info.format = ".2f"
+        t["scale"].info.format = ".4f"
+        t.pprint(max_lines=-1, max_width=-1)
+        print(chk.summary())
+    if args.output:
+        write_table(chk.table, args.output, overwrite=args.overwrite)
+    return 0
