@@ -9,7 +9,6 @@ phases extracted from a simulated noise-free binary (contrast 1e-2 at
 """
 import astropy.units as u
 import matplotlib.pyplot as plt
-import numpy as np
 
 from kpifs import KernelModel, extract_kernel_phases, make_pupil
 from kpifs.simulate import simulate_psf

@@ -261,9 +261,9 @@ class KernelModel:
         if keep.sum() < 2:
             raise KpifsError(f"fewer than two uv points have redundancy >= {min_redundancy}")
         uv, red, A = uv[keep], red[keep], A[keep]
-        km = cls(pupil, uv, red, A, rtol=rtol, meta={"rtol": rtol, "uv_tol_m": uv_tol,
-                                                      "min_redundancy": min_redundancy,
-                                                      "n_uv_low_redundancy": int((~keep).sum())})
+        meta = {"rtol": rtol, "uv_tol_m": uv_tol, "min_redundancy": min_redundancy,
+                "n_uv_low_redundancy": int((~keep).sum())}
+        km = cls(pupil, uv, red, A, rtol=rtol, meta=meta)
         log.info("kernel model: %d sub-apertures, %d uv points", pupil.n_sub, km.n_uv)
         return km
 

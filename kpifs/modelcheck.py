@@ -355,8 +355,10 @@ def check_pupil_model(target, calibrator=None, *, wavelengths, pixscale, pupil="
     for name in ("residual", "scatter"):
         table[name].unit = u.rad
     chosen = variants[pick]
-    kind = lambda o: (f"{'grey' if o['grey'] else 'binary'} cut {o['min_transmission']} step "  # noqa: E731
-                      f"{u.Quantity(o['step'], u.m).value:g} m")
+
+    def kind(o):
+        return (f"{'grey' if o['grey'] else 'binary'} cut {o['min_transmission']} step "
+                f"{u.Quantity(o['step'], u.m).value:g} m")
     reason = (f"{geo_reason}; between {pair} the {kind(chosen)} model gives calibrated "
               f"reduced chi2 {chi2[pick]:.2f}")
     if pick == i_base:

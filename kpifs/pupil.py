@@ -156,14 +156,16 @@ _GREY_SOURCE = ("grey, cut 0.2, uv points of redundancy >= 0.5: on simulations t
 #: Per-pupil defaults of `make_pupil` (keys as `TELESCOPES`; ``'generic'`` for
 #: circular/annular apertures and pupil images).
 MODEL_DEFAULTS = {
-    "subaru": ModelDefaults(0.38, source="step: seed paper (Subaru in ~300 sub-apertures, "
-                                          "~300 kernel phases); " + _GREY_SOURCE),
-    "vlt": ModelDefaults(0.38, source="step: as Subaru (8 m, Nyquist-sampled SPHERE-IFS "
-                                       "channels); " + _GREY_SOURCE),
-    "pharo": ModelDefaults(0.16, source="step 0.16 m: the discrete model published with "
-                                         "these frames (xara PHARO data); spider arms at -2 "
-                                         "deg in the geometry (Hayward et al. 2001); "
-                                         + _GREY_SOURCE),
+    "subaru": ModelDefaults(
+        0.38, source="step: seed paper (Subaru in ~300 sub-apertures, ~300 kernel phases); "
+        + _GREY_SOURCE),
+    "vlt": ModelDefaults(
+        0.38, source="step: as Subaru (8 m, Nyquist-sampled SPHERE-IFS channels); "
+        + _GREY_SOURCE),
+    "pharo": ModelDefaults(
+        0.16, source="step 0.16 m: the discrete model published with these frames (xara "
+        "PHARO data); spider arms at -2 deg in the geometry (Hayward et al. 2001); "
+        + _GREY_SOURCE),
     "generic": ModelDefaults(0.38, source="kpifs: as Subaru; " + _GREY_SOURCE),
 }
 for _alias, _key in (("scexao", "subaru"), ("charis", "subaru"), ("sphere", "vlt")):

@@ -17,7 +17,7 @@ are searched). The steps are functions that every interface calls:
 import dataclasses
 import json
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np

@@ -1,10 +1,11 @@
 """Non-linear fit of a binary model to calibrated kernel phases.
 
 The model in channel ``i`` is ``K arg(1 + c_i g(u) exp(-2 pi i (alpha u +
-beta v) / lambda_i))`` (``g`` the extraction window's gain at the companion, `kpifs.detect.gain`) and
-the residuals are whitened with the per-channel ``W_i``; the parameters are the
-offset ``(alpha, beta)`` in mas and one contrast per channel (the companion's
-low-resolution spectrum). Uncertainties come from the Jacobian at the optimum.
+beta v) / lambda_i))`` (``g`` the extraction window's gain at the companion,
+`kpifs.detect.gain`) and the residuals are whitened with the per-channel
+``W_i``; the parameters are the offset ``(alpha, beta)`` in mas and one contrast
+per channel (the companion's low-resolution spectrum). Uncertainties come from
+the Jacobian at the optimum.
 """
 import numpy as np
 from astropy import units as u

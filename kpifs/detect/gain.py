@@ -92,4 +92,3 @@ def window_gain(kernel_model, window, pixscale, wavelengths, offset):
         # loss is real (the image edge cuts the companion too), so no renormalisation
         out[i] = vc / vs * ramp
     return out
-
