@@ -240,10 +240,12 @@ def _result(target, calibrators, d, cov, jcov, rows, extra, n_cal):
         if span > MAX_DETPA_SPAN:
             warnings.warn(f"{_name(target)}: the target's detector position angle spans "
                           f"{span:.1f} deg over its {target.n_frame} frames: they are averaged "
-                          f"in detector coordinates, so a companion fixed on the sky is "
-                          f"smeared over that arc (its signal is lost beyond ~"
-                          f"{_smear_limit(target, span):.0f} mas); the result carries the "
-                          f"mean angle {pa:.1f} deg", KpifsWarning, stacklevel=2)
+                          f"in detector coordinates; a search on the sky (detect's default "
+                          f"when the angles are known) turns the model frame by frame, one on "
+                          f"the detector smears a companion fixed on the sky over that arc "
+                          f"(its signal is lost beyond ~{_smear_limit(target, span):.0f} mas); "
+                          f"the result carries the mean angle {pa:.1f} deg", KpifsWarning,
+                          stacklevel=2)
     log.info("calibrated %s (%d frames) with %d calibrator(s)", _name(target), n_t,
              len(calibrators))
     return KernelPhaseData(d[None], target.wavelengths, target.pixscale,

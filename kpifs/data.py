@@ -191,14 +191,18 @@ register(KernelPhaseData, "kpfits", reader=_read_kpd, writer=write_kpfits,
 
 
 class DetectionGrid:
-    """A rectangular grid of companion offsets ``(alpha, beta)`` in mas.
+    """A rectangular grid of companion offsets in mas, on the detector or on the sky.
 
     Parameters
     ----------
     x, y : `~astropy.units.Quantity`
-        Grid coordinates along image x and y (1-D, uniformly spaced).
+        Grid coordinates (1-D, uniformly spaced): along image x and y
+        (``frame='detector'``), or dRA (East positive) and dDec
+        (``frame='sky'``; dRA decreasing along the map's columns, East left).
     min_sep, max_sep : `~astropy.units.Quantity`, optional
         Positions closer or farther than these are not searched.
+    frame : {'detector', 'sky'}
+        What the coordinates are.
 
     Examples
     --------
@@ -209,7 +213,10 @@ class DetectionGrid:
     ((41, 41), 1232)
     """
 
-    def __init__(self, x, y, *, min_sep=None, max_sep=None):
+    def __init__(self, x, y, *, min_sep=None, max_sep=None, frame="detector"):
+        if frame not in ("detector", "sky"):
+            raise KpifsError(f"grid frame must be 'detector' or 'sky', got {frame!r}")
+        self.frame = frame
         self.x = np.atleast_1d(to_quantity(x, u.mas, name="grid x")).value.astype(float)
         self.y = np.atleast_1d(to_quantity(y, u.mas, name="grid y")).value.astype(float)
         if self.x.size < 2 or self.y.size < 2:
@@ -223,8 +230,11 @@ class DetectionGrid:
             raise KpifsError("the detection grid has no valid position")
 
     @classmethod
-    def from_separation(cls, max_sep, step, *, min_sep=None):
+    def from_separation(cls, max_sep, step, *, min_sep=None, frame="detector"):
         """A square grid of half-width *max_sep* and spacing *step*, searched out to *max_sep*.
+
+        On the sky (*frame* ``'sky'``) the first axis is dRA from East to West,
+        so that a map shows East to the left.
 
         Examples
         --------
@@ -240,7 +250,8 @@ class DetectionGrid:
                              f"separation ({max_sep} mas)")
         n = int(np.floor(max_sep / step))
         c = np.arange(-n, n + 1) * step
-        return cls(c * u.mas, c * u.mas, min_sep=min_sep, max_sep=max_sep * u.mas)
+        x = -c if frame == "sky" else c
+        return cls(x * u.mas, c * u.mas, min_sep=min_sep, max_sep=max_sep * u.mas, frame=frame)
 
     @property
     def shape(self):
@@ -250,10 +261,34 @@ class DetectionGrid:
     def step(self):
         return float(self.x[1] - self.x[0]), float(self.y[1] - self.y[0])
 
-    def wcs(self):
-        """A linear WCS from map pixels to offsets (mas) along image x and y."""
+    def wcs(self, *, star=None):
+        """The map's WCS.
+
+        On the detector: linear, from map pixels to offsets (mas) along image x
+        and y. On the sky: celestial (gnomonic), offsets from the star, whose
+        coordinates are *star* (a `~astropy.coordinates.SkyCoord`) or, when
+        unknown, (0, 0) (then only the offsets mean anything).
+
+        Examples
+        --------
+        >>> import astropy.units as u
+        >>> from kpifs.data import DetectionGrid
+        >>> w = DetectionGrid.from_separation(50 * u.mas, 10 * u.mas, frame="sky").wcs()
+        >>> list(w.wcs.ctype), round(float(w.wcs.cdelt[0] * 3.6e6), 6)
+        (['RA---TAN', 'DEC--TAN'], -10.0)
+        """
         from astropy.wcs import WCS   # deferred: astropy.wcs is only needed for products
         w = WCS(naxis=2)
+        if self.frame == "sky":
+            # reference pixel: where the offsets are zero (1-based, may fall between pixels)
+            w.wcs.ctype = ["RA---TAN", "DEC--TAN"]
+            w.wcs.cunit = ["deg", "deg"]
+            w.wcs.crpix = [1 - self.x[0] / (self.x[1] - self.x[0]),
+                           1 - self.y[0] / (self.y[1] - self.y[0])]
+            w.wcs.cdelt = [(self.x[1] - self.x[0]) / 3.6e6, (self.y[1] - self.y[0]) / 3.6e6]
+            w.wcs.crval = ([0.0, 0.0] if star is None
+                           else [star.icrs.ra.deg, star.icrs.dec.deg])
+            return w
         w.wcs.ctype = ["OFFSET-X", "OFFSET-Y"]
         w.wcs.cunit = ["mas", "mas"]
         w.wcs.crpix = [1, 1]
@@ -263,7 +298,7 @@ class DetectionGrid:
 
     def key(self):
         """A hashable description of the grid (for caches)."""
-        return (self.x.tobytes(), self.y.tobytes(), self.min_sep, self.max_sep)
+        return (self.x.tobytes(), self.y.tobytes(), self.min_sep, self.max_sep, self.frame)
 
 
 @dataclass
@@ -314,11 +349,19 @@ def _read_detection(path):
     hdr, images, tables = parts["header"], parts["images"], parts["tables"]
     stat = images["DETECTION"]
     ny, nx = stat.shape
-    g = parts["grid_header"]            # the maps' WCS: pixel 1 is the grid's first point
-    x = g["CRVAL1"] + g["CDELT1"] * (np.arange(nx) + 1 - g["CRPIX1"])
-    y = g["CRVAL2"] + g["CDELT2"] * (np.arange(ny) + 1 - g["CRPIX2"])
+    g = parts["grid_header"]            # the maps' WCS
+    if str(g.get("CTYPE1", "")).startswith("RA--"):
+        # celestial: offsets from the star, which sits at the reference pixel
+        frame = "sky"
+        x = 3.6e6 * g["CDELT1"] * (np.arange(nx) + 1 - g["CRPIX1"])
+        y = 3.6e6 * g["CDELT2"] * (np.arange(ny) + 1 - g["CRPIX2"])
+    else:
+        frame = "detector"
+        x = g["CRVAL1"] + g["CDELT1"] * (np.arange(nx) + 1 - g["CRPIX1"])
+        y = g["CRVAL2"] + g["CDELT2"] * (np.arange(ny) + 1 - g["CRPIX2"])
     grid = DetectionGrid(x * u.mas, y * u.mas, min_sep=hdr["GRIDMIN"] * u.mas,
-                         max_sep=(hdr["GRIDMAX"] if hdr["GRIDMAX"] >= 0 else np.inf) * u.mas)
+                         max_sep=(hdr["GRIDMAX"] if hdr["GRIDMAX"] >= 0 else np.inf) * u.mas,
+                         frame=frame)
     nwave = sum(1 for k in hdr if k.startswith("WAVE") and k[4:].isdigit())
     wl = [hdr[f"WAVE{i}"] for i in range(1, nwave + 1)] * u.um
     energy = {"statistic": hdr["ESTAT"], "dof": hdr["EDOF"], "pfa": hdr["EPFA"],

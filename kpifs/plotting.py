@@ -52,15 +52,21 @@ def plot_detection_map(result, *, ax=None, truth=None):
     fig.colorbar(im, ax=ax, label=f"{result.meta.get('test', result.test)} statistic")
     ax.contour(g.X, g.Y, np.nan_to_num(result.statistic), levels=[result.threshold],
                colors="cyan", linewidths=0.8)
+    sky = getattr(g, "frame", "detector") == "sky"
+    cx, cy = ("dra", "ddec") if sky else ("x", "y")
     for row in result.candidates:
-        x = row["fit_x"] if "fit_x" in row.colnames else row["x"]
-        y = row["fit_y"] if "fit_y" in row.colnames else row["y"]
+        x = row["fit_" + cx] if "fit_" + cx in row.colnames else row[cx]
+        y = row["fit_" + cy] if "fit_" + cy in row.colnames else row[cy]
         ax.plot(x.to_value(u.mas), y.to_value(u.mas), "o", mfc="none", mec="cyan", ms=14)
     if truth is not None:
         ax.plot(*truth, "+", color="lime", ms=12, label="truth")
         ax.legend(loc="upper right", fontsize=8)
-    ax.set_xlabel("offset along x (mas)")
-    ax.set_ylabel("offset along y (mas)")
+    if sky:     # the grid runs East to West: East is on the left
+        ax.set_xlabel("dRA (mas, East to the left)")
+        ax.set_ylabel("dDec (mas)")
+    else:
+        ax.set_xlabel("offset along x (mas)")
+        ax.set_ylabel("offset along y (mas)")
     ax.set_title(f"P_FA = {result.pfa:g}: {len(result.candidates)} candidate(s)")
     return fig
 

@@ -28,7 +28,7 @@ from .calibrate import calibrate
 from .covariance import empirical_covariance
 from .data import KernelPhaseData
 from .detect.null import check_draws
-from .detect.pipeline import default_grid, detect
+from .detect.pipeline import default_grid, detect, search_frame
 from .detect.stats import TESTS, check_probability
 from .exceptions import KpifsError
 from .extract import extract_kernel_phases
@@ -133,6 +133,7 @@ class DetectOptions:
     fit: bool = True
     max_candidates: int = 20
     allow_uncalibrated: bool = False
+    frame: str = "auto"
 
     def validate(self):
         """Refuse options no search can run with (before any work); return self."""
@@ -141,6 +142,8 @@ class DetectOptions:
         check_probability(self.pfa, "P_FA")
         check_probability(self.pd, "P_D")
         check_draws(self.draws)
+        if self.frame not in ("auto", "sky", "detector"):
+            raise KpifsError(f"unknown frame {self.frame!r}: use auto, sky or detector")
         return self
 
 
@@ -357,12 +360,14 @@ def detect_observation(kpd, options=None, *, calibrators=(), progress=False):
             options.min_sep is not None:
         grid = default_grid(kpd, step=_mas(options.grid_step, "grid step"),
                             max_sep=_mas(options.max_sep, "maximum separation"),
-                            min_sep=_mas(options.min_sep, "minimum separation"))
+                            min_sep=_mas(options.min_sep, "minimum separation"),
+                            frame=search_frame(kpd, options.frame))
     result = detect(kpd, test=options.test, pfa=options.pfa, pd=options.pd, grid=grid,
                     spectrum=parse_spectrum(options.spectrum, kpd.n_wave),
                     n_draws=options.draws, seed=options.seed, shrinkage=options.shrinkage,
                     fit=options.fit, max_candidates=options.max_candidates,
-                    allow_uncalibrated=options.allow_uncalibrated, progress=progress)
+                    allow_uncalibrated=options.allow_uncalibrated, frame=options.frame,
+                    progress=progress)
     record = options_record(options)
     result.header["KPDOPTS"] = (json.dumps(record, sort_keys=True), "kpifs detection options")
     result.header["KPHASH"] = (products_digest(json.loads(kpd.header.get("KPXOPTS", "null")),

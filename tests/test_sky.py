@@ -1,5 +1,7 @@
 """Companions on the sky: the detector/sky convention, PA bins, and the fit of a
 rotating sequence read from xara- and jwst-kpi-layout files."""
+import warnings
+
 import numpy as np
 import pytest
 import astropy.units as u
@@ -230,3 +232,82 @@ def test_analytic_jacobian_matches_finite_differences(km, rotating):
     assert abs(a["x"] - 50) < 5 * a["x_err"] and abs(a["y"] + 70) < 5 * a["y_err"]
     with pytest.raises(KpifsError, match="jacobian"):
         fit_binary(kp, w, km, wl, (45.0, -65.0), [0.01, 0.01], jacobian="exact")
+
+
+@pytest.fixture(scope="module")
+def rotating_search(tmp_path_factory):
+    """A companion fixed on the sky (sep 120 mas, PA 145 deg) in a sequence turning by 60
+    deg, calibrated, searched on the sky (auto) and on the detector."""
+    from kpifs.calibrate import calibrate
+    from kpifs.detect import detect
+    km1 = KernelModel.from_pupil(make_pupil("subaru", step=1.0 * u.m, grey=False))
+    wl = [1.55, 1.65, 1.75] * u.um
+    n = km1.n_kp + 30
+    detpa = np.linspace(80.0, 140.0, n)
+    sep, pa, c = 120.0, 145.0, 0.03
+    tgt = KernelPhaseData(_rotating_sequence(km1, wl, sep, pa, c, detpa, 0.01, seed=31), wl,
+                          10 * u.mas, km1, detpa=detpa)
+    cal = KernelPhaseData(_rotating_sequence(km1, wl, sep, pa, 0.0, detpa, 0.01, seed=32), wl,
+                          10 * u.mas, km1, detpa=detpa)
+    with pytest.warns(Warning, match="a search on the sky .* turns the model"):
+        kpd = calibrate(tgt, [cal])
+    kw = dict(n_draws=2000, seed=0, max_candidates=2)
+    sky = detect(kpd, **kw)
+    assert len(sky.candidates) == 1
+    with warnings.catch_warnings():       # smeared: side peaks beyond max_candidates
+        warnings.simplefilter("ignore")
+        det = detect(kpd, frame="detector", **kw)
+    path = sky.write(tmp_path_factory.mktemp("skymap") / "sky.fits")
+    return {"sky": sky, "detector": det, "truth": (sep, pa), "path": path}
+
+
+def test_search_on_the_sky_finds_a_rotating_companion(rotating_search):
+    """On the sky the model turns frame by frame: the companion is found where it is, with
+    a higher statistic than the detector search, whose map smears it along the arc."""
+    sky, det = rotating_search["sky"], rotating_search["detector"]
+    sep, pa = rotating_search["truth"]
+    assert sky.meta["frame"] == "sky" and det.meta["frame"] == "detector"
+    assert sky.grid.frame == "sky" and sky.grid.x[0] > sky.grid.x[-1]     # East left
+    row = sky.candidates[0]
+    assert abs(row["fit_pa_sky"].to_value(u.deg) - pa) < 1.0
+    assert row["fit_separation"].to_value(u.mas) == pytest.approx(sep, rel=0.01)
+    # the grid peak itself is within a grid step of the truth, on the sky
+    dra, ddec = sep * np.sin(np.deg2rad(pa)), sep * np.cos(np.deg2rad(pa))
+    assert np.hypot(row["dra"].value - dra, row["ddec"].value - ddec) < abs(sky.grid.step[0])
+    assert "rotating model" in sky.candidates.meta["sky_fit"]
+    assert sky.candidates["statistic"][0] > 1.5 * det.candidates["statistic"][0]
+
+
+def test_sky_maps_carry_a_celestial_wcs(rotating_search):
+    from astropy.io import fits
+    from astropy.wcs import WCS
+    from kpifs.data import DetectionResult
+    sky = rotating_search["sky"]
+    with fits.open(rotating_search["path"]) as h:
+        hdr = h["DETECTION"].header
+        assert (hdr["CTYPE1"], hdr["CTYPE2"]) == ("RA---TAN", "DEC--TAN")
+        assert hdr["CDELT1"] < 0 < hdr["CDELT2"] and h[0].header["GRIDFRM"] == "sky"
+        w = WCS(hdr)
+        stat = h["DETECTION"].data
+    # the map's brightest pixel, through the WCS, is the candidate's grid position
+    iy, ix = np.unravel_index(np.nanargmax(stat), stat.shape)
+    world = w.pixel_to_world(ix, iy)
+    star = w.pixel_to_world(*(w.wcs.crpix - 1))
+    off_ra, off_dec = star.spherical_offsets_to(world)
+    row = sky.candidates[0]
+    assert off_ra.to_value(u.mas) == pytest.approx(row["dra"].value, abs=1e-6)
+    assert off_dec.to_value(u.mas) == pytest.approx(row["ddec"].value, abs=1e-6)
+    back = DetectionResult.read(rotating_search["path"])
+    assert back.grid.frame == "sky"
+    np.testing.assert_allclose(back.grid.x, sky.grid.x, atol=1e-9)
+    np.testing.assert_allclose(back.grid.y, sky.grid.y, atol=1e-9)
+
+
+def test_sky_search_needs_known_angles(km):
+    from kpifs.detect import detect
+    wl = [1.6] * u.um
+    kpd = KernelPhaseData(np.zeros((1, 1, km.n_kp)), wl, 10 * u.mas, km,
+                          covariance=np.eye(km.n_kp)[None] * 1e-4, meta={"calibrated": True})
+    with pytest.raises(KpifsError, match="detector position angle of every frame"):
+        detect(kpd, frame="sky", n_draws=1000)
+    assert detect(kpd, n_draws=1000).meta["frame"] == "detector"

@@ -149,6 +149,10 @@ def _search_options(p, *, grid_step_aliases=("--grid-step",), draws=30000):
                         "filter for --spectrum; E: energy detector")
     g.add_argument("--pfa", type=float, default=1e-3, help="global false-alarm probability")
     g.add_argument("--pd", type=float, default=0.5, help="detection probability of the limits")
+    g.add_argument("--frame", default="auto", choices=("auto", "sky", "detector"),
+                   help="search and map on the sky (dRA East-positive, dDec; the model turned "
+                        "by each frame's detector angle; celestial WCS) or the detector "
+                        "(default auto: the sky when every frame's angle is known)")
     g.add_argument("--max-sep", help="largest separation searched, e.g. 200mas")
     g.add_argument("--min-sep", help="smallest separation searched, e.g. 20mas")
     g.add_argument(*grid_step_aliases, dest="grid_step",

@@ -5,6 +5,7 @@ from astropy import units as u
 
 from .._utils import check_output_dir, check_output_path
 from ..data import KernelPhaseData
+from ..detect.sky import detector_to_sky, mean_angle
 from ..plotting import save_detection_plots
 from ..workflow import detect_observation
 from ._options import detect_options
@@ -40,6 +41,8 @@ def run(args):
         truth = None
         if "KPSIMX" in kpd.header and "KPSIMY" in kpd.header:
             truth = (kpd.header["KPSIMX"], kpd.header["KPSIMY"])
+            if res.meta.get("frame") == "sky":     # the simulator's truth is on the detector
+                truth = detector_to_sky(*truth, mean_angle(res.meta["pa_bins"][0]))
         try:
             save_detection_plots(res, args.plots, truth=truth)
         except (OSError, ValueError, RuntimeError) as exc:   # the products are written

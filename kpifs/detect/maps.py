@@ -58,6 +58,12 @@ class DetectionModel:
         The extraction window, whose attenuation enters the signatures.
     dof : sequence of int, optional
         Whitened dimension kept per channel (for the energy detector).
+    detpa : tuple, optional
+        ``(angles, weights)``: detector position angles (deg) of the data's
+        frames or PA bins (`kpifs.detect.sky.pa_bins`) and their weights. The
+        grid is then on the sky (``grid.frame == 'sky'``) and each signature is
+        the weighted mean of the per-angle ones: a companion fixed on the sky
+        seen by a rotating sequence.
 
     Examples
     --------
@@ -73,7 +79,7 @@ class DetectionModel:
     """
 
     def __init__(self, kernel_model, wavelengths, whitening, grid, *, pixscale=None,
-                 window=None, dof=None):
+                 window=None, dof=None, detpa=None):
         self.kernel_model = kernel_model
         self.wavelengths = np.atleast_1d(to_quantity(wavelengths, u.um, name="wavelengths"))
         w = np.asarray(whitening, float)
@@ -90,6 +96,18 @@ class DetectionModel:
         self.window = window if (window is not None and pixscale is not None) else None
         if not isinstance(grid, DetectionGrid):
             raise KpifsError(f"grid must be a DetectionGrid, got {type(grid).__name__}")
+        if (detpa is not None) != (grid.frame == "sky"):
+            raise KpifsError("a sky grid needs the detector angles (detpa), and angles a sky "
+                             "grid")
+        if detpa is None:
+            self._poses = [(None, 1.0)]
+        else:
+            ang = np.atleast_1d(np.asarray(detpa[0], float))
+            wts = np.ones(ang.size) if detpa[1] is None else np.asarray(detpa[1], float)
+            if ang.size == 0 or not np.all(np.isfinite(ang)):
+                raise KpifsError("sky grid: the detector angles must be known (finite)")
+            self._poses = list(zip(ang, wts / wts.sum()))
+        self.detpa = detpa
         self._check_grid()
         self._wfac = (np.ones_like(grid.sep) if self.window is None
                       else self.window.at(grid.sep, self.pixscale))
@@ -120,17 +138,34 @@ class DetectionModel:
                                  f"mas): reduce the maximum separation to < {edge:.0f} mas")
 
     def _axis_trig(self, lam):
+        """Per pose (detector angle): the separable factors of ``sin(theta)`` on the grid.
+
+        On the sky, ``theta = 2 pi (x u + y v) / lam`` with ``(x, y)`` the
+        detector offset of ``(dRA, dDec)`` (`kpifs.detect.sky.sky_to_detector`),
+        which is ``2 pi (dRA u' + dDec v') / lam`` with ``u' = -u cos + v sin``,
+        ``v' = u sin + v cos``: still separable on the grid, pose by pose.
+        """
         uv = self.kernel_model.uv.value
-        tx = 2 * np.pi * np.outer(self.grid.x * MAS, uv[:, 0]) / lam    # (nx, nuv)
-        ty = 2 * np.pi * np.outer(self.grid.y * MAS, uv[:, 1]) / lam    # (ny, nuv)
-        return np.sin(tx), np.cos(tx), np.sin(ty), np.cos(ty)
+        out = []
+        for ang, wt in self._poses:
+            if ang is None:
+                uu, vv = uv[:, 0], uv[:, 1]
+            else:
+                c, s = np.cos(np.deg2rad(ang)), np.sin(np.deg2rad(ang))
+                uu, vv = -c * uv[:, 0] + s * uv[:, 1], s * uv[:, 0] + c * uv[:, 1]
+            tx = 2 * np.pi * np.outer(self.grid.x * MAS, uu) / lam    # (nx, nuv)
+            ty = 2 * np.pi * np.outer(self.grid.y * MAS, vv) / lam    # (ny, nuv)
+            out.append((np.sin(tx), np.cos(tx), np.sin(ty), np.cos(ty), wt))
+        return out
 
     def _sin_rows(self, i, rows):
-        """``sin(theta_i)`` at flat grid positions *rows* (npos, nuv)."""
-        sx, cx, sy, cy = self._trig[i]
+        """``sin(theta_i)`` (weighted mean over poses) at flat grid positions *rows*."""
         nx = self.grid.shape[1]
         iy, ix = np.divmod(rows, nx)
-        return sx[ix] * cy[iy] + cx[ix] * sy[iy]
+        out = 0.0
+        for sx, cx, sy, cy, wt in self._trig[i]:
+            out = out + wt * (sx[ix] * cy[iy] + cx[ix] * sy[iy])
+        return out
 
     def _signature_norms(self):
         q = len(self.wavelengths)
@@ -160,11 +195,13 @@ class DetectionModel:
 
     def _project(self, g, i):
         """``-sum_uv sin(theta) g`` on the grid for uv-space vectors g (m, nuv)."""
-        sx, cx, sy, cy = self._trig[i]
         m = len(g)
-        nx, nuv = sx.shape
-        a = (sx[None] * g[:, None, :]).reshape(m * nx, nuv) @ cy.T         # (m*nx, ny)
-        a += (cx[None] * g[:, None, :]).reshape(m * nx, nuv) @ sy.T
+        a = 0.0
+        for sx, cx, sy, cy, wt in self._trig[i]:
+            nx, nuv = sx.shape
+            gw = wt * g
+            a = a + (sx[None] * gw[:, None, :]).reshape(m * nx, nuv) @ cy.T     # (m*nx, ny)
+            a = a + (cx[None] * gw[:, None, :]).reshape(m * nx, nuv) @ sy.T
         return -a.reshape(m, nx, -1).transpose(0, 2, 1)
 
     def z_maps(self, y):
@@ -227,6 +264,8 @@ class DetectionModel:
             h.update(np.ascontiguousarray(arr).tobytes())
         for part in self.grid.key():
             h.update(repr(part).encode())
+        h.update(repr([(None if a is None else float(a), float(w))
+                       for a, w in self._poses]).encode())
         return h.hexdigest()
 
     def _unit_signatures(self, rows):

@@ -13,7 +13,8 @@ from ..exceptions import KpifsError, KpifsWarning
 from ..kernel import MAS, KernelModel
 from ..pupil import make_pupil
 from .fit import fit_binary
-from .sky import add_sky_columns
+from .sky import (add_sky_columns, mean_angle, pa_bins,
+                  rotated_binary_kernel_phases, separation_pa, sky_to_detector)
 from .skyfit import refit_on_sky
 from .limits import (energy_lambda, limit_binary, limit_energy, limit_energy_correlated,
                      limit_np, radial_curves, spectrum_shape)
@@ -23,12 +24,12 @@ from .stats import TESTS, check_probability, energy_threshold
 
 stats = lazy_module("scipy.stats")
 
-__all__ = ["detect", "default_grid"]
+__all__ = ["detect", "default_grid", "data_angles", "search_frame"]
 
 log = logging.getLogger(__name__)
 
 
-def default_grid(kpd, *, step=None, max_sep=None, min_sep=None):
+def default_grid(kpd, *, step=None, max_sep=None, min_sep=None, frame="detector"):
     """A grid suited to the data: out to the window radius (and the aliasing limit),
     from half a resolution element, in steps of a quarter of one.
 
@@ -56,7 +57,64 @@ def default_grid(kpd, *, step=None, max_sep=None, min_sep=None):
     step = res / 4 if step is None else u.Quantity(step, u.mas).value
     max_sep = limit if max_sep is None else u.Quantity(max_sep, u.mas).value
     min_sep = res / 2 if min_sep is None else u.Quantity(min_sep, u.mas).value
-    return DetectionGrid.from_separation(max_sep * u.mas, step * u.mas, min_sep=min_sep * u.mas)
+    return DetectionGrid.from_separation(max_sep * u.mas, step * u.mas, min_sep=min_sep * u.mas,
+                                         frame=frame)
+
+
+def data_angles(kpd):
+    """The detector position angles of the frames behind *kpd* (deg), or None if unknown.
+
+    Calibrated data carry their target frames' angles (``meta['detpa_frames']``);
+    otherwise the data's own. Angles that were only assumed (no header keyword,
+    ``meta['detpa_source']`` 'none...' or 'unknown') count as unknown.
+    """
+    source = str(kpd.meta.get("detpa_source", ""))
+    if source.startswith(("none", "unknown")) or "(none" in source or "(unknown" in source:
+        return None
+    frames = kpd.meta.get("detpa_frames")
+    ang = frames if frames is not None else kpd.detpa
+    if ang is None:
+        return None
+    ang = np.atleast_1d(np.asarray(ang, float))
+    return ang if ang.size and np.all(np.isfinite(ang)) else None
+
+
+def search_frame(kpd, frame="auto"):
+    """The frame a search of *kpd* runs in: 'sky' or 'detector' (see `detect`'s *frame*).
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs.detect.pipeline import search_frame
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> kpd = KernelPhaseData(np.zeros((3, 1, km.n_kp)), [1.6] * u.um, 10 * u.mas, km,
+    ...                       detpa=[10.0, 20.0, 30.0])
+    >>> search_frame(kpd), search_frame(kpd, "detector")
+    ('sky', 'detector')
+    """
+    if frame not in ("auto", "sky", "detector"):
+        raise KpifsError(f"frame must be 'auto', 'sky' or 'detector', got {frame!r}")
+    ang = data_angles(kpd)
+    if frame == "auto":
+        return "sky" if ang is not None else "detector"
+    if frame == "sky" and ang is None:
+        raise KpifsError(f"{kpd.name}: a search on the sky needs the detector position angle "
+                         f"of every frame (DETPA, the instrument's keywords or --pa)")
+    return frame
+
+
+def _frame_and_poses(kpd, frame, grid):
+    """Search frame ('sky' or 'detector') and, on the sky, the PA bins ``(angles, weights)``."""
+    frame = search_frame(kpd, grid.frame if grid is not None else frame)
+    if frame == "detector":
+        return "detector", None
+    ang = data_angles(kpd)
+    far = grid.max_sep if grid is not None and np.isfinite(grid.max_sep) else \
+        default_grid(kpd).max_sep
+    return "sky", pa_bins(ang, max_separation=1.5 * far * u.mas,
+                          wavelength_min=kpd.wavelengths.min(),
+                          baseline_max=kpd.kernel_model.baseline_length.max())
 
 
 def _prepare(kpd, shrinkage, allow_uncalibrated):
@@ -81,7 +139,7 @@ def _prepare(kpd, shrinkage, allow_uncalibrated):
 
 def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
            n_draws=30000, seed=0, shrinkage="auto", fit=True, max_candidates=20,
-           allow_uncalibrated=False, progress=False):
+           allow_uncalibrated=False, frame="auto", progress=False):
     """Search calibrated kernel phases for a companion.
 
     Parameters
@@ -119,6 +177,14 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
         A warning says when the search stops at this number.
     allow_uncalibrated : bool
         Search data that no calibrator star was subtracted from.
+    frame : {'auto', 'sky', 'detector'}
+        Where the search grid and the maps are. ``'sky'``: offsets dRA (East
+        positive, maps East left) and dDec, with the model turned by each
+        frame's detector position angle (grouped in PA bins, `pa_bins
+        <kpifs.detect.sky.pa_bins>`), so that a rotating sequence adds up; maps
+        carry a celestial WCS. ``'detector'``: image x and y. ``'auto'``
+        (default): the sky when every frame's angle is known (`data_angles`),
+        else the detector. A *grid* given decides by its own frame.
 
     Returns
     -------
@@ -142,11 +208,12 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
     w, rank = whitening_matrix(cov, return_rank=True, source="covariance of the data")
     rank = np.atleast_1d(rank)
     y = whiten(kp, w)
+    frame, poses = _frame_and_poses(kpd, frame, grid)
     if grid is None:
-        grid = default_grid(kpd)
+        grid = default_grid(kpd, frame=frame)
     window = kpd.window
     model = DetectionModel(kpd.kernel_model, kpd.wavelengths, w, grid, pixscale=kpd.pixscale,
-                           window=window, dof=rank)
+                           window=window, dof=rank, detpa=poses)
     form = "B" if test == "E" else test
     rows = None
     if kpd.covariance_rows is not None:
@@ -159,9 +226,13 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
     threshold = null.threshold(pfa)
     cands, kappa = _sequential_search(model, kp, w, kpd, threshold=threshold, null=null,
                                       spectrum=spectrum, fit=fit, max_candidates=max_candidates,
-                                      dof=int(rank.sum()))
-    add_sky_columns(cands, kpd.detpa)
-    if fit and refit_on_sky(cands, kp, w, kpd, noise_rows=null.noise_rows) \
+                                      dof=int(rank.sum()), poses=poses)
+    if frame == "sky":
+        _sky_to_detector_columns(cands, poses)
+    else:
+        add_sky_columns(cands, kpd.detpa)
+    if frame == "detector" and fit and refit_on_sky(cands, kp, w, kpd,
+                                                    noise_rows=null.noise_rows) \
             and "chi2_red" in cands.colnames:
         # the rotating fit's errors, scaled like the detector fit's
         k = np.sqrt(np.maximum(1.0, np.asarray(cands["chi2_red"], float)))
@@ -209,7 +280,9 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
             "calibrators": kpd.meta.get("calibrators", []),
             "source": kpd.meta.get("source", ""), "spectrum": a.tolist(),
             "lambda_energy": energy_lambda(pfa, pd, dof),
-            "null_channels": "covariance rows" if rows is not None else "independent"}
+            "null_channels": "covariance rows" if rows is not None else "independent",
+            "frame": frame,
+            "pa_bins": None if poses is None else [np.asarray(p).tolist() for p in poses]}
     log.info("detect: %d candidate(s) above the %s threshold %.3f (global P_FA %.1e)",
              len(cands), form, threshold, pfa)
     return DetectionResult(grid=grid, test=test, pfa=pfa, pd=pd, statistic=t, pfa_local=ploc,
@@ -247,7 +320,7 @@ def _chi2_red(residual, w, dof, n_par):
 
 
 def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max_candidates,
-                       dof):
+                       dof, poses=None):
     """Strongest peak above threshold, fitted and subtracted, until none is left.
 
     Each peak is judged on its statistic scaled by the reduced chi-square of
@@ -268,7 +341,7 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
             break
         row = tab[:1]
         if fit:
-            _refine(row, residual, w, kpd, null.noise_rows)
+            _refine(row, residual, w, kpd, null.noise_rows, poses)
             r = row[0]
             x, y, c = r["fit_x"], r["fit_y"], np.asarray(r["fit_contrast"])
         else:
@@ -276,8 +349,13 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
             x, y, c = r["x"], r["y"], np.asarray(r["contrast"])
         x, y = x.to_value(u.mas), y.to_value(u.mas)
         att = 1.0 if kpd.window is None else float(kpd.window.at(np.hypot(x, y), kpd.pixscale))
-        after = residual - kpd.kernel_model.binary_kernel_phases([x, y] * u.mas, c * att,
-                                                                 kpd.wavelengths)
+        if poses is None:
+            model_kp = kpd.kernel_model.binary_kernel_phases([x, y] * u.mas, c * att,
+                                                             kpd.wavelengths)
+        else:
+            model_kp = rotated_binary_kernel_phases(kpd.kernel_model, [x, y] * u.mas, c * att,
+                                                    kpd.wavelengths, *poses)
+        after = residual - model_kp
         kappa = _chi2_red(after, w, dof, n_par * (len(rows) + 1))
         scale = max(1.0, kappa)
         stat = float(row["statistic"][0]) / scale ** _POWER[form]
@@ -317,16 +395,55 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
     return out, kappa
 
 
-def _refine(cands, kp, w, kpd, noise_rows=None):
+def _sky_to_detector_columns(table, poses):
+    """Candidates of a sky search: grid and fit columns become ``dra``/``ddec``/``pa_sky``
+    (and ``fit_...``), and the detector columns ``x``/``y`` (``fit_x``...) are those
+    offsets at the mean detector angle (in place)."""
+    t = mean_angle(poses[0]) if len(poses[0]) else 0.0
+    table.meta["detpa"] = t
+    table.meta["frame"] = "sky offsets: dRA East-positive, dDec; PA East of North"
+    table.meta["sky_fit"] = (f"searched and fitted on the sky with the rotating model over "
+                             f"{len(poses[0])} position-angle bin(s)")
+    table.meta["position_angle"] = "degrees East of North"
+    c, s = np.cos(np.deg2rad(t)), np.sin(np.deg2rad(t))
+    for pre in ("", "fit_"):
+        if pre + "x" not in table.colnames:
+            continue
+        dra = u.Quantity(table[pre + "x"], u.mas).value
+        ddec = u.Quantity(table[pre + "y"], u.mas).value
+        table[pre + "dra"], table[pre + "ddec"] = dra * u.mas, ddec * u.mas
+        sep, pa = separation_pa(dra, ddec)
+        table[pre + "pa_sky"] = pa * u.deg
+        x, y = sky_to_detector(dra, ddec, t)
+        table[pre + "x"], table[pre + "y"] = x * u.mas, y * u.mas
+        if pre:
+            table["fit_separation"] = sep * u.mas
+        if pre and "fit_x_err" in table.colnames:
+            de = u.Quantity(table["fit_x_err"], u.mas).value
+            ne = u.Quantity(table["fit_y_err"], u.mas).value
+            table["fit_dra_err"], table["fit_ddec_err"] = de * u.mas, ne * u.mas
+            table["fit_x_err"] = np.hypot(c * de, s * ne) * u.mas
+            table["fit_y_err"] = np.hypot(s * de, c * ne) * u.mas
+            ux = np.divide(ddec, sep, out=np.zeros_like(sep), where=sep > 0)
+            uy = np.divide(-dra, sep, out=np.zeros_like(sep), where=sep > 0)
+            perp = np.hypot(ux * de, uy * ne)
+            table["fit_pa_sky_err"] = np.rad2deg(
+                np.divide(perp, sep, out=np.full_like(sep, np.nan), where=sep > 0)) * u.deg
+    if "position_angle" in table.colnames:
+        del table["position_angle"]
+
+
+def _refine(cands, kp, w, kpd, noise_rows=None, poses=None):
     q = kp.shape[0]
     cols = {k: [] for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err", "fit_contrast",
                             "fit_contrast_err", "fit_chi2")}
     step = 20.0
     for row in cands:
+        kw = {} if poses is None else dict(detpa=poses[0], detpa_weights=poses[1])
         r = fit_binary(kp, w, kpd.kernel_model, kpd.wavelengths,
                        (row["x"].to_value(u.mas), row["y"].to_value(u.mas)),
                        np.asarray(row["contrast"]), pixscale=kpd.pixscale, window=kpd.window,
-                       bounds_mas=step, noise_rows=noise_rows)
+                       bounds_mas=step, noise_rows=noise_rows, **kw)
         cols["fit_x"].append(r["x"])
         cols["fit_y"].append(r["y"])
         cols["fit_x_err"].append(r["x_err"])

@@ -59,6 +59,7 @@ def detection_hdulist(result, *, header=None, inputs=()):
     hdr["EPFA"] = (result.energy.get("pfa", np.nan), "energy-detector P_FA of the data")
     hdr["ETHRESH"] = (result.energy.get("threshold", np.nan),
                       "energy-detector threshold at PFA")
+    hdr["GRIDFRM"] = (result.grid.frame, "maps on the sky (dRA, dDec) or the detector")
     hdr["GRIDMIN"] = (float(result.grid.min_sep), "[mas] smallest separation searched")
     hdr["GRIDMAX"] = (float(result.grid.max_sep) if np.isfinite(result.grid.max_sep) else -1.0,
                       "[mas] largest separation searched (-1: none)")
@@ -118,8 +119,8 @@ def detection_hdulist(result, *, header=None, inputs=()):
 # cards the products write themselves: an inherited copy is dropped, so that the
 # products' own cards come in one order however often a result is written
 _PRODUCT_CARDS = {"KPIFSVER", "CONTENT", "TEST", "MAPTEST", "PFA", "PD", "THRESH", "NDRAWS",
-                  "PFAFLOOR",
-                  "MCSEED", "NCAND", "ESTAT", "EDOF", "EPFA", "ETHRESH", "GRIDMIN", "GRIDMAX",
+                  "PFAFLOOR", "MCSEED", "NCAND", "ESTAT", "EDOF", "EPFA", "ETHRESH", "GRIDFRM",
+                  "GRIDMIN", "GRIDMAX",
                   "NULLCHAN", "CALIB", "CHI2RED", "NOISESC", "DETPA"}
 _PRODUCT_PREFIXES = ("WAVE", "SPEC", "KPCAL", "KPIN")
 
