@@ -12,6 +12,7 @@ import numpy as np
 from astropy import units as u
 
 from ._utils import check_output_dir
+from .detect.sky import detector_to_sky, mean_angle
 from .exceptions import KpifsError
 from .io.layouts import write_observation
 from .plotting import save_detection_plots
@@ -73,7 +74,10 @@ def run_demo(outdir, *, frames=200, seed=1, overwrite=False, progress=True, draw
 
     say("[3/4] drawing figures")
     truth = tuple(obs.params.companion_offset.to_value(u.mas))
-    save_detection_plots(res, outdir / "figures", truth=truth,
+    shown = truth
+    if res.meta.get("frame") == "sky":        # maps on the sky: the truth turned likewise
+        shown = detector_to_sky(*truth, mean_angle(res.meta["pa_bins"][0]))
+    save_detection_plots(res, outdir / "figures", truth=shown,
                          truth_spectrum=obs.params.contrasts)
 
     say(f"[4/4] truth: companion at ({truth[0]:.0f}, {truth[1]:.0f}) mas, mean contrast "
