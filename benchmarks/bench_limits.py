@@ -50,7 +50,7 @@ def main():
             return finder(wrapped, pd, hi, **kw)
         L._bisect = counting
         t0 = time.perf_counter()
-        lim = L._limit_binary_correlated(m, corr, thr, 0.5, 2, 1024, 0)
+        lim = L._limit_binary_correlated(m, corr, [thr], 0.5, [2], 1024, 0)[0]
         dt = time.perf_counter() - t0
         L._bisect = orig
         out[name] = (lim, calls[0], dt)

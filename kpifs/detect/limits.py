@@ -33,8 +33,8 @@ optimize = lazy_module("scipy.optimize")
 stats = lazy_module("scipy.stats")
 
 __all__ = ["spectrum_shape", "limit_np", "energy_lambda", "limit_energy", "limit_binary",
-           "limit_energy_correlated", "radial_curves", "pfa_to_sigma", "sigma_to_pfa",
-           "chi2_ratio_sigma"]
+           "limit_binary_correlated_forms", "limit_energy_correlated", "radial_curves",
+           "pfa_to_sigma", "sigma_to_pfa", "chi2_ratio_sigma"]
 
 
 def spectrum_shape(spectrum, n_channels):
@@ -140,8 +140,8 @@ def limit_binary(norm2, threshold, pd, *, form="B", spectrum=None, n_draws=4096,
     m = (a[:, None] * np.sqrt(norm2.reshape(q, -1))).T           # (npos, q) signal per unit c
     power = 2 if form == "B" else 1
     if correlation is not None:
-        return _limit_binary_correlated(m, correlation.reshape(-1, q, q), threshold, pd,
-                                        power, n_draws, seed).reshape(shape)
+        return _limit_binary_correlated(m, correlation.reshape(-1, q, q), [threshold], pd,
+                                        [power], n_draws, seed)[0].reshape(shape)
     if q > 8:
         def pdet(c, idx):
             mean, var = _clipped_moments(c[:, None] * m[idx], power)
@@ -214,18 +214,45 @@ def _bisect(pdet, pd, hi, n_iter=40, rtol=1e-3):
     return out
 
 
-def _limit_binary_correlated(m, corr, threshold, pd, power, n_draws, seed):
-    """Binary limit with channel correlations: z = L eps at each position.
+def limit_binary_correlated_forms(norm2, thresholds, pd, *, spectrum=None, n_draws=4096,
+                                  seed=0, correlation):
+    """`limit_binary` with *correlation* for several forms at once: ``{form: map}``.
+
+    *thresholds* maps each form ('B', 'B-paper') to its threshold; the correlated
+    draws of every position are built once and serve all forms.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.limits import limit_binary_correlated_forms
+    >>> lim = limit_binary_correlated_forms(np.ones((1, 1, 1)), {"B": 2.3263 ** 2}, 0.5,
+    ...                                     correlation=np.ones((1, 1, 1, 1)))
+    >>> round(float(lim["B"][0, 0]), 2)
+    2.33
+    """
+    pd = check_probability(pd, "P_D")
+    a = spectrum_shape(spectrum, len(norm2))
+    q = len(norm2)
+    shape = norm2.shape[1:]
+    m = (a[:, None] * np.sqrt(norm2.reshape(q, -1))).T
+    forms = list(thresholds)
+    maps = _limit_binary_correlated(m, np.asarray(correlation).reshape(-1, q, q),
+                                    [thresholds[f] for f in forms], pd,
+                                    [2 if f == "B" else 1 for f in forms], n_draws, seed)
+    return {f: v.reshape(shape) for f, v in zip(forms, maps)}
+
+
+def _limit_binary_correlated(m, corr, thresholds, pd, powers, n_draws, seed):
+    """Binary limits with channel correlations: z = L eps at each position.
 
     Positions are taken in chunks; each chunk's correlated draws are built once
-    and reused by every step of its bisection.
+    and reused by every step of the root finding, for every (threshold, power).
     """
     npos, q = m.shape
     eps = _qmc_normal(min(n_draws, 1024), q, seed)                      # (N, q)
     good = np.all(np.isfinite(corr.reshape(npos, -1)), axis=1) & np.all(np.isfinite(m), axis=1)
-    out = np.full(npos, np.nan)
+    outs = [np.full(npos, np.nan) for _ in thresholds]
     total = np.where(good, m.sum(axis=1), np.nan)
-    hi_all = (np.sqrt(threshold) * np.sqrt(q) + 6 * q) / np.where(total > 0, total, np.nan)
     jitter = 1e-9 * np.eye(q)
     todo = np.flatnonzero(good)
     for a in range(0, len(todo), 128):
@@ -235,15 +262,18 @@ def _limit_binary_correlated(m, corr, threshold, pd, power, n_draws, seed):
                       eps).astype(np.float32)
         msl = m[sl].astype(np.float32)
 
-        def pdet(c, idx, z=z, msl=msl):
-            t = z[idx] + (c.astype(np.float32)[:, None] * msl[idx])[:, None, :]
-            np.maximum(t, 0, out=t)
-            if power == 2:
-                t *= t
-            return np.mean(t.sum(axis=2) > threshold, axis=1)
+        for out, threshold, power in zip(outs, thresholds, powers):
+            def pdet(c, idx, z=z, msl=msl, threshold=threshold, power=power):
+                t = z[idx] + (c.astype(np.float32)[:, None] * msl[idx])[:, None, :]
+                np.maximum(t, 0, out=t)
+                if power == 2:
+                    t *= t
+                return np.mean(t.sum(axis=2) > threshold, axis=1)
 
-        out[sl] = _bisect(pdet, pd, hi_all[sl])
-    return out
+            tot = np.where(total[sl] > 0, total[sl], np.nan)
+            hi = (np.sqrt(threshold) * np.sqrt(q) + 6 * q) / tot
+            out[sl] = _bisect(pdet, pd, hi)
+    return outs
 
 
 def limit_energy_correlated(signal_proj, signal_norm2, noise_energy, threshold, pd):

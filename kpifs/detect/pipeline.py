@@ -16,8 +16,8 @@ from .fit import fit_binary
 from .sky import (add_sky_columns, mean_angle, pa_bins,
                   rotated_binary_kernel_phases, separation_pa, sky_to_detector)
 from .skyfit import refit_on_sky
-from .limits import (energy_lambda, limit_binary, limit_energy, limit_energy_correlated,
-                     limit_np, radial_curves, spectrum_shape)
+from .limits import (energy_lambda, limit_binary, limit_binary_correlated_forms, limit_energy,
+                     limit_energy_correlated, limit_np, radial_curves, spectrum_shape)
 from .maps import DetectionModel
 from .null import NullCalibration, check_draws, energy_null
 from .stats import TESTS, check_probability, energy_threshold
@@ -264,11 +264,15 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
         limits["E"] = limit_energy(model.norm2, pfa, pd, dof, a)
     else:
         corr, limits["E"] = _correlated_inputs(model, rows, a, energy, te, seed)
-    for f in ("B", "B-paper"):
-        thr_f = threshold if f == form else NullCalibration(
-            model, form=f, n_draws=n_draws, seed=seed, noise_rows=rows).threshold(pfa)
-        limits[f] = limit_binary(model.norm2, thr_f, pd, form=f, spectrum=a, seed=seed,
-                                 correlation=corr)
+    thr = {f: threshold if f == form else NullCalibration(
+        model, form=f, n_draws=n_draws, seed=seed, noise_rows=rows).threshold(pfa)
+        for f in ("B", "B-paper")}
+    if corr is None:
+        for f in thr:
+            limits[f] = limit_binary(model.norm2, thr[f], pd, form=f, spectrum=a, seed=seed)
+    else:       # the correlated draws of each position serve both forms
+        limits.update(limit_binary_correlated_forms(model.norm2, thr, pd, spectrum=a,
+                                                    seed=seed, correlation=corr))
     # the NP reference uses the local threshold; with the grid search its own global one
     if form == "NP":
         limits["NP"] = (threshold - stats.norm.isf(pd)) / np.sqrt(
