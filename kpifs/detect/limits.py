@@ -299,10 +299,15 @@ def limit_energy_correlated(signal_proj, signal_norm2, noise_energy, threshold, 
     """
     pd = check_probability(pd, "P_D")
 
+    proj32 = np.asarray(signal_proj, np.float32)
+    # T_E(c) > thr  <=>  2 c n.x > thr - ||n||^2 - c^2 ||x||^2: one (N, npos) product a call
+    slack = (threshold - np.asarray(noise_energy, float)).astype(np.float32)[:, None]
+
     def pdet(c, idx):
-        t = (noise_energy[:, None] + 2 * c[None, :] * signal_proj[:, idx]
-             + c[None, :] ** 2 * signal_norm2[idx][None, :])
-        return np.mean(t > threshold, axis=0)
+        c32 = c.astype(np.float32)
+        t = proj32[:, idx] * (2 * c32)[None, :]
+        t += (c32 ** 2 * signal_norm2[idx].astype(np.float32))[None, :]
+        return np.mean(t > slack, axis=0)
 
     hi = 2 * (np.sqrt(threshold) + 10) / np.sqrt(np.where(signal_norm2 > 0, signal_norm2,
                                                           np.nan))
