@@ -148,10 +148,16 @@ class NullCalibration:
         maxima = {f: np.empty(self.n_draws) for f in forms}
         starts = progress_bar(range(0, self.n_draws, batch), desc=f"calibrating sup-{form}",
                               unit="batch", enabled=self.progress)
+        npos = len(positions)
+        zp = np.empty((batch, npos), np.float32)          # work buffers, reused
+        sq = np.empty((batch, npos), np.float32)
         for a in starts:
             b = min(self.n_draws, a + batch)
-            t_pos = {f: np.zeros((b - a, len(positions)), np.float32) for f in forms}
-            t_neg = {f: np.zeros_like(t_pos[f]) for f in forms} if mirrored else None
+            t_pos = {f: np.zeros((b - a, npos), np.float32) for f in forms}
+            # mirrored positions: sum max(-z, 0)^2 = sum z^2 - sum max(z, 0)^2 and
+            # sum max(-z, 0) = sum max(z, 0) - sum z, so only the totals are kept
+            tot = {f: np.zeros((b - a, npos), np.float32) for f in forms} \
+                if mirrored and form != "NP" else None
             if rows is not None:
                 coef = rng.standard_normal((b - a, len(rows)), dtype=np.float32)
                 if not via_rows:
@@ -167,19 +173,21 @@ class NullCalibration:
                 if form == "NP":
                     t_pos["NP"] += mfw[i] * z
                     continue
-                zp = np.maximum(z, 0)
-                t_pos["B"] += zp * zp
-                t_pos["B-paper"] += zp
+                p_, s_ = zp[:b - a], sq[:b - a]
+                np.maximum(z, 0, out=p_)
+                t_pos["B-paper"] += p_
+                np.multiply(p_, p_, out=s_)
+                t_pos["B"] += s_
                 if mirrored:
-                    zn = np.maximum(-z, 0)
-                    t_neg["B"] += zn * zn
-                    t_neg["B-paper"] += zn
+                    tot["B-paper"] += z
+                    np.multiply(z, z, out=s_)
+                    tot["B"] += s_
             for f in forms:
-                if f == "NP" and mirrored:
-                    t_neg[f] = -t_pos[f]
                 best = t_pos[f].max(axis=1)
                 if mirrored:
-                    best = np.maximum(best, t_neg[f].max(axis=1))
+                    neg = -t_pos[f] if f == "NP" else (
+                        tot[f] - t_pos[f] if f == "B" else t_pos[f] - tot[f])
+                    best = np.maximum(best, neg.max(axis=1))
                 maxima[f][a:b] = best
         for f in forms:
             maxima[f].sort()
