@@ -321,6 +321,14 @@ CASES = [
     ("info: next command keeps the model", lambda f: ["info", f["target"], "--step", "0.8m",
                                                       "--binary", "--rotation", "1deg"], 0,
      "--step 0.8m --binary --rotation 1deg"),
+    # the pupil-model check
+    ("model-check: missing cube", lambda f: ["model-check", f["adir"].parent / "none.fits"], 2,
+     "none.fits: file not found"),
+    ("model-check: --rotations not numbers", lambda f: ["model-check", f["target"],
+                                                         "--rotations", "a,b"], 2,
+     "--rotations must be a comma list of numbers"),
+    ("model-check: unknown pupil", lambda f: ["model-check", f["target"], "--pupil", "hubble"],
+     2, "unknown pupil 'hubble'"),
     # archives
     ("batch: missing manifest", lambda f: ["batch", f["adir"].parent / "none.csv"], 2,
      "none.csv: manifest not found"),
