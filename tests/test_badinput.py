@@ -324,8 +324,8 @@ CASES = [
     # the pupil-model check
     ("model-check: missing cube", lambda f: ["model-check", f["adir"].parent / "none.fits"], 2,
      "none.fits: file not found"),
-    ("model-check: --rotations not numbers", lambda f: ["model-check", f["target"],
-                                                         "--rotations", "a,b"], 2,
+    ("model-check: --rotations not numbers",
+     lambda f: ["model-check", f["target"], "--rotations", "a,b"], 2,
      "--rotations must be a comma list of numbers"),
     ("model-check: unknown pupil", lambda f: ["model-check", f["target"], "--pupil", "hubble"],
      2, "unknown pupil 'hubble'"),

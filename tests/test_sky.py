@@ -74,6 +74,15 @@ def _rotating_sequence(km, wl, sep, pa, contrast, detpa, sigma, seed):
     return kp + sigma * rng.normal(size=kp.shape)
 
 
+def _target_and_calibrator(detpa, seeds, sep=120.0, pa=145.0, c=0.03):
+    """Kernel phases of a companion fixed on the sky and of a calibrator, frames at *detpa*
+    (1 m binary Subaru model, three channels, 0.01 rad of noise a frame)."""
+    km1 = KernelModel.from_pupil(make_pupil("subaru", step=1.0 * u.m, grey=False))
+    wl = [1.55, 1.65, 1.75] * u.um
+    return [KernelPhaseData(_rotating_sequence(km1, wl, sep, pa, cc, detpa, 0.01, seed=s), wl,
+                            10 * u.mas, km1, detpa=detpa) for cc, s in zip((c, 0.0), seeds)]
+
+
 def _fit_sky(kpd, sigma, start, c0):
     """Fit the frame-averaged kernel phases of a file with the rotating model."""
     kp = kpd.kp.mean(axis=0)
@@ -176,15 +185,10 @@ def test_detect_refits_a_rotating_sequence_on_the_sky(tmp_path, via_file):
     from kpifs.calibrate import calibrate
     from kpifs.data import DetectionGrid
     from kpifs.detect import detect
-    km1 = KernelModel.from_pupil(make_pupil("subaru", step=1.0 * u.m, grey=False))
-    wl = [1.55, 1.65, 1.75] * u.um
-    n = km1.n_kp + 30
+    n = KernelModel.from_pupil(make_pupil("subaru", step=1.0 * u.m, grey=False)).n_kp + 30
     detpa = np.linspace(100.0, 140.0, n)
-    sep, pa, c = 120.0, 145.0, 0.03
-    tgt = KernelPhaseData(_rotating_sequence(km1, wl, sep, pa, c, detpa, 0.01, seed=21), wl,
-                          10 * u.mas, km1, detpa=detpa)
-    cal = KernelPhaseData(_rotating_sequence(km1, wl, sep, pa, 0.0, detpa, 0.01, seed=22), wl,
-                          10 * u.mas, km1, detpa=detpa)
+    sep, pa = 120.0, 145.0
+    tgt, cal = _target_and_calibrator(detpa, (21, 22), sep, pa)
     kpd = calibrate(tgt, [cal])
     if via_file:
         kpd = KernelPhaseData.read(kpd.write(tmp_path / "cal.fits"))
@@ -240,15 +244,10 @@ def rotating_search(tmp_path_factory):
     deg, calibrated, searched on the sky (auto) and on the detector."""
     from kpifs.calibrate import calibrate
     from kpifs.detect import detect
-    km1 = KernelModel.from_pupil(make_pupil("subaru", step=1.0 * u.m, grey=False))
-    wl = [1.55, 1.65, 1.75] * u.um
-    n = km1.n_kp + 30
+    n = KernelModel.from_pupil(make_pupil("subaru", step=1.0 * u.m, grey=False)).n_kp + 30
     detpa = np.linspace(80.0, 140.0, n)
-    sep, pa, c = 120.0, 145.0, 0.03
-    tgt = KernelPhaseData(_rotating_sequence(km1, wl, sep, pa, c, detpa, 0.01, seed=31), wl,
-                          10 * u.mas, km1, detpa=detpa)
-    cal = KernelPhaseData(_rotating_sequence(km1, wl, sep, pa, 0.0, detpa, 0.01, seed=32), wl,
-                          10 * u.mas, km1, detpa=detpa)
+    sep, pa = 120.0, 145.0
+    tgt, cal = _target_and_calibrator(detpa, (31, 32), sep, pa)
     with pytest.warns(Warning, match="a search on the sky .* turns the model"):
         kpd = calibrate(tgt, [cal])
     kw = dict(n_draws=2000, seed=0, max_candidates=2)
