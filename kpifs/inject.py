@@ -213,7 +213,7 @@ def injection_limits(target, calibrators, model, *, wavelengths, pixscale, windo
             kpd = extract_kernel_phases(cube, model, wavelengths=wavelengths, pixscale=pixscale,
                                         window=window, keep_phases=False, source="injected")
             res = detect(calibrate(kpd, calibrators), pfa=pfa, pd=pd, n_draws=n_draws,
-                         seed=int(rng.integers(2 ** 31)))
+                         seed=int(rng.integers(2 ** 31)), limits=False)
             hits += _detected(res, x, y, max(resolution, 2 * ps))
         rows.append((s, c, n_angles, hits, hits / n_angles))
         log.info("injected %.3g at %.0f mas: %d of %d found", c, s, hits, n_angles)

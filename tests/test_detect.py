@@ -355,3 +355,23 @@ def test_correlated_energy_limit_matches_chi2_when_white():
     thr = np.quantile(energy, 0.99)
     lim = limit_energy_correlated(noise @ x, np.ones(3), energy, thr, 0.5)
     np.testing.assert_allclose(lim, np.sqrt(energy_lambda(0.01, 0.5, p)), rtol=0.03)
+
+
+
+def test_detect_without_limits_finds_the_same_candidates():
+    """``limits=False`` (the injection curves' search) skips the limits only."""
+    from kpifs.detect.pipeline import _example_result
+    full = _example_result()
+    km = KernelModel.from_pupil(make_pupil("subaru", step=0.6 * u.m))
+    wl = [1.6, 1.7] * u.um
+    rng = np.random.default_rng(1)             # the data of _example_result
+    kp = km.binary_kernel_phases([60, -40] * u.mas, [4e-3, 3e-3], wl)
+    kp = kp + rng.normal(0, 1e-3, kp.shape)
+    kpd = KernelPhaseData(kp[None], wl, 10.42 * u.mas, km,
+                          covariance=np.stack([np.eye(km.n_kp) * 1e-6] * 2),
+                          meta={"calibrated": True})
+    grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    fast = detect(kpd, grid=grid, n_draws=2000, seed=0, limits=False)
+    assert fast.limits == {} and len(fast.candidates) == len(full.candidates) == 1
+    assert float(fast.candidates["fit_x"][0].value) == float(full.candidates["fit_x"][0].value)
+    assert fast.threshold == full.threshold

@@ -139,7 +139,7 @@ def _prepare(kpd, shrinkage, allow_uncalibrated):
 
 def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
            n_draws=30000, seed=0, shrinkage="auto", fit=True, max_candidates=20,
-           allow_uncalibrated=False, frame="auto", progress=False):
+           allow_uncalibrated=False, frame="auto", limits=True, progress=False):
     """Search calibrated kernel phases for a companion.
 
     Parameters
@@ -185,6 +185,9 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
         carry a celestial WCS. ``'detector'``: image x and y. ``'auto'``
         (default): the sky when every frame's angle is known (`data_angles`),
         else the detector. A *grid* given decides by its own frame.
+    limits : bool
+        Compute the detection limits (default). Without (as the injection
+        curves do, which only need the candidates) ``result.limits`` is empty.
 
     Returns
     -------
@@ -253,6 +256,11 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
     energy = {"statistic": t_e, "dof": dof, "pfa": float(stats.chi2.sf(t_e, dof)),
               "threshold": float(energy_threshold(pfa, dof)), "pd": pd}
     te = None
+    if not limits:
+        return _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, {}, cands, threshold,
+                       energy, {"frame": frame, "chi2_red": kappa, "noise_scale": scale,
+                                "n_draws": n_draws, "seed": seed, "test": test, "pfa": pfa,
+                                "pd": pd})
     if rows is not None:   # correlated channels: the energy's law from the same null model
         te = energy_null(rows, n_draws, seed)
         energy["pfa"] = float((np.sum(te["energy"] >= t_e) + 1) / (len(te["energy"]) + 1))
@@ -289,6 +297,15 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
             "pa_bins": None if poses is None else [np.asarray(p).tolist() for p in poses]}
     log.info("detect: %d candidate(s) above the %s threshold %.3f (global P_FA %.1e)",
              len(cands), form, threshold, pfa)
+    return _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands,
+                   threshold, energy, meta, curves)
+
+
+def _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands, threshold,
+            energy, meta, curves=None):
+    valid = grid.valid
+    if curves is None:
+        curves = radial_curves(limits, grid)
     return DetectionResult(grid=grid, test=test, pfa=pfa, pd=pd, statistic=t, pfa_local=ploc,
                            pfa_global=pglob, contrast=np.where(valid, c, np.nan),
                            contrast_err=np.where(valid, cerr, np.nan), limits=limits,

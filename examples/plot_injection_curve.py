@@ -1,0 +1,44 @@
+"""
+Limits checked by injections
+============================
+
+A detection limit is a claim: a companion this bright would be found half the
+time. Here it is checked on an unkind simulation (aberrations drifting from
+frame to frame, the calibrator seen through a static aberration of its own):
+companions are injected into the target's frames as shifted, scaled copies of
+the frames themselves, extracted, calibrated and searched exactly as real
+data, at several position angles per separation and contrast. The points give
+the fraction found; the black line, where half are found; the grey line, the
+analytic limit of the same data without injections.
+"""
+import warnings
+
+import matplotlib.pyplot as plt
+import astropy.units as u
+
+from kpifs import KernelModel, extract_kernel_phases, make_pupil
+from kpifs.calibrate import calibrate
+from kpifs.detect import detect
+from kpifs.inject import injection_limits
+from kpifs.plotting import plot_injection_limits
+from kpifs.simulate import simulate_scene
+
+obs = simulate_scene("paper", n_frames=30, seed=5, npup=64, contrasts=0.0,
+                     wavefront_rms=30 * u.nm, drift_rms=30 * u.nm, drift_time=8.0,
+                     static_diff_rms=10 * u.nm, exptime=1 * u.s)
+km = KernelModel.from_pupil(make_pupil("subaru", step=0.6 * u.m))
+args = dict(wavelengths=obs.wavelengths, pixscale=obs.params.pixscale)
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore")          # few frames: kpifs says the null is optimistic
+    cal = extract_kernel_phases(obs.calibrator, km, **args)
+    tgt = extract_kernel_phases(obs.target, km, **args)
+    analytic = detect(calibrate(tgt, [cal]), pfa=1e-3, n_draws=5000, seed=0)
+    table = injection_limits(obs.target, [cal], km, window=cal.window, **args,
+                             separations=[60, 120] * u.mas,
+                             contrasts=[2e-4, 5e-4, 1e-3, 2e-3], n_angles=3,
+                             n_draws=2000, seed=1)
+
+print(table)
+print("empirical 50 % limits:", [f"{v:.2e}" for v in table.meta["limits"]])
+fig = plot_injection_limits(table, analytic=analytic)
+plt.show()
