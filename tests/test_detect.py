@@ -357,7 +357,6 @@ def test_correlated_energy_limit_matches_chi2_when_white():
     np.testing.assert_allclose(lim, np.sqrt(energy_lambda(0.01, 0.5, p)), rtol=0.03)
 
 
-
 def test_detect_without_limits_finds_the_same_candidates():
     """``limits=False`` (the injection curves' search) skips the limits only."""
     from kpifs.detect.pipeline import _example_result
