@@ -25,10 +25,11 @@ from ._utils import progress as progress_bar
 from ._utils import to_quantity
 from .calibrate import calibrate
 from .detect import detect
+from .detect.sky import sky_to_detector   # noqa: F401  (kpifs.inject.sky_to_detector)
 from .exceptions import KpifsError
 from .extract import extract_kernel_phases
 
-__all__ = ["shift_images", "sky_to_detector", "inject_companion", "injection_limits"]
+__all__ = ["shift_images", "inject_companion", "injection_limits"]
 
 log = logging.getLogger(__name__)
 
@@ -58,24 +59,6 @@ def shift_images(images, dx, dy, *, pad=None):
     ramp = np.exp(-2j * np.pi * (fx * dx + fy * dy))
     out = np.fft.irfft2(np.fft.rfft2(big) * ramp, s=big.shape[-2:])
     return out[..., pad:pad + ny, pad:pad + nx]
-
-
-def sky_to_detector(dra, ddec, detpa):
-    """Detector offsets ``(x, y)`` of a sky offset at detector position angles *detpa* (deg).
-
-    ``x = -dRA cos t + dDec sin t``, ``y = dRA sin t + dDec cos t`` (see
-    `kpifs.io.angles`): at 0 deg North is up (+y) and East left (-x).
-
-    Examples
-    --------
-    >>> from kpifs.inject import sky_to_detector
-    >>> [round(float(v), 6) for v in sky_to_detector(10.0, 0.0, 0.0)]   # East: to the left
-    [-10.0, 0.0]
-    >>> [round(float(v), 6) for v in sky_to_detector(0.0, 10.0, 90.0)]  # North at +x
-    [10.0, 0.0]
-    """
-    t = np.deg2rad(np.asarray(detpa, float))
-    return -dra * np.cos(t) + ddec * np.sin(t), dra * np.sin(t) + ddec * np.cos(t)
 
 
 def inject_companion(cube, *, position, contrast, pixscale, frame="detector", detpa=None):
