@@ -155,7 +155,11 @@ class DetectionModel:
                 uu, vv = -c * uv[:, 0] + s * uv[:, 1], s * uv[:, 0] + c * uv[:, 1]
             tx = 2 * np.pi * np.outer(self.grid.x * MAS, uu) / lam    # (nx, nuv)
             ty = 2 * np.pi * np.outer(self.grid.y * MAS, vv) / lam    # (ny, nuv)
-            out.append((np.sin(tx), np.cos(tx), np.sin(ty), np.cos(ty), wt))
+            # several poses (a rotating sequence on the sky) multiply this store: single
+            # precision when there are several (1e-7 on a signature)
+            dt = np.float64 if len(self._poses) == 1 else np.float32
+            out.append(tuple(f(t).astype(dt) for t in (tx, ty) for f in (np.sin, np.cos))
+                       + (wt,))
         return out
 
     def _sin_rows(self, i, rows):

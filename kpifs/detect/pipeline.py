@@ -104,17 +104,27 @@ def search_frame(kpd, frame="auto"):
     return frame
 
 
+#: Largest motion of a companion within one PA bin of the *search* (in finest
+#: fringes at the grid's edge): its signature loses ~1.5 % to the smearing, while
+#: the bins, and with them the cost of every map, are several times fewer than the
+#: fit's (`kpifs.detect.sky.SMEAR_FRACTION`).
+SEARCH_SMEAR_FRACTION = 0.1
+
+
 def _frame_and_poses(kpd, frame, grid):
-    """Search frame ('sky' or 'detector') and, on the sky, the PA bins ``(angles, weights)``."""
+    """Search frame ('sky' or 'detector') and, on the sky, the PA bins ``(angles, weights)``
+    of the search and of the fit (finer)."""
     frame = search_frame(kpd, grid.frame if grid is not None else frame)
     if frame == "detector":
-        return "detector", None
+        return "detector", None, None
     ang = data_angles(kpd)
     far = grid.max_sep if grid is not None and np.isfinite(grid.max_sep) else \
         default_grid(kpd).max_sep
-    return "sky", pa_bins(ang, max_separation=1.5 * far * u.mas,
-                          wavelength_min=kpd.wavelengths.min(),
-                          baseline_max=kpd.kernel_model.baseline_length.max())
+    kw = dict(wavelength_min=kpd.wavelengths.min(),
+              baseline_max=kpd.kernel_model.baseline_length.max())
+    return ("sky", pa_bins(ang, max_separation=far * u.mas,
+                           fraction=SEARCH_SMEAR_FRACTION, **kw),
+            pa_bins(ang, max_separation=1.5 * far * u.mas, **kw))
 
 
 def _prepare(kpd, shrinkage, allow_uncalibrated):
@@ -211,12 +221,12 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
     w, rank = whitening_matrix(cov, return_rank=True, source="covariance of the data")
     rank = np.atleast_1d(rank)
     y = whiten(kp, w)
-    frame, poses = _frame_and_poses(kpd, frame, grid)
+    frame, search_poses, poses = _frame_and_poses(kpd, frame, grid)
     if grid is None:
         grid = default_grid(kpd, frame=frame)
     window = kpd.window
     model = DetectionModel(kpd.kernel_model, kpd.wavelengths, w, grid, pixscale=kpd.pixscale,
-                           window=window, dof=rank, detpa=poses)
+                           window=window, dof=rank, detpa=search_poses)
     form = "B" if test == "E" else test
     rows = None
     if kpd.covariance_rows is not None:
@@ -294,7 +304,9 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
             "lambda_energy": energy_lambda(pfa, pd, dof),
             "null_channels": "covariance rows" if rows is not None else "independent",
             "frame": frame,
-            "pa_bins": None if poses is None else [np.asarray(p).tolist() for p in poses]}
+            "pa_bins": None if poses is None else [np.asarray(p).tolist() for p in poses],
+            "pa_bins_search": None if search_poses is None
+            else [np.asarray(p).tolist() for p in search_poses]}
     log.info("detect: %d candidate(s) above the %s threshold %.3f (global P_FA %.1e)",
              len(cands), form, threshold, pfa)
     return _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands,
