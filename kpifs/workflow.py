@@ -28,7 +28,8 @@ from .calibrate import calibrate
 from .covariance import empirical_covariance
 from .data import KernelPhaseData
 from .detect.null import check_draws
-from .detect.pipeline import default_grid, detect, search_frame
+from .detect.pipeline import default_grid, detect
+from .detect.sky import search_frame
 from .detect.stats import TESTS, check_probability
 from .exceptions import KpifsError
 from .extract import extract_kernel_phases

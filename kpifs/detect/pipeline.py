@@ -13,8 +13,8 @@ from ..exceptions import KpifsError, KpifsWarning
 from ..kernel import MAS, KernelModel
 from ..pupil import make_pupil
 from .fit import fit_binary
-from .sky import (add_sky_columns, mean_angle, pa_bins,
-                  rotated_binary_kernel_phases, separation_pa, sky_to_detector)
+from .sky import (add_sky_columns, data_angles, pa_bins, rotated_binary_kernel_phases,
+                  search_frame, sky_search_columns)
 from .skyfit import refit_on_sky
 from .limits import (energy_lambda, limit_binary, limit_binary_correlated_forms, limit_energy,
                      limit_energy_correlated, limit_np, radial_curves, spectrum_shape)
@@ -24,7 +24,7 @@ from .stats import TESTS, check_probability, energy_threshold
 
 stats = lazy_module("scipy.stats")
 
-__all__ = ["detect", "default_grid", "data_angles", "search_frame"]
+__all__ = ["detect", "default_grid"]
 
 log = logging.getLogger(__name__)
 
@@ -59,49 +59,6 @@ def default_grid(kpd, *, step=None, max_sep=None, min_sep=None, frame="detector"
     min_sep = res / 2 if min_sep is None else u.Quantity(min_sep, u.mas).value
     return DetectionGrid.from_separation(max_sep * u.mas, step * u.mas, min_sep=min_sep * u.mas,
                                          frame=frame)
-
-
-def data_angles(kpd):
-    """The detector position angles of the frames behind *kpd* (deg), or None if unknown.
-
-    Calibrated data carry their target frames' angles (``meta['detpa_frames']``);
-    otherwise the data's own. Angles that were only assumed (no header keyword,
-    ``meta['detpa_source']`` 'none...' or 'unknown') count as unknown.
-    """
-    source = str(kpd.meta.get("detpa_source", ""))
-    if source.startswith(("none", "unknown")) or "(none" in source or "(unknown" in source:
-        return None
-    frames = kpd.meta.get("detpa_frames")
-    ang = frames if frames is not None else kpd.detpa
-    if ang is None:
-        return None
-    ang = np.atleast_1d(np.asarray(ang, float))
-    return ang if ang.size and np.all(np.isfinite(ang)) else None
-
-
-def search_frame(kpd, frame="auto"):
-    """The frame a search of *kpd* runs in: 'sky' or 'detector' (see `detect`'s *frame*).
-
-    Examples
-    --------
-    >>> import numpy as np, astropy.units as u
-    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
-    >>> from kpifs.detect.pipeline import search_frame
-    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
-    >>> kpd = KernelPhaseData(np.zeros((3, 1, km.n_kp)), [1.6] * u.um, 10 * u.mas, km,
-    ...                       detpa=[10.0, 20.0, 30.0])
-    >>> search_frame(kpd), search_frame(kpd, "detector")
-    ('sky', 'detector')
-    """
-    if frame not in ("auto", "sky", "detector"):
-        raise KpifsError(f"frame must be 'auto', 'sky' or 'detector', got {frame!r}")
-    ang = data_angles(kpd)
-    if frame == "auto":
-        return "sky" if ang is not None else "detector"
-    if frame == "sky" and ang is None:
-        raise KpifsError(f"{kpd.name}: a search on the sky needs the detector position angle "
-                         f"of every frame (DETPA, the instrument's keywords or --pa)")
-    return frame
 
 
 #: Largest motion of a companion within one PA bin of the *search* (in finest
@@ -193,7 +150,8 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
         frame's detector position angle (grouped in PA bins, `pa_bins
         <kpifs.detect.sky.pa_bins>`), so that a rotating sequence adds up; maps
         carry a celestial WCS. ``'detector'``: image x and y. ``'auto'``
-        (default): the sky when every frame's angle is known (`data_angles`),
+        (default): the sky when every frame's angle is known
+        (`kpifs.detect.sky.data_angles`),
         else the detector. A *grid* given decides by its own frame.
     limits : bool
         Compute the detection limits (default). Without (as the injection
@@ -241,7 +199,7 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
                                       spectrum=spectrum, fit=fit, max_candidates=max_candidates,
                                       dof=int(rank.sum()), poses=poses)
     if frame == "sky":
-        _sky_to_detector_columns(cands, poses)
+        sky_search_columns(cands, poses)
     else:
         add_sky_columns(cands, kpd.detpa)
     if frame == "detector" and fit and refit_on_sky(cands, kp, w, kpd,
@@ -426,44 +384,6 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
     out.meta = rows[0].meta
     out.meta["chi2_red"] = kappa
     return out, kappa
-
-
-def _sky_to_detector_columns(table, poses):
-    """Candidates of a sky search: grid and fit columns become ``dra``/``ddec``/``pa_sky``
-    (and ``fit_...``), and the detector columns ``x``/``y`` (``fit_x``...) are those
-    offsets at the mean detector angle (in place)."""
-    t = mean_angle(poses[0]) if len(poses[0]) else 0.0
-    table.meta["detpa"] = t
-    table.meta["frame"] = "sky offsets: dRA East-positive, dDec; PA East of North"
-    table.meta["sky_fit"] = (f"searched and fitted on the sky with the rotating model over "
-                             f"{len(poses[0])} position-angle bin(s)")
-    table.meta["position_angle"] = "degrees East of North"
-    c, s = np.cos(np.deg2rad(t)), np.sin(np.deg2rad(t))
-    for pre in ("", "fit_"):
-        if pre + "x" not in table.colnames:
-            continue
-        dra = u.Quantity(table[pre + "x"], u.mas).value
-        ddec = u.Quantity(table[pre + "y"], u.mas).value
-        table[pre + "dra"], table[pre + "ddec"] = dra * u.mas, ddec * u.mas
-        sep, pa = separation_pa(dra, ddec)
-        table[pre + "pa_sky"] = pa * u.deg
-        x, y = sky_to_detector(dra, ddec, t)
-        table[pre + "x"], table[pre + "y"] = x * u.mas, y * u.mas
-        if pre:
-            table["fit_separation"] = sep * u.mas
-        if pre and "fit_x_err" in table.colnames:
-            de = u.Quantity(table["fit_x_err"], u.mas).value
-            ne = u.Quantity(table["fit_y_err"], u.mas).value
-            table["fit_dra_err"], table["fit_ddec_err"] = de * u.mas, ne * u.mas
-            table["fit_x_err"] = np.hypot(c * de, s * ne) * u.mas
-            table["fit_y_err"] = np.hypot(s * de, c * ne) * u.mas
-            ux = np.divide(ddec, sep, out=np.zeros_like(sep), where=sep > 0)
-            uy = np.divide(-dra, sep, out=np.zeros_like(sep), where=sep > 0)
-            perp = np.hypot(ux * de, uy * ne)
-            table["fit_pa_sky_err"] = np.rad2deg(
-                np.divide(perp, sep, out=np.full_like(sep, np.nan), where=sep > 0)) * u.deg
-    if "position_angle" in table.colnames:
-        del table["position_angle"]
 
 
 def _refine(cands, kp, w, kpd, noise_rows=None, poses=None):

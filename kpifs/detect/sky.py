@@ -25,7 +25,8 @@ from ..exceptions import KpifsError
 from ..kernel import MAS
 
 __all__ = ["sky_to_detector", "detector_to_sky", "separation_pa", "pa_bins",
-           "rotated_binary_kernel_phases", "mean_angle", "add_sky_columns"]
+           "rotated_binary_kernel_phases", "mean_angle", "add_sky_columns", "data_angles",
+           "search_frame", "sky_search_columns"]
 
 #: Largest motion of a companion within one position-angle bin, in finest fringes.
 SMEAR_FRACTION = 0.02
@@ -242,3 +243,98 @@ def add_sky_columns(table, detpa):
             perp = np.hypot(ux * xe, uy * ye)
             table["fit_pa_sky_err"] = np.rad2deg(
                 np.divide(perp, sep, out=np.full_like(sep, np.nan), where=sep > 0)) * u.deg
+
+
+def data_angles(kpd):
+    """The detector position angles of the frames behind *kpd* (deg), or None if unknown.
+
+    Calibrated data carry their target frames' angles (``meta['detpa_frames']``);
+    otherwise the data's own. Angles that were only assumed (no header keyword,
+    ``meta['detpa_source']`` 'none...' or 'unknown') count as unknown.
+    """
+    source = str(kpd.meta.get("detpa_source", ""))
+    if source.startswith(("none", "unknown")) or "(none" in source or "(unknown" in source:
+        return None
+    frames = kpd.meta.get("detpa_frames")
+    ang = frames if frames is not None else kpd.detpa
+    if ang is None:
+        return None
+    ang = np.atleast_1d(np.asarray(ang, float))
+    return ang if ang.size and np.all(np.isfinite(ang)) else None
+
+
+def search_frame(kpd, frame="auto"):
+    """The frame a search of *kpd* runs in: 'sky' or 'detector'.
+
+    See the *frame* option of `kpifs.detect.detect`.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs.detect.sky import search_frame
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> kpd = KernelPhaseData(np.zeros((3, 1, km.n_kp)), [1.6] * u.um, 10 * u.mas, km,
+    ...                       detpa=[10.0, 20.0, 30.0])
+    >>> search_frame(kpd), search_frame(kpd, "detector")
+    ('sky', 'detector')
+    """
+    if frame not in ("auto", "sky", "detector"):
+        raise KpifsError(f"frame must be 'auto', 'sky' or 'detector', got {frame!r}")
+    ang = data_angles(kpd)
+    if frame == "auto":
+        return "sky" if ang is not None else "detector"
+    if frame == "sky" and ang is None:
+        raise KpifsError(f"{kpd.name}: a search on the sky needs the detector position angle "
+                         f"of every frame (DETPA, the instrument's keywords or --pa)")
+    return frame
+
+
+def sky_search_columns(table, poses):
+    """Candidates of a sky search: grid and fit columns become ``dra``/``ddec``/``pa_sky``
+    (and ``fit_...``), and the detector columns ``x``/``y`` (``fit_x``...) are those
+    offsets at the mean detector angle of the PA bins *poses* ``(angles, weights)``
+    (in place).
+
+    Examples
+    --------
+    >>> import astropy.units as u
+    >>> from astropy.table import QTable
+    >>> from kpifs.detect.sky import sky_search_columns
+    >>> t = QTable({"x": [10.0] * u.mas, "y": [0.0] * u.mas})       # dRA 10 mas (East)
+    >>> sky_search_columns(t, ([0.0], [1.0]))
+    >>> float(t["dra"][0].value), round(float(t["x"][0].value), 6), float(t["pa_sky"][0].value)
+    (10.0, -10.0, 90.0)
+    """
+    t = mean_angle(poses[0]) if len(poses[0]) else 0.0
+    table.meta["detpa"] = t
+    table.meta["frame"] = "sky offsets: dRA East-positive, dDec; PA East of North"
+    table.meta["sky_fit"] = (f"searched and fitted on the sky with the rotating model over "
+                             f"{len(poses[0])} position-angle bin(s)")
+    table.meta["position_angle"] = "degrees East of North"
+    c, s = np.cos(np.deg2rad(t)), np.sin(np.deg2rad(t))
+    for pre in ("", "fit_"):
+        if pre + "x" not in table.colnames:
+            continue
+        dra = u.Quantity(table[pre + "x"], u.mas).value
+        ddec = u.Quantity(table[pre + "y"], u.mas).value
+        table[pre + "dra"], table[pre + "ddec"] = dra * u.mas, ddec * u.mas
+        sep, pa = separation_pa(dra, ddec)
+        table[pre + "pa_sky"] = pa * u.deg
+        x, y = sky_to_detector(dra, ddec, t)
+        table[pre + "x"], table[pre + "y"] = x * u.mas, y * u.mas
+        if pre:
+            table["fit_separation"] = sep * u.mas
+        if pre and "fit_x_err" in table.colnames:
+            de = u.Quantity(table["fit_x_err"], u.mas).value
+            ne = u.Quantity(table["fit_y_err"], u.mas).value
+            table["fit_dra_err"], table["fit_ddec_err"] = de * u.mas, ne * u.mas
+            table["fit_x_err"] = np.hypot(c * de, s * ne) * u.mas
+            table["fit_y_err"] = np.hypot(s * de, c * ne) * u.mas
+            ux = np.divide(ddec, sep, out=np.zeros_like(sep), where=sep > 0)
+            uy = np.divide(-dra, sep, out=np.zeros_like(sep), where=sep > 0)
+            perp = np.hypot(ux * de, uy * ne)
+            table["fit_pa_sky_err"] = np.rad2deg(
+                np.divide(perp, sep, out=np.full_like(sep, np.nan), where=sep > 0)) * u.deg
+    if "position_angle" in table.colnames:
+        del table["position_angle"]
