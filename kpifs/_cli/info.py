@@ -39,13 +39,19 @@ def _detection(path):
     print(f"{path}: kpifs detection products")
     print(f"  test {res.test}, global P_FA {res.pfa:g}, P_D {res.pd:g}, threshold "
           f"{res.threshold:.3f} ({res.meta['n_draws']} Monte-Carlo draws)")
-    print(f"  map {res.statistic.shape[1]} x {res.statistic.shape[0]}; energy detector: "
-          f"T_E = {res.energy['statistic']:.1f} for {res.energy['dof']} degrees of freedom, "
-          f"P_FA {res.energy['pfa']:.2e}")
+    sky = res.grid.frame == "sky"
+    where = "on the sky (dRA, dDec; East left)" if sky else "on the detector (x, y)"
+    print(f"  map {res.statistic.shape[1]} x {res.statistic.shape[0]} {where}; energy "
+          f"detector: T_E = {res.energy['statistic']:.1f} for {res.energy['dof']} degrees of "
+          f"freedom, P_FA {res.energy['pfa']:.2e}")
     print(f"  {len(res.candidates)} candidate(s)")
+    cx, cy = ("dra", "ddec") if sky and "dra" in res.candidates.colnames else ("x", "y")
     for row in res.candidates:
-        print(f"    ({row['x'].to_value(u.mas):.1f}, {row['y'].to_value(u.mas):.1f}) mas, "
-              f"global P_FA {row['pfa_global']:.1e}")
+        pa = (f", PA {row['pa_sky'].to_value(u.deg):.1f} deg East of North"
+              if "pa_sky" in row.colnames else "")
+        print(f"    ({row[cx].to_value(u.mas):.1f}, {row[cy].to_value(u.mas):.1f}) mas"
+              f"{' (dRA, dDec)' if cx == 'dra' else ''}{pa}, global P_FA "
+              f"{row['pfa_global']:.1e}")
 
 
 def _kpfits(path):
