@@ -119,8 +119,15 @@ def _mean_and_cov(kpd, shrinkage, joint, debias=True):
 ERROR_MODELS = ("auto", "modes", "frames")
 
 
+#: Modes (fraction of the frames' degrees of freedom) of the error model that
+#: characterises candidates (`calibrate`'s *fit_modes*): on the PHARO injections,
+#: pulls of rms 1.33, 1.26, 1.27, 1.27 for 0.6, 0.7, 0.8, 0.9 (1.6 with the search's
+#: 0.5), while searching with those models adds false alarms.
+FIT_MODES = 0.8
+
+
 def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True,
-              error_model="auto", n_modes=0.5, residual="auto"):
+              error_model="auto", n_modes=0.5, residual="auto", fit_modes=FIT_MODES):
     """Calibrated kernel phases of a target, with their covariance.
 
     Parameters
@@ -148,6 +155,14 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True
         several frames, else 'frames' (single frames with KP-COV).
     n_modes, residual
         Options of `~kpifs.errormodel.fit_error_model`.
+    fit_modes : float or None
+        With the 'modes' error model, a second model of this many modes (a
+        fraction of the frames' degrees of freedom, default `FIT_MODES`)
+        characterises the candidates (``fit_covariance_rows``): the search
+        keeps the conservative *n_modes*, whose variances are well measured,
+        while positions and contrasts use the modes beyond, which carry much
+        of their information. On the PHARO injections this brings the pulls'
+        rms from 1.6 to 1.2 without changing what is found. None: one model.
 
     Returns
     -------
@@ -184,7 +199,7 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True
             else "frames"
     if error_model == "modes":
         return _calibrate_modes(target, calibrators, n_modes=n_modes, residual=residual,
-                                joint=joint)
+                                joint=joint, fit_modes=fit_modes)
     t_mean, t_cov, n_t = _mean_and_cov(target, shrinkage, False, False)
     cal_stats = [_mean_and_cov(c, shrinkage, False, False) for c in calibrators]
     c_mean = np.mean([m for m, _, _ in cal_stats], axis=0)
@@ -207,7 +222,7 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True
                    [n for _, _, n in cal_stats])
 
 
-def _calibrate_modes(target, calibrators, *, n_modes, residual, joint):
+def _calibrate_modes(target, calibrators, *, n_modes, residual, joint, fit_modes=None):
     """`calibrate` with the error model of `kpifs.errormodel`."""
     for kpd in [target, *calibrators]:
         if kpd.n_frame < MIN_FRAMES:
@@ -217,9 +232,20 @@ def _calibrate_modes(target, calibrators, *, n_modes, residual, joint):
     em = fit_error_model(target.kp, [c.kp for c in calibrators], n_modes=n_modes,
                          residual=residual, source=_name(target))
     d = target.kp.mean(axis=0) - np.mean([c.kp.mean(axis=0) for c in calibrators], axis=0)
-    return _result(target, calibrators, d, em.covariance(),
-                   em.covariance(joint=True) if joint else None, em.rows,
-                   {"error_model": em.meta()}, [c.n_frame for c in calibrators])
+    fit_rows = None
+    if fit_modes is not None and fit_modes != n_modes:
+        with warnings.catch_warnings():       # the search's model has said it already
+            warnings.simplefilter("ignore", KpifsWarning)
+            fit_rows = fit_error_model(target.kp, [c.kp for c in calibrators],
+                                       n_modes=fit_modes, residual=residual,
+                                       source=_name(target)).rows
+    out = _result(target, calibrators, d, em.covariance(),
+                  em.covariance(joint=True) if joint else None, em.rows,
+                  {"error_model": em.meta()}, [c.n_frame for c in calibrators])
+    out.fit_covariance_rows = fit_rows
+    if fit_rows is not None:
+        out.meta["error_model"]["fit_modes"] = fit_modes
+    return out
 
 
 def _result(target, calibrators, d, cov, jcov, rows, extra, n_cal):

@@ -62,6 +62,10 @@ class KernelPhaseData:
         Rows ``R`` with ``R^T R`` the covariance across all channels (see
         `~kpifs.calibrate.calibrate`): a compact, always-available form of the
         cross-channel covariance used to draw realistic noise.
+    fit_covariance_rows : ndarray, shape (nrow, nwave, nkp), optional
+        Rows of the error model that characterises candidates (more modes
+        than the search's, see `~kpifs.calibrate.calibrate`'s *fit_modes*);
+        stored as KP-FITROWS.
     header : `~astropy.io.fits.Header`, optional
         Header of the input cube (kept in products).
     detpa : array-like, shape (nframe,), optional
@@ -89,7 +93,7 @@ class KernelPhaseData:
     def __init__(self, kp, wavelengths, pixscale, kernel_model, *, window=None, phases=None,
                  amplitudes=None, centres=None, covariance=None, joint_covariance=None,
                  covariance_rows=None, header=None, detpa=None, bandwidth=None, meta=None,
-                 kp_err=None):
+                 kp_err=None, fit_covariance_rows=None):
         kp = np.asarray(kp, float)
         if kp.ndim == 2:
             kp = kp[None]
@@ -128,11 +132,15 @@ class KernelPhaseData:
             if joint_covariance.shape != (nw * nk, nw * nk):
                 raise KpifsError(f"joint covariance has shape {joint_covariance.shape}, "
                                  f"expected ({nw * nk}, {nw * nk})")
-        if covariance_rows is not None:
-            covariance_rows = np.asarray(covariance_rows, float)
-            if covariance_rows.ndim != 3 or covariance_rows.shape[1:] != kp.shape[1:]:
-                raise KpifsError(f"covariance rows have shape {covariance_rows.shape}, "
-                                 f"expected (nrow, {nw}, {nk})")
+        rows_in = [covariance_rows, fit_covariance_rows]
+        for j, r in enumerate(rows_in):
+            if r is None:
+                continue
+            rows_in[j] = r = np.asarray(r, float)
+            if r.ndim != 3 or r.shape[1:] != kp.shape[1:]:
+                raise KpifsError(f"covariance rows have shape {r.shape}, expected "
+                                 f"(nrow, {nw}, {nk})")
+        covariance_rows, fit_covariance_rows = rows_in
         if kp_err is not None and kp_err.shape != kp.shape:
             raise KpifsError(f"kernel-phase errors have shape {kp_err.shape}, expected "
                              f"{kp.shape}")
@@ -140,6 +148,7 @@ class KernelPhaseData:
         self.kp_err = kp_err
         self.joint_covariance = joint_covariance
         self.covariance_rows = covariance_rows
+        self.fit_covariance_rows = fit_covariance_rows
         self.header = fits.Header() if header is None else header.copy()
         if detpa is not None:
             detpa = np.atleast_1d(np.asarray(u.Quantity(detpa, u.deg).value, float))

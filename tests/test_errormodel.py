@@ -103,6 +103,13 @@ def test_error_model_recorded_in_products(model, rng, tmp_path):
     assert em_back["residual_method"] == "split-halves"
     assert em_back["tau_max"] == pytest.approx(em["tau_max"], rel=1e-5)
     np.testing.assert_allclose(back.covariance_rows, cal.covariance_rows)
+    # the characterisation model (more modes) travels with the file too
+    assert cal.fit_covariance_rows is not None and em["fit_modes"] == 0.8
+    assert len(cal.fit_covariance_rows) == len(cal.covariance_rows)
+    np.testing.assert_allclose(back.fit_covariance_rows, cal.fit_covariance_rows)
+    one = calibrate(_kpd(_frames(rng, 20, mix, 0.0), model),
+                    _kpd(_frames(rng, 20, mix, 0.0), model), fit_modes=None)
+    assert one.fit_covariance_rows is None
 
 
 def _false_alarms(model, n, error_model):

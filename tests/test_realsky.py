@@ -98,9 +98,10 @@ def test_injections_into_eps_her(pharo):
                 strong_err.append(fc / c - 1)
     rms = float(np.sqrt(np.mean(np.square(pulls))))
     assert false == 0
-    # before: pulls of ~6 sigma; measured 1.60 with the default grey model (contrast
-    # 1.32, positions 1.7) and 1.50 with the binary one: not yet 1 (issue 14)
-    assert 0.7 < rms < 1.7, rms
+    # before: pulls of ~6 sigma; 1.60 with the search's error model alone (0.5 nu
+    # modes); measured 1.20 (contrast 1.05, positions 1.2 and 1.33) with candidates
+    # characterised by the 0.8 nu model (calibrate's fit_modes)
+    assert 0.7 < rms < 1.5, rms
     # within 10 % for most; the binary pupil model (partly covered cells left out) biases
     # some low by up to ~17 % (the pupil-model issue): the median is what the errors show
     assert len(strong_err) >= 3 and np.all(np.abs(strong_err) < 0.2), strong_err

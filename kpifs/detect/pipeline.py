@@ -195,9 +195,18 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
                            spectrum=spectrum if form == "NP" else None, noise_rows=rows,
                            progress=progress)
     threshold = null.threshold(pfa)
+    characterise = None
+    if fit and kpd.covariance_rows is not None and kpd.fit_covariance_rows is not None:
+        # positions and contrasts from the error model with more modes (calibrate's
+        # fit_modes), whose rows also carry its channel correlations
+        fr = kpd.fit_covariance_rows
+        fw, frank = whitening_matrix(np.einsum("rip,riq->ipq", fr, fr), return_rank=True,
+                                     source="characterisation covariance")
+        characterise = (fw, whiten(fr, fw), int(np.sum(frank)))
     cands, kappa = _sequential_search(model, kp, w, kpd, threshold=threshold, null=null,
                                       spectrum=spectrum, fit=fit, max_candidates=max_candidates,
-                                      dof=int(rank.sum()), poses=poses)
+                                      dof=int(rank.sum()), poses=poses,
+                                      characterise=characterise)
     if frame == "sky":
         sky_search_columns(cands, poses)
     else:
@@ -311,7 +320,7 @@ def _chi2_red(residual, w, dof, n_par):
 
 
 def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max_candidates,
-                       dof, poses=None):
+                       dof, poses=None, characterise=None):
     """Strongest peak above threshold, fitted and subtracted, until none is left.
 
     Each peak is judged on its statistic scaled by the reduced chi-square of
@@ -333,6 +342,10 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
         row = tab[:1]
         if fit:
             _refine(row, residual, w, kpd, null.noise_rows, poses)
+            if characterise is not None:
+                # from the search model's optimum (the robust start), the characterisation
+                _refine(row, residual, characterise[0], kpd, characterise[1], poses,
+                        dof=characterise[2], from_fit=True)
             r = row[0]
             x, y, c = r["fit_x"], r["fit_y"], np.asarray(r["fit_contrast"])
         else:
@@ -359,7 +372,7 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
         row["pfa_global"], row["pfa_global_tail"] = pfa, tail
         row["pfa_local"] = model.local_pfa(np.array([stat]), form)
         row["contrast_err"] = row["contrast_err"] * np.sqrt(scale)
-        if fit:
+        if fit and characterise is None:
             for col in ("fit_x_err", "fit_y_err", "fit_contrast_err"):
                 row[col] = row[col] * np.sqrt(scale)
         row["chi2_red"] = [kappa]
@@ -386,29 +399,41 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
     return out, kappa
 
 
-def _refine(cands, kp, w, kpd, noise_rows=None, poses=None):
+def _refine(cands, kp, w, kpd, noise_rows=None, poses=None, dof=None, from_fit=False):
+    """Fit each candidate (from its grid peak, or *from_fit* its earlier fit); with
+    *dof* (the whitened dimension of *w*, a characterisation model) the errors are
+    scaled by the fit's own reduced chi-square (never down) and ``fit_chi2_red`` is
+    added."""
     q = kp.shape[0]
     cols = {k: [] for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err", "fit_contrast",
                             "fit_contrast_err", "fit_chi2")}
     step = 20.0
     for row in cands:
         kw = {} if poses is None else dict(detpa=poses[0], detpa_weights=poses[1])
+        pre = "fit_" if from_fit else ""
         r = fit_binary(kp, w, kpd.kernel_model, kpd.wavelengths,
-                       (row["x"].to_value(u.mas), row["y"].to_value(u.mas)),
-                       np.asarray(row["contrast"]), pixscale=kpd.pixscale, window=kpd.window,
-                       bounds_mas=step, noise_rows=noise_rows, **kw)
+                       (row[pre + "x"].to_value(u.mas), row[pre + "y"].to_value(u.mas)),
+                       np.asarray(row[pre + "contrast"]), pixscale=kpd.pixscale,
+                       window=kpd.window, bounds_mas=step, noise_rows=noise_rows, **kw)
+        k = 1.0
+        if dof is not None:
+            chi2_red = r["chi2"] / max(dof - (q + 2), 1)
+            cols.setdefault("fit_chi2_red", []).append(chi2_red)
+            k = np.sqrt(max(1.0, chi2_red))
         cols["fit_x"].append(r["x"])
         cols["fit_y"].append(r["y"])
-        cols["fit_x_err"].append(r["x_err"])
-        cols["fit_y_err"].append(r["y_err"])
+        cols["fit_x_err"].append(r["x_err"] * k)
+        cols["fit_y_err"].append(r["y_err"] * k)
         cols["fit_contrast"].append(r["contrast"])
-        cols["fit_contrast_err"].append(r["contrast_err"])
+        cols["fit_contrast_err"].append(np.asarray(r["contrast_err"]) * k)
         cols["fit_chi2"].append(r["chi2"])
     for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err"):
         cands[k] = np.array(cols[k]) * u.mas
     cands["fit_contrast"] = np.array(cols["fit_contrast"]).reshape(len(cands), q)
     cands["fit_contrast_err"] = np.array(cols["fit_contrast_err"]).reshape(len(cands), q)
     cands["fit_chi2"] = np.array(cols["fit_chi2"])
+    if "fit_chi2_red" in cols:
+        cands["fit_chi2_red"] = np.array(cols["fit_chi2_red"])
 
 
 _EXAMPLE = {}

@@ -198,6 +198,11 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
         hr.header["BUNIT"] = "rad"
         hr.header["COMMENT"] = "rows R with R^T R = covariance of KP-DATA across all channels"
         hdus.append(hr)
+    if getattr(kpd, "fit_covariance_rows", None) is not None:
+        hf = fits.ImageHDU(np.asarray(kpd.fit_covariance_rows, float), name="KP-FITROWS")
+        hf.header["BUNIT"] = "rad"
+        hf.header["COMMENT"] = "rows of the error model that characterises candidates"
+        hdus.append(hf)
     if kpd.joint_covariance is not None:
         hj = fits.ImageHDU(np.asarray(kpd.joint_covariance, float), name="KP-JCOV")
         hj.header["BUNIT"] = "rad2"

@@ -366,6 +366,7 @@ def _read_data(hdul, path, detpa):
                               path, notes)
     jcov = np.array(hdul["KP-JCOV"].data, float) if "KP-JCOV" in hdul else None
     rows = np.array(hdul["KP-COVROWS"].data, float) if "KP-COVROWS" in hdul else None
+    fit_rows = np.array(hdul["KP-FITROWS"].data, float) if "KP-FITROWS" in hdul else None
     pixscale = _read_pixscale(hdr, path)
     inst = next((str(hdr[k]).strip() for k in ("INSTRUME", "CURRINST")
                  if str(hdr.get(k, "")).strip()), None)
@@ -395,5 +396,6 @@ def _read_data(hdul, path, detpa):
         meta["n_dropped_frames"] = int(hdr.get("NDROPFR", 0))
     return {"model": model, "kp": kp, "wavelengths": wl, "bandwidth": bw,
             "pixscale": pixscale, "covariance": cov, "kp_err": kp_err,
-            "joint_covariance": jcov, "covariance_rows": rows, "detpa": pa,
+            "joint_covariance": jcov, "covariance_rows": rows,
+            "fit_covariance_rows": fit_rows, "detpa": pa,
             "phases": phases, "amplitudes": amps, "header": hdr, "meta": meta}
