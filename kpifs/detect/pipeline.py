@@ -211,11 +211,12 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
         sky_search_columns(cands, poses)
     else:
         add_sky_columns(cands, kpd.detpa)
-    if frame == "detector" and fit and refit_on_sky(cands, kp, w, kpd,
-                                                    noise_rows=null.noise_rows) \
+    fit_w, fit_rows = (w, null.noise_rows) if characterise is None else characterise[:2]
+    if frame == "detector" and fit and refit_on_sky(cands, kp, fit_w, kpd, noise_rows=fit_rows) \
             and "chi2_red" in cands.colnames:
         # the rotating fit's errors, scaled like the detector fit's
-        k = np.sqrt(np.maximum(1.0, np.asarray(cands["chi2_red"], float)))
+        chi2 = cands["fit_chi2_red" if characterise is not None else "chi2_red"]
+        k = np.sqrt(np.maximum(1.0, np.asarray(chi2, float)))
         for col in ("fit_dra_err", "fit_ddec_err", "fit_pa_sky_err"):
             cands[col] = cands[col] * k
     # the noise level the data show beyond the model (reduced chi-square of the residual
