@@ -184,6 +184,7 @@ class _Evaluator:
         self.kw = dict(window=window, centroid=centroid, bad_frames="drop")
         self.rows = []
         self.floor = None
+        self.ideal = {}
 
     def __call__(self, scan, model, rotation, scale, options):
         # the model turns; the scale is the pixel scale's (uv points stay in metres)
@@ -195,9 +196,12 @@ class _Evaluator:
                                    **args)
         amps = np.concatenate([kt.amplitudes, kc.amplitudes])
         # the hypothesis: the textbook pupil turned by *rotation*, at pixel scale *ps*
-        ideal = simulate_psf(self.pupil, self.wl, pixscale=ps, shape=self.target.shape[-2:],
-                             pupil_rotation=rotation * u.deg, npup=MODEL_NPUP,
-                             supersample=4)
+        # (the same for every cut and step tried at one geometry: made once)
+        ideal = self.ideal.get((rotation, scale))
+        if ideal is None:
+            ideal = self.ideal[(rotation, scale)] = simulate_psf(
+                self.pupil, self.wl, pixscale=ps, shape=self.target.shape[-2:],
+                pupil_rotation=rotation * u.deg, npup=MODEL_NPUP, supersample=4)
         pred = extract_kernel_phases(ideal[None], kt.kernel_model, source="model image",
                                      **args).amplitudes[0]
         mis = _amp_mismatch(amps, pred, kt.kernel_model, self.wl)

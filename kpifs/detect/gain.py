@@ -18,12 +18,64 @@ The PSF is that of the discrete pupil model itself (sub-apertures as square
 cells of the grid step, transmissions as amplitudes): the same model the
 kernel is built from, and the one the data were extracted with.
 """
+import hashlib
+import threading
+from collections import OrderedDict
+
 import numpy as np
 from astropy import units as u
 
 from ..kernel import MAS
 
 __all__ = ["window_gain"]
+
+#: Offsets are rounded to this (mas) for the cache of gains: the gain varies on the
+#: window's scale (hundreds of mas), so the rounding changes it by ~1e-5, while a
+#: fit's passes, its refit with a second error model and the PA bins of a rotating
+#: sequence revisiting a position all reuse one computation.
+GAIN_QUANTUM = 0.25
+_CACHE_SIZE = 512
+_cache = OrderedDict()
+_lock = threading.Lock()
+
+
+def _operators(kernel_model, window, ps, lam_all):
+    """Per channel: the DFT factors at the uv points and the windowed star's FT,
+    which do not depend on the companion (cached with the gains)."""
+    pupil = kernel_model.pupil
+    h = hashlib.sha1()
+    for arr in (kernel_model.uv.to_value(u.m), pupil.xy.to_value(u.m), pupil.transmission,
+                lam_all):
+        h.update(np.ascontiguousarray(arr, float).tobytes())
+    key = (h.hexdigest(), window, ps)
+    with _lock:
+        hit = _cache.get(key)
+    if hit is not None:
+        return key, hit
+    n = window.size
+    pix = (np.arange(n) - n // 2) * ps * MAS                        # rad, origin at n // 2
+    w = window.weights([[0.0, 0.0]])[0]
+    xy, trans = pupil.xy.to_value(u.m), pupil.transmission
+    cell = 0.0 if pupil.step is None else pupil.step.to_value(u.m)
+    uv = kernel_model.uv.to_value(u.m)
+    chans = []
+    for lam in lam_all:
+        ftx = np.exp(-2j * np.pi * np.outer(uv[:, 0], pix) / lam)    # (nuv, nx)
+        fty = np.exp(-2j * np.pi * np.outer(uv[:, 1], pix) / lam)    # (nuv, ny)
+        star = np.abs(_pupil_field(xy, trans, cell, lam, pix, pix)) ** 2
+        # FT at the uv points of a (ny, nx) image: sum_y fty[:, y] (img[y, :] @ ftx.T)
+        vs = np.einsum("ky,yk->k", fty, (star * w) @ ftx.T)
+        chans.append((ftx, fty, vs))
+    ops = (pix, w, xy, trans, cell, uv, chans)
+    with _lock:
+        _cache[key] = ops
+        _trim()
+    return key, ops
+
+
+def _trim():
+    while len(_cache) > _CACHE_SIZE:
+        _cache.popitem(last=False)
 
 
 def _pupil_field(xy, trans, cell, lam, kx, ky):
@@ -65,30 +117,27 @@ def window_gain(kernel_model, window, pixscale, wavelengths, offset):
     ((1, 262), 0.995, 0.997)
     """
     lam_all = np.atleast_1d(u.Quantity(wavelengths, u.m).value)
-    nuv = kernel_model.n_uv
     if window is None:
-        return np.ones((len(lam_all), nuv), complex)
-    ps = u.Quantity(pixscale, u.mas).value
-    n = window.size
-    pix = (np.arange(n) - n // 2) * ps * MAS                        # rad, origin at n // 2
-    w = window.weights([[0.0, 0.0]])[0].ravel()
-    pupil = kernel_model.pupil
-    xy = pupil.xy.to_value(u.m)
-    trans = pupil.transmission
-    cell = 0.0 if pupil.step is None else pupil.step.to_value(u.m)
-    x0, y0 = np.asarray(offset, float) * MAS
-    uv = kernel_model.uv.to_value(u.m)
-    out = np.empty((len(lam_all), nuv), complex)
-    for i, lam in enumerate(lam_all):
-        star = np.abs(_pupil_field(xy, trans, cell, lam, pix, pix)) ** 2
+        return np.ones((len(lam_all), kernel_model.n_uv), complex)
+    ps = float(u.Quantity(pixscale, u.mas).value)
+    base, (pix, w, xy, trans, cell, uv, chans) = _operators(kernel_model, window, ps, lam_all)
+    q = np.rint(np.asarray(offset, float) / GAIN_QUANTUM).astype(int)
+    key = (base, int(q[0]), int(q[1]))
+    with _lock:
+        hit = _cache.get(key)
+        if hit is not None:
+            _cache.move_to_end(key)
+            return hit.copy()
+    x0, y0 = q * GAIN_QUANTUM * MAS
+    out = np.empty((len(lam_all), len(uv)), complex)
+    for i, (lam, (ftx, fty, vs)) in enumerate(zip(lam_all, chans)):
         comp = np.abs(_pupil_field(xy, trans, cell, lam, pix - x0, pix - y0)) ** 2
-        ftx = np.exp(-2j * np.pi * np.outer(uv[:, 0], pix) / lam)    # (nuv, nx)
-        fty = np.exp(-2j * np.pi * np.outer(uv[:, 1], pix) / lam)    # (nuv, ny)
-        # FT at the uv points of a (ny, nx) image: sum_y fty[:, y] (img[y, :] @ ftx.T)
-        vs = np.einsum("ky,yk->k", fty, (star.ravel() * w).reshape(n, n) @ ftx.T)
-        vc = np.einsum("ky,yk->k", fty, (comp.ravel() * w).reshape(n, n) @ ftx.T)
+        vc = np.einsum("ky,yk->k", fty, (comp * w) @ ftx.T)
         ramp = np.exp(2j * np.pi * (uv[:, 0] * x0 + uv[:, 1] * y0) / lam)
         # the moved copy of the PSF loses part of its wings off the cut-out: that
         # loss is real (the image edge cuts the companion too), so no renormalisation
         out[i] = vc / vs * ramp
-    return out
+    with _lock:
+        _cache[key] = out
+        _trim()
+    return out.copy()
