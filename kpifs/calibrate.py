@@ -22,7 +22,7 @@ from .data import KernelPhaseData
 from .errormodel import fit_error_model
 from .exceptions import KpifsError, KpifsWarning
 
-__all__ = ["calibrate", "check_compatible", "mean_detpa", "MAX_DETPA_SPAN"]
+__all__ = ["calibrate", "check_compatible", "mean_detpa", "block_rows", "MAX_DETPA_SPAN"]
 
 log = logging.getLogger(__name__)
 
@@ -274,11 +274,15 @@ def _result(target, calibrators, d, cov, jcov, rows, extra, n_cal):
                           stacklevel=2)
     log.info("calibrated %s (%d frames) with %d calibrator(s)", _name(target), n_t,
              len(calibrators))
-    return KernelPhaseData(d[None], target.wavelengths, target.pixscale,
-                           target.kernel_model, window=target.window, covariance=cov,
-                           joint_covariance=jcov,
-                           covariance_rows=rows, header=target.header, detpa=detpa,
-                           bandwidth=target.bandwidth, meta=meta)
+    out = KernelPhaseData(d[None], target.wavelengths, target.pixscale,
+                          target.kernel_model, window=target.window, covariance=cov,
+                          joint_covariance=jcov,
+                          covariance_rows=rows, header=target.header, detpa=detpa,
+                          bandwidth=target.bandwidth, meta=meta)
+    out.block_rows = block_rows(target, calibrators)
+    if out.block_rows is not None:
+        meta["null_blocks"] = len(out.block_rows)
+    return out
 
 
 def _smear_limit(kpd, span):
@@ -339,3 +343,52 @@ def _covariance_rows(target, calibrators, h):
         dev = kpd.kp - kpd.kp.mean(axis=0)
         parts.append(dev * (scale * np.sqrt(h / (n * (n - 1)))))
     return np.concatenate(parts)
+
+
+def _n_blocks(n):
+    """Time blocks of a star's *n* frames for the empirical null: about sqrt(n) (long
+    blocks keep the drifts), at least 6 (the sign-flip draws need patterns), at most
+    16 and *n*."""
+    return int(min(n, max(6, min(16, round(np.sqrt(n))))))
+
+
+def block_rows(target, calibrators, *, n_blocks=None):
+    """Centred time-block means of every star, scaled for the empirical null.
+
+    Each star's frames (in time order) are cut into *n_blocks* consecutive
+    blocks (default about ``sqrt(N)``, at least 6, at most 16); the rows are
+    ``w_s sqrt(B/(B-1)) (n_b/N) (m_b - mean)`` with ``m_b`` the block means and
+    ``w_s`` 1 for the target and ``1/M`` per calibrator, so that a random sign
+    combination of the rows has, on average, the covariance of the calibrated
+    mean's frame noise as the blocks show it: drifts shorter than a block
+    included, with their own shape rather than a Gaussian's. They are the
+    empirical null of `~kpifs.detect.detect` (stored as KP-BLKROWS). None when
+    a star has fewer than 2 frames.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs.calibrate import block_rows
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> rng = np.random.default_rng(0)
+    >>> t, c = (KernelPhaseData(rng.normal(0, 0.1, (36, 1, km.n_kp)), [1.6] * u.um,
+    ...                         10 * u.mas, km) for _ in range(2))
+    >>> block_rows(t, c).shape          # 6 blocks of each star
+    (12, 1, 37)
+    """
+    if isinstance(calibrators, KernelPhaseData):
+        calibrators = [calibrators]
+    parts = []
+    m = len(calibrators)
+    for kpd, w in [(target, 1.0)] + [(c, 1.0 / m) for c in calibrators]:
+        n = kpd.n_frame
+        if n < 2:
+            return None
+        b = _n_blocks(n) if n_blocks is None else int(min(n, n_blocks))
+        blocks = np.array_split(np.arange(n), b)
+        mean = kpd.kp.mean(axis=0)
+        for idx in blocks:
+            parts.append(w * np.sqrt(b / (b - 1)) * len(idx) / n
+                         * (kpd.kp[idx].mean(axis=0) - mean))
+    return np.stack(parts)

@@ -66,6 +66,11 @@ class KernelPhaseData:
         Rows of the error model that characterises candidates (more modes
         than the search's, see `~kpifs.calibrate.calibrate`'s *fit_modes*);
         stored as KP-FITROWS.
+    block_rows : ndarray, shape (nblock, nwave, nkp), optional
+        Centred time-block means of the stars behind calibrated data, scaled
+        so that random sign combinations are noise of the calibrated mean
+        (`~kpifs.calibrate.block_rows`): the empirical null of detection;
+        stored as KP-BLKROWS.
     header : `~astropy.io.fits.Header`, optional
         Header of the input cube (kept in products).
     detpa : array-like, shape (nframe,), optional
@@ -93,7 +98,7 @@ class KernelPhaseData:
     def __init__(self, kp, wavelengths, pixscale, kernel_model, *, window=None, phases=None,
                  amplitudes=None, centres=None, covariance=None, joint_covariance=None,
                  covariance_rows=None, header=None, detpa=None, bandwidth=None, meta=None,
-                 kp_err=None, fit_covariance_rows=None):
+                 kp_err=None, fit_covariance_rows=None, block_rows=None):
         kp = np.asarray(kp, float)
         if kp.ndim == 2:
             kp = kp[None]
@@ -132,7 +137,7 @@ class KernelPhaseData:
             if joint_covariance.shape != (nw * nk, nw * nk):
                 raise KpifsError(f"joint covariance has shape {joint_covariance.shape}, "
                                  f"expected ({nw * nk}, {nw * nk})")
-        rows_in = [covariance_rows, fit_covariance_rows]
+        rows_in = [covariance_rows, fit_covariance_rows, block_rows]
         for j, r in enumerate(rows_in):
             if r is None:
                 continue
@@ -140,7 +145,7 @@ class KernelPhaseData:
             if r.ndim != 3 or r.shape[1:] != kp.shape[1:]:
                 raise KpifsError(f"covariance rows have shape {r.shape}, expected "
                                  f"(nrow, {nw}, {nk})")
-        covariance_rows, fit_covariance_rows = rows_in
+        covariance_rows, fit_covariance_rows, block_rows = rows_in
         if kp_err is not None and kp_err.shape != kp.shape:
             raise KpifsError(f"kernel-phase errors have shape {kp_err.shape}, expected "
                              f"{kp.shape}")
@@ -149,6 +154,7 @@ class KernelPhaseData:
         self.joint_covariance = joint_covariance
         self.covariance_rows = covariance_rows
         self.fit_covariance_rows = fit_covariance_rows
+        self.block_rows = block_rows
         self.header = fits.Header() if header is None else header.copy()
         if detpa is not None:
             detpa = np.atleast_1d(np.asarray(u.Quantity(detpa, u.deg).value, float))
@@ -382,6 +388,12 @@ def _read_detection(path):
             "source": str(path)}
     if "CHI2RED" in hdr:
         meta.update(chi2_red=hdr["CHI2RED"], noise_scale=hdr.get("NOISESC", 1.0))
+    if "NULLMETH" in hdr:
+        meta["null"] = {"method": hdr["NULLMETH"], "threshold": hdr["THRESH"],
+                        **{key: hdr[name] for key, name in (
+                            ("threshold_gaussian", "THRGAUS"), ("threshold_empirical", "THREMP"),
+                            ("n_blocks", "NBLOCKS"), ("empirical_draws", "NEMPDRAW"))
+                           if name in hdr}}
     return DetectionResult(grid=grid, test=hdr["TEST"], pfa=hdr["PFA"], pd=hdr["PD"],
                            statistic=stat, pfa_local=images["PFA_LOCAL"],
                            pfa_global=images["PFA"], contrast=images["CONTRAST"],

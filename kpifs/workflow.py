@@ -27,7 +27,7 @@ from ._utils import check_output_dir, check_output_path, to_quantity
 from .calibrate import calibrate
 from .covariance import empirical_covariance
 from .data import KernelPhaseData
-from .detect.null import check_draws
+from .detect.null import NULL_METHODS, check_draws
 from .detect.pipeline import default_grid, detect
 from .detect.sky import search_frame
 from .detect.stats import TESTS, check_probability
@@ -135,6 +135,7 @@ class DetectOptions:
     max_candidates: int = 20
     allow_uncalibrated: bool = False
     frame: str = "auto"
+    null: str = "auto"
 
     def validate(self):
         """Refuse options no search can run with (before any work); return self."""
@@ -145,6 +146,8 @@ class DetectOptions:
         check_draws(self.draws)
         if self.frame not in ("auto", "sky", "detector"):
             raise KpifsError(f"unknown frame {self.frame!r}: use auto, sky or detector")
+        if self.null not in NULL_METHODS:
+            raise KpifsError(f"unknown null {self.null!r}: use one of {NULL_METHODS}")
         return self
 
 
@@ -368,7 +371,7 @@ def detect_observation(kpd, options=None, *, calibrators=(), progress=False):
                     n_draws=options.draws, seed=options.seed, shrinkage=options.shrinkage,
                     fit=options.fit, max_candidates=options.max_candidates,
                     allow_uncalibrated=options.allow_uncalibrated, frame=options.frame,
-                    progress=progress)
+                    null=options.null, progress=progress)
     record = options_record(options)
     result.header["KPDOPTS"] = (json.dumps(record, sort_keys=True), "kpifs detection options")
     result.header["KPHASH"] = (products_digest(json.loads(kpd.header.get("KPXOPTS", "null")),

@@ -153,6 +153,11 @@ def _search_options(p, *, grid_step_aliases=("--grid-step",), draws=30000):
                    help="search and map on the sky (dRA East-positive, dDec; the model turned "
                         "by each frame's detector angle; celestial WCS) or the detector "
                         "(default auto: the sky when every frame's angle is known)")
+    g.add_argument("--null", default="auto", choices=("auto", "gaussian", "empirical", "both"),
+                   help="null of the grid maximum: Gaussian Monte Carlo of the error model, "
+                        "sign flips of the stars' time blocks (empirical), or the more "
+                        "conservative of the two (both; default auto: both when the data carry "
+                        "time blocks)")
     g.add_argument("--max-sep", help="largest separation searched, e.g. 200mas")
     g.add_argument("--min-sep", help="smallest separation searched, e.g. 20mas")
     g.add_argument(*grid_step_aliases, dest="grid_step",

@@ -24,6 +24,11 @@ def run(args):
               overwrite=args.overwrite)
     print(f"{args.test} search, global P_FA {args.pfa:g}: {len(res.candidates)} candidate(s) "
           f"-> {args.output}")
+    nul = res.meta.get("null") or {}
+    if "threshold_empirical" in nul and "threshold_gaussian" in nul:
+        print(f"  threshold {res.threshold:.2f}, the larger of the Gaussian null's "
+              f"{nul['threshold_gaussian']:.2f} and the empirical one's "
+              f"{nul['threshold_empirical']:.2f} ({nul['n_blocks']} time blocks)")
     for row in res.candidates:
         x = row["fit_x"] if "fit_x" in row.colnames else row["x"]
         y = row["fit_y"] if "fit_y" in row.colnames else row["y"]

@@ -39,6 +39,13 @@ def _detection(path):
     print(f"{path}: kpifs detection products")
     print(f"  test {res.test}, global P_FA {res.pfa:g}, P_D {res.pd:g}, threshold "
           f"{res.threshold:.3f} ({res.meta['n_draws']} Monte-Carlo draws)")
+    nul = res.meta.get("null") or {}
+    if "threshold_empirical" in nul:
+        gauss = nul.get("threshold_gaussian")
+        gauss = "-" if gauss is None else f"{float(gauss):.3f}"
+        print(f"  null {nul['method']}: Gaussian threshold {gauss}, empirical "
+              f"{float(nul['threshold_empirical']):.3f} (sign flips of "
+              f"{nul.get('n_blocks')} time blocks, {nul.get('empirical_draws')} draws)")
     sky = res.grid.frame == "sky"
     where = "on the sky (dRA, dDec; East left)" if sky else "on the detector (x, y)"
     print(f"  map {res.statistic.shape[1]} x {res.statistic.shape[0]} {where}; energy "

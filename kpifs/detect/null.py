@@ -11,6 +11,17 @@ which keeps the correlation between channels (achromatic aberrations,
 spectral cross-talk). Draws are cached per (projection, test, draws, seed,
 noise), most recently used last, so that a long-running process (a batch
 worker) does not accumulate them.
+
+The empirical null (``coefficients='sign'``) combines instead *block rows*,
+the centred means of consecutive time blocks of each star's frames
+(`~kpifs.calibrate.block_rows`), with random signs: a sign-flip
+(randomisation) test whose draws are the differences the data themselves show
+between parts of the sequence, with their own non-Gaussian shape, drifts
+longer than a frame and correlations between channels. There are only
+``2**(nblock - 1)`` distinct draws (a global sign changes nothing on a
+symmetric grid); when *n_draws* reaches that number they are enumerated, an
+exact randomisation law. `combine_nulls` gives the more conservative of two
+nulls at every level, as `~kpifs.detect.detect` does by default.
 """
 import hashlib
 import logging
@@ -22,7 +33,9 @@ from .._utils import progress as progress_bar
 from ..exceptions import KpifsError
 from .stats import check_probability
 
-__all__ = ["NullCalibration", "energy_null", "check_draws", "MIN_DRAWS"]
+__all__ = ["NullCalibration", "CombinedNull", "combine_nulls", "search_null", "scale_block_rows",
+           "energy_null",
+           "check_draws", "MIN_DRAWS", "COEFFICIENTS", "NULL_METHODS", "EMPIRICAL_DRAWS"]
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +48,18 @@ MIN_DRAWS = 1000
 
 #: Smallest global false-alarm probability reported (extrapolations go no further).
 PFA_FLOOR = 1e-15
+
+#: How noise rows are combined into draws: Gaussian (Monte Carlo) or random signs.
+COEFFICIENTS = ("gaussian", "sign")
+
+#: Fewest block rows of an empirical (sign-flip) null: 2**(n-1) distinct draws.
+MIN_SIGN_ROWS = 6
+
+#: Nulls of a search: ``'auto'`` is ``'both'`` when the data carry block rows.
+NULL_METHODS = ("auto", "gaussian", "empirical", "both")
+
+#: Most sign-flip draws of the empirical null (every pattern of up to 14 blocks).
+EMPIRICAL_DRAWS = 2 ** 13
 
 
 def check_draws(n_draws):
@@ -73,6 +98,11 @@ class NullCalibration:
         Spectrum shape of the ``'NP'`` matched filter.
     noise_rows : ndarray, shape (nrow, q, p), optional
         Whitened covariance rows (see above); None: independent channels.
+    coefficients : {'gaussian', 'sign'}
+        Draws ``a @ noise_rows`` with Gaussian ``a`` (the Monte-Carlo null of the
+        covariance the rows carry), or with random signs (the empirical null of
+        block rows: at most ``2**(nrow - 1)`` distinct draws, all of them when
+        *n_draws* allows).
     progress : bool
         Progress bar while drawing (on a terminal).
 
@@ -91,10 +121,25 @@ class NullCalibration:
     """
 
     def __init__(self, model, *, form="B", n_draws=30000, seed=0, spectrum=None,
-                 noise_rows=None, progress=False):
+                 noise_rows=None, coefficients="gaussian", progress=False):
         if form not in ("B", "B-paper", "NP"):
             raise KpifsError(f"unknown map test {form!r}: 'B', 'B-paper' or 'NP'")
+        if coefficients not in COEFFICIENTS:
+            raise KpifsError(f"unknown null coefficients {coefficients!r}: use one of "
+                             f"{COEFFICIENTS}")
         n_draws = check_draws(n_draws)
+        self.enumerated = False
+        if coefficients == "sign":
+            if noise_rows is None or len(noise_rows) < MIN_SIGN_ROWS:
+                raise KpifsError(f"an empirical (sign-flip) null needs at least "
+                                 f"{MIN_SIGN_ROWS} block rows, got "
+                                 f"{0 if noise_rows is None else len(noise_rows)}")
+            # on a symmetric grid the global sign gives the same maximum
+            self._fixed_first = model.half_positions()[1]
+            distinct = 2 ** min(len(noise_rows) - int(self._fixed_first), 40)
+            self.enumerated = distinct <= n_draws
+            n_draws = min(n_draws, distinct)
+        self.coefficients = coefficients
         self.model = model
         self.form = form
         self.n_draws = n_draws
@@ -105,7 +150,8 @@ class NullCalibration:
 
     def _key(self, form=None):
         h = hashlib.sha1(self.model.key().encode())
-        h.update(f"{form or self.form}|{self.n_draws}|{self.seed}|{self.spectrum!r}".encode())
+        h.update(f"{form or self.form}|{self.n_draws}|{self.seed}|{self.spectrum!r}|"
+                 f"{self.coefficients}".encode())
         if self.noise_rows is not None:
             h.update(np.ascontiguousarray(self.noise_rows).tobytes())
         return h.hexdigest()
@@ -159,7 +205,7 @@ class NullCalibration:
             tot = {f: np.zeros((b - a, npos), np.float32) for f in forms} \
                 if mirrored and form != "NP" else None
             if rows is not None:
-                coef = rng.standard_normal((b - a, len(rows)), dtype=np.float32)
+                coef = self._coefficients(rng, a, b)
                 if not via_rows:
                     joint = (coef @ rows.reshape(len(rows), -1).astype(np.float32)).reshape(
                         b - a, q, p)
@@ -192,6 +238,20 @@ class NullCalibration:
         for f in forms:
             maxima[f].sort()
         return maxima
+
+    def _coefficients(self, rng, a, b):
+        """Coefficients of draws ``a:b`` (float32, one row of weights per draw)."""
+        nrow = len(self.noise_rows)
+        if self.coefficients == "gaussian":
+            return rng.standard_normal((b - a, nrow), dtype=np.float32)
+        if self.enumerated:
+            # every sign pattern once (the first row's sign fixed on a symmetric grid)
+            free = nrow - int(self._fixed_first)
+            k = (1 - 2 * (np.arange(a, b)[:, None] >> np.arange(free)[None, :] & 1))
+            if self._fixed_first:
+                k = np.concatenate([np.ones((b - a, 1), k.dtype), k], axis=1)
+            return k.astype(np.float32)
+        return (1 - 2 * rng.integers(0, 2, (b - a, nrow))).astype(np.float32)
 
     def _tail(self):
         """``(u, beta)``: the exponential tail ``P(T > t) = 0.1 exp(-(t - u) / beta)`` fitted
@@ -240,6 +300,163 @@ class NullCalibration:
                                out)
         out = np.where(np.isnan(t), np.nan, out)
         return (out, tail & np.isfinite(t)) if return_method else out
+
+
+class CombinedNull:
+    """The more conservative of several nulls of the same statistic, level by level.
+
+    `threshold` is the largest of their thresholds and `pfa` the largest of
+    their false-alarm probabilities, so that a false alarm is controlled when
+    any one of them describes the data. ``noise_rows`` (which fits use for
+    their errors) and the form are those of the first. Built by `combine_nulls`.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.data import DetectionGrid
+    >>> from kpifs.detect import DetectionModel, NullCalibration
+    >>> from kpifs.detect.null import CombinedNull
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    >>> dm = DetectionModel(km, [1.6] * u.um, np.eye(km.n_kp)[None], grid)
+    >>> a = NullCalibration(dm, n_draws=2000, seed=1)
+    >>> b = NullCalibration(dm, n_draws=2000, seed=2)
+    >>> both = CombinedNull([a, b])
+    >>> both.threshold(0.05) == max(a.threshold(0.05), b.threshold(0.05))
+    True
+    """
+
+    def __init__(self, nulls):
+        self.nulls = list(nulls)
+        first = self.nulls[0]
+        self.form, self.noise_rows, self.model = first.form, first.noise_rows, first.model
+
+    def threshold(self, pfa):
+        """Largest threshold of the nulls at global false-alarm *pfa*."""
+        return max(n.threshold(pfa) for n in self.nulls)
+
+    def pfa(self, t, *, return_method=False):
+        """Largest global false-alarm probability of *t* (with *return_method*, True
+        where that of the null giving it was extrapolated from its tail)."""
+        out = [n.pfa(t, return_method=True) for n in self.nulls]
+        p = np.stack([o[0] for o in out])
+        k = np.argmax(np.nan_to_num(p, nan=-1.0), axis=0)
+        best = np.take_along_axis(p, k[None], 0)[0]
+        tail = np.take_along_axis(np.stack([o[1] for o in out]), k[None], 0)[0]
+        return (best, tail) if return_method else best
+
+
+def combine_nulls(*nulls):
+    """A `CombinedNull` of the given nulls (None entries skipped); one null is returned
+    as it is.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.data import DetectionGrid
+    >>> from kpifs.detect import DetectionModel, NullCalibration
+    >>> from kpifs.detect.null import combine_nulls
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    >>> dm = DetectionModel(km, [1.6] * u.um, np.eye(km.n_kp)[None], grid)
+    >>> a = NullCalibration(dm, n_draws=2000, seed=1)
+    >>> b = NullCalibration(dm, n_draws=2000, seed=1, noise_rows=2 * np.eye(km.n_kp)[:, None])
+    >>> both = combine_nulls(a, b)
+    >>> both.threshold(0.01) == b.threshold(0.01) > a.threshold(0.01)
+    True
+    """
+    nulls = [n for n in nulls if n is not None]
+    if not nulls:
+        raise KpifsError("no null to combine")
+    return nulls[0] if len(nulls) == 1 else CombinedNull(nulls)
+
+
+def scale_block_rows(blocks, rank):
+    """Whitened block rows with the variance of the whitened data, channel by channel.
+
+    Block means helped estimate the covariance that whitens them, so their
+    whitened energy is biased low (in-sample, by about the Hartlap factor:
+    25 instead of 37 for 60 + 60 frames of 37 kernel phases, where the
+    calibrated mean, independent of the covariance, gives 38.8). The empirical
+    null therefore takes its *scale* from the error model, each channel's
+    rows scaled to a total energy equal to its whitened dimension *rank* (the
+    overall level the data show beyond the model is the reduced chi-square
+    that detection measures), and its *shape* from the data: how the variance
+    spreads over modes and channels, the drifts, the tails. Returns the rows
+    and the mean in-sample energy ratio before scaling.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.null import scale_block_rows
+    >>> b = np.random.default_rng(0).standard_normal((12, 2, 30)) * 0.1
+    >>> s, ratio = scale_block_rows(b, [30, 20])
+    >>> np.round(np.sum(s ** 2, axis=(0, 2)), 6).tolist()
+    [30.0, 20.0]
+    """
+    blocks = np.asarray(blocks, float)
+    rank = np.broadcast_to(np.asarray(rank, float), blocks.shape[1:2])
+    energy = np.sum(blocks ** 2, axis=(0, 2))
+    k = np.where(energy > 0, np.sqrt(rank / np.where(energy > 0, energy, 1.0)), 0.0)
+    return blocks * k[None, :, None], float(np.mean(energy[rank > 0] / rank[rank > 0]))
+
+
+def search_null(model, *, form, noise_rows, block_rows=None, method="auto", n_draws=30000,
+                seed=0, spectrum=None, progress=False):
+    """The null a search judges its maxima by, and how it was made.
+
+    *method* ``'gaussian'``: the Monte-Carlo null of the error model
+    (*noise_rows*); ``'empirical'``: the sign-flip null of *block_rows* (every
+    sign pattern when there are at most `EMPIRICAL_DRAWS`, else that many random
+    ones, fewer if *n_draws* is); ``'both'``: the more conservative of the two at
+    every level (`combine_nulls`); ``'auto'``: 'both' when there are enough
+    block rows, else 'gaussian'. Returns ``(null, parts)``, *parts* a dict of
+    the nulls by name.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.data import DetectionGrid
+    >>> from kpifs.detect import DetectionModel
+    >>> from kpifs.detect.null import search_null
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    >>> dm = DetectionModel(km, [1.6] * u.um, np.eye(km.n_kp)[None], grid)
+    >>> blocks = np.random.default_rng(0).standard_normal((12, 1, km.n_kp)) / 12 ** 0.5
+    >>> null, parts = search_null(dm, form="B", noise_rows=None, block_rows=blocks,
+    ...                           n_draws=2000)
+    >>> sorted(parts), parts["empirical"].n_draws        # 2**11 sign patterns, all of them
+    (['empirical', 'gaussian'], 2048)
+    """
+    if method not in NULL_METHODS:
+        raise KpifsError(f"unknown null {method!r}: use one of {NULL_METHODS}")
+    usable = block_rows is not None and len(block_rows) >= MIN_SIGN_ROWS
+    if method == "auto":
+        method = "both" if usable else "gaussian"
+    if method != "gaussian" and not usable:
+        raise KpifsError(f"the {method!r} null needs the time blocks of the stars' frames "
+                         f"(KP-BLKROWS, written by calibrate from >= 2 frames per star and "
+                         f"{MIN_SIGN_ROWS} blocks in all): use null='gaussian'")
+    parts = {}
+    if method in ("gaussian", "both"):
+        parts["gaussian"] = NullCalibration(model, form=form, n_draws=n_draws, seed=seed,
+                                            spectrum=spectrum, noise_rows=noise_rows,
+                                            progress=progress)
+    if method in ("empirical", "both"):
+        # the exact law (every sign pattern) whenever it is affordable
+        n_sign = EMPIRICAL_DRAWS if 2 ** (len(block_rows) - 1) <= EMPIRICAL_DRAWS else \
+            max(MIN_DRAWS, min(n_draws, EMPIRICAL_DRAWS))
+        parts["empirical"] = NullCalibration(
+            model, form=form, n_draws=n_sign, seed=seed, spectrum=spectrum,
+            noise_rows=block_rows, coefficients="sign")
+    null = combine_nulls(*parts.values())
+    if method == "empirical":       # fits still take their errors from the error model
+        null = CombinedNull([parts["empirical"]])
+        null.noise_rows = noise_rows
+    return null, parts
 
 
 def energy_null(rows, n_draws, seed):

@@ -19,7 +19,7 @@ from .skyfit import refit_on_sky
 from .limits import (energy_lambda, limit_binary, limit_binary_correlated_forms, limit_energy,
                      limit_energy_correlated, limit_np, radial_curves, spectrum_shape)
 from .maps import DetectionModel
-from .null import NullCalibration, check_draws, energy_null
+from .null import check_draws, energy_null, scale_block_rows, search_null
 from .stats import TESTS, check_probability, energy_threshold
 
 stats = lazy_module("scipy.stats")
@@ -106,7 +106,7 @@ def _prepare(kpd, shrinkage, allow_uncalibrated):
 
 def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
            n_draws=30000, seed=0, shrinkage="auto", fit=True, max_candidates=20,
-           allow_uncalibrated=False, frame="auto", limits=True, progress=False):
+           allow_uncalibrated=False, frame="auto", limits=True, null="auto", progress=False):
     """Search calibrated kernel phases for a companion.
 
     Parameters
@@ -153,6 +153,14 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
         (default): the sky when every frame's angle is known
         (`kpifs.detect.sky.data_angles`),
         else the detector. A *grid* given decides by its own frame.
+    null : {'auto', 'gaussian', 'empirical', 'both'}
+        What the grid maximum's threshold and global P_FA are calibrated on
+        (`~kpifs.detect.null.search_null`): the Gaussian Monte-Carlo draws of the
+        error model's covariance rows, the sign-flip (empirical) draws of the
+        stars' time blocks (KP-BLKROWS, `~kpifs.calibrate.block_rows`), or
+        the more conservative of the two (``'both'``, what ``'auto'`` picks when
+        the data carry block rows). Both thresholds are reported
+        (``result.meta['null']``).
     limits : bool
         Compute the detection limits (default). Without (as the injection
         curves do, which only need the candidates) ``result.limits`` is empty.
@@ -191,10 +199,26 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
         rows = whiten(kpd.covariance_rows, w)
     else:
         log.info("no covariance rows: channels taken as independent in the null model")
-    null = NullCalibration(model, form=form, n_draws=n_draws, seed=seed,
-                           spectrum=spectrum if form == "NP" else None, noise_rows=rows,
+    blocks, block_energy = None, None
+    if kpd.block_rows is not None:       # the empirical null: its scale from the error model
+        blocks, block_energy = scale_block_rows(whiten(kpd.block_rows, w), rank)
+    null_method = null
+
+    def make_null(f):
+        return search_null(model, form=f, noise_rows=rows, block_rows=blocks, method=null_method,
+                           n_draws=n_draws, seed=seed, spectrum=spectrum if f == "NP" else None,
                            progress=progress)
+    null, parts = make_null(form)
     threshold = null.threshold(pfa)
+    null_info = {"method": "+".join(parts), "threshold": threshold,
+                 **{f"threshold_{k}": v.threshold(pfa) for k, v in parts.items()},
+                 "n_blocks": None if blocks is None else len(blocks),
+                 "block_energy": block_energy,
+                 "empirical_draws": parts["empirical"].n_draws if "empirical" in parts else None}
+    if len(parts) > 1:
+        log.info("null of the grid maximum at P_FA %.1e: Gaussian %.2f, empirical (sign flips "
+                 "of %d time blocks) %.2f", pfa, null_info["threshold_gaussian"], len(blocks),
+                 null_info["threshold_empirical"])
     characterise = None
     if fit and kpd.covariance_rows is not None and kpd.fit_covariance_rows is not None:
         # positions and contrasts from the error model with more modes (calibrate's
@@ -238,7 +262,7 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
         return _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, {}, cands, threshold,
                        energy, {"frame": frame, "chi2_red": kappa, "noise_scale": scale,
                                 "n_draws": n_draws, "seed": seed, "test": test, "pfa": pfa,
-                                "pd": pd})
+                                "pd": pd, "null": null_info})
     if rows is not None:   # correlated channels: the energy's law from the same null model
         te = energy_null(rows, n_draws, seed)
         energy["pfa"] = float((np.sum(te["energy"] >= t_e) + 1) / (len(te["energy"]) + 1))
@@ -250,9 +274,8 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
         limits["E"] = limit_energy(model.norm2, pfa, pd, dof, a)
     else:
         corr, limits["E"] = _correlated_inputs(model, rows, a, energy, te, seed)
-    thr = {f: threshold if f == form else NullCalibration(
-        model, form=f, n_draws=n_draws, seed=seed, noise_rows=rows).threshold(pfa)
-        for f in ("B", "B-paper")}
+    thr = {f: threshold if f == form else make_null(f)[0].threshold(pfa)
+           for f in ("B", "B-paper")}
     if corr is None:
         for f in thr:
             limits[f] = limit_binary(model.norm2, thr[f], pd, form=f, spectrum=a, seed=seed)
@@ -271,6 +294,7 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
             "source": kpd.meta.get("source", ""), "spectrum": a.tolist(),
             "lambda_energy": energy_lambda(pfa, pd, dof),
             "null_channels": "covariance rows" if rows is not None else "independent",
+            "null": null_info,
             "frame": frame,
             "pa_bins": None if poses is None else [np.asarray(p).tolist() for p in poses],
             "pa_bins_search": None if search_poses is None

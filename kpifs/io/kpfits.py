@@ -203,6 +203,11 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
         hf.header["BUNIT"] = "rad"
         hf.header["COMMENT"] = "rows of the error model that characterises candidates"
         hdus.append(hf)
+    if getattr(kpd, "block_rows", None) is not None:
+        hb = fits.ImageHDU(np.asarray(kpd.block_rows, float), name="KP-BLKROWS")
+        hb.header["BUNIT"] = "rad"
+        hb.header["COMMENT"] = "centred time-block means, scaled: the empirical null's rows"
+        hdus.append(hb)
     if kpd.joint_covariance is not None:
         hj = fits.ImageHDU(np.asarray(kpd.joint_covariance, float), name="KP-JCOV")
         hj.header["BUNIT"] = "rad2"

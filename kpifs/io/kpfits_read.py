@@ -367,6 +367,7 @@ def _read_data(hdul, path, detpa):
     jcov = np.array(hdul["KP-JCOV"].data, float) if "KP-JCOV" in hdul else None
     rows = np.array(hdul["KP-COVROWS"].data, float) if "KP-COVROWS" in hdul else None
     fit_rows = np.array(hdul["KP-FITROWS"].data, float) if "KP-FITROWS" in hdul else None
+    blk_rows = np.array(hdul["KP-BLKROWS"].data, float) if "KP-BLKROWS" in hdul else None
     pixscale = _read_pixscale(hdr, path)
     inst = next((str(hdr[k]).strip() for k in ("INSTRUME", "CURRINST")
                  if str(hdr.get(k, "")).strip()), None)
@@ -397,5 +398,5 @@ def _read_data(hdul, path, detpa):
     return {"model": model, "kp": kp, "wavelengths": wl, "bandwidth": bw,
             "pixscale": pixscale, "covariance": cov, "kp_err": kp_err,
             "joint_covariance": jcov, "covariance_rows": rows,
-            "fit_covariance_rows": fit_rows, "detpa": pa,
+            "fit_covariance_rows": fit_rows, "block_rows": blk_rows, "detpa": pa,
             "phases": phases, "amplitudes": amps, "header": hdr, "meta": meta}

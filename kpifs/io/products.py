@@ -69,6 +69,17 @@ def detection_hdulist(result, *, header=None, inputs=()):
         hdr[f"SPEC{i}"] = (float(a), "companion spectrum shape used for limits")
     hdr["NULLCHAN"] = (result.meta.get("null_channels", "independent"),
                        "channel model: null, B/E limits")
+    nul = result.meta.get("null") or {}
+    if nul:
+        hdr["NULLMETH"] = (nul["method"], "null of the grid maximum (THRESH: the larger)")
+        for key, name, comment in (("threshold_gaussian", "THRGAUS", "Gaussian Monte-Carlo"),
+                                   ("threshold_empirical", "THREMP", "sign flips of time blocks"),
+                                   ("n_blocks", "NBLOCKS", "time blocks of the stars' frames"),
+                                   ("empirical_draws", "NEMPDRAW", "sign-flip draws")):
+            if nul.get(key) is not None:
+                v = nul[key]
+                hdr[name] = (round(float(v), 6) if isinstance(v, float) else int(v),
+                             ("threshold at PFA: " if name.startswith("THR") else "") + comment)
     if result.meta.get("chi2_red") is not None:
         hdr["CHI2RED"] = (round(float(result.meta["chi2_red"]), 6),
                           "reduced chi2 of the whitened residual")
@@ -121,7 +132,8 @@ def detection_hdulist(result, *, header=None, inputs=()):
 _PRODUCT_CARDS = {"KPIFSVER", "CONTENT", "TEST", "MAPTEST", "PFA", "PD", "THRESH", "NDRAWS",
                   "PFAFLOOR", "MCSEED", "NCAND", "ESTAT", "EDOF", "EPFA", "ETHRESH", "GRIDFRM",
                   "GRIDMIN", "GRIDMAX",
-                  "NULLCHAN", "CALIB", "CHI2RED", "NOISESC", "DETPA"}
+                  "NULLCHAN", "CALIB", "CHI2RED", "NOISESC", "DETPA", "NULLMETH", "THRGAUS",
+                  "THREMP", "NBLOCKS", "NEMPDRAW"}
 _PRODUCT_PREFIXES = ("WAVE", "SPEC", "KPCAL", "KPIN")
 
 
