@@ -177,7 +177,7 @@ def injection_limits(target, calibrators, model, *, wavelengths, pixscale, windo
     ([2], True)
     """
     target = np.asarray(target, float)
-    seps = to_quantity(separations, u.mas, name="separations").value
+    seps = np.atleast_1d(to_quantity(separations, u.mas, name="separations").value)
     ladder = np.sort(np.atleast_1d(np.asarray(contrasts, float)))
     if ladder.size == 0 or np.any(ladder <= 0) or seps.size == 0 or np.any(seps <= 0):
         raise KpifsError("injection limits: separations and contrasts must be > 0")

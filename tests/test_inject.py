@@ -67,3 +67,33 @@ def test_inject_command(tmp_path, capsys):
                  str(tmp_path / "x.fits")]) == 2
     assert main(["inject", str(src), "--contrast", "0.01", "-o", str(out)]) == 2
     assert "exists" in capsys.readouterr().err
+
+
+@pytest.mark.filterwarnings("ignore:.*too few frames")
+def test_injection_curve_with_one_separation(tmp_path, capsys):
+    """One separation (as the docs' per-separation PHARO commands give) is a curve of one
+    point, in the library and on the command line (was a TypeError)."""
+    assert main(["simulate", "--preset", "paper", "--frames", "6", "--contrasts", "0,0,0",
+                 "--shape", "48", "-q", "-o", str(tmp_path / "sim")]) == 0
+    out = tmp_path / "curve.fits"
+    assert main(["inject", str(tmp_path / "sim" / "target.fits"), "--calibrator",
+                 str(tmp_path / "sim" / "calibrator.fits"), "--curve", "--separations",
+                 "80mas", "--contrasts", "0.05", "--angles", "1", "--draws", "1000",
+                 "--step", "0.8m", "-q", "-o", str(out)]) == 0
+    assert "80 mas: injections" in capsys.readouterr().out
+    with fits.open(out) as h:
+        assert len(h["INJECTIONS"].data) == 1 and len(h["LIMITS"].data) == 1
+        assert h["INJECTIONS"].data["n_injected"][0] == 1
+    from kpifs import KernelModel, extract_kernel_phases, make_pupil
+    from kpifs.inject import injection_limits
+    from kpifs.io import read_cube
+    km = KernelModel.from_pupil(make_pupil("subaru", step=0.8 * u.m))
+    cubes = {}
+    for role in ("target", "calibrator"):
+        with read_cube(tmp_path / "sim" / f"{role}.fits") as cube:
+            args = dict(wavelengths=cube.wavelengths, pixscale=cube.pixscale)
+            cubes[role] = np.array(cube.data, float)
+    cal = extract_kernel_phases(cubes["calibrator"], km, **args)
+    tab = injection_limits(cubes["target"], [cal], km, window=cal.window, **args,
+                           separations=80 * u.mas, contrasts=0.05, n_angles=1, n_draws=1000)
+    assert len(tab) == 1 and len(tab.meta["limits"]) == 1

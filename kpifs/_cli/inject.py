@@ -73,7 +73,7 @@ def run(args):
     cals = [extract_observation(c, calibrator_options(options), model=model)
             for c in args.calibrator]
     window = options.window_for(data.shape)
-    seps = _floats(args.separations, "--separations", u.mas)
+    seps = np.atleast_1d(_floats(args.separations, "--separations", u.mas))
     ladder = _floats(args.contrasts, "--contrasts")
     tab = injection_limits(data, cals, cals[0].kernel_model, wavelengths=wl, pixscale=ps,
                            window=window, separations=seps, contrasts=ladder,
