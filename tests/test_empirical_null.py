@@ -166,3 +166,27 @@ def test_whitened_blocks_are_in_sample_biased(km):
     h = cal.meta["error_model"]["hartlap"]
     assert abs(np.mean(e_mean) / km.n_kp - 1) < 0.15
     assert abs(np.mean(e_blk) / km.n_kp * h - 1) < 0.15
+
+
+def test_cli_null_option_and_report(km, grid, tmp_path, capsys):
+    from kpifs.cli import main
+    rng = np.random.default_rng(8)
+    cal = calibrate(_kpd(km, rng.standard_normal((40, 1, km.n_kp)) * 1e-2),
+                    _kpd(km, rng.standard_normal((40, 1, km.n_kp)) * 1e-2))
+    cal.write(tmp_path / "cal.fits")
+    args = ["detect", str(tmp_path / "cal.fits"), "--max-sep", "100mas", "--draws", "2000"]
+    assert main(args + ["-o", str(tmp_path / "det.fits")]) == 0
+    out = capsys.readouterr().out
+    assert "the larger of the Gaussian null's" in out and "(12 time blocks)" in out
+    assert main(["info", str(tmp_path / "det.fits")]) == 0
+    assert "null gaussian+empirical: Gaussian threshold" in capsys.readouterr().out
+    # a calibrated file without time blocks (another tool's, or written before them)
+    single = KernelPhaseData(cal.kp, WL, PIX, km, covariance=cal.covariance,
+                             meta={"calibrated": True})
+    single.write(tmp_path / "noblocks.fits")
+    args = ["detect", str(tmp_path / "noblocks.fits"), "--max-sep", "100mas", "--draws", "2000",
+            "--null", "empirical", "-o", str(tmp_path / "det2.fits")]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "noblocks.fits: no time blocks" in err and "--null gaussian" in err
+    assert main(args[:-4] + ["--null", "gaussian", "-o", str(tmp_path / "det2.fits")]) == 0

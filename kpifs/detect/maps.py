@@ -283,29 +283,35 @@ class DetectionModel:
             out[i] = sig / norm[:, None]
         return out
 
-    def row_projections(self, noise_rows, *, chunk=512):
+    def row_projections(self, noise_rows, *, chunk=512, also=()):
         """Whitened noise rows projected on the unit signatures at every valid position.
 
         Returns ``(rows_idx, Z)``: the flat indices of the valid positions and
         ``Z`` of shape (npos, nrow, q) with ``Z[k, r, i] = u_i(pos_k) . R_w[r, i]``,
         so that ``Z[k]^T Z[k]`` is the covariance of ``(z_1 ... z_q)`` at position
-        ``k`` (channel correlations included).
+        ``k`` (channel correlations included). The row sets in *also* (the
+        empirical null's blocks) are projected in the same pass over the
+        signatures; the last few results are kept (the nulls and the limits
+        share them).
         """
-        noise_rows = np.asarray(noise_rows, float)
-        key = hashlib.sha1(np.ascontiguousarray(noise_rows).tobytes()).hexdigest()
-        cached = getattr(self, "_row_projections", None)
-        if cached is not None and cached[0] == key:      # the null and the limits share it
-            return cached[1]
-        rows = np.flatnonzero(self.grid.valid.ravel())
-        nr = len(noise_rows)
-        q = len(self.wavelengths)
-        out = np.empty((len(rows), nr, q))
-        for a in range(0, len(rows), chunk):
-            unit = self._unit_signatures(rows[a:a + chunk]).astype(float)    # (q, n, p)
-            for i in range(q):
-                out[a:a + chunk, :, i] = (noise_rows[:, i, :] @ unit[i].T).T
-        self._row_projections = (key, (rows, out))
-        return rows, out
+        sets = [np.asarray(r, float) for r in (noise_rows, *also)]
+        keys = [hashlib.sha1(np.ascontiguousarray(r).tobytes()).hexdigest() for r in sets]
+        cache = self.__dict__.setdefault("_row_projections", {})
+        todo = [j for j, k in enumerate(keys) if k not in cache]
+        if todo:
+            rows = np.flatnonzero(self.grid.valid.ravel())
+            q = len(self.wavelengths)
+            outs = {j: np.empty((len(rows), len(sets[j]), q)) for j in todo}
+            for a in range(0, len(rows), chunk):
+                unit = self._unit_signatures(rows[a:a + chunk]).astype(float)   # (q, n, p)
+                for i in range(q):
+                    for j in todo:
+                        outs[j][a:a + chunk, :, i] = (sets[j][:, i, :] @ unit[i].T).T
+            for j in todo:
+                cache[keys[j]] = (rows, outs[j])
+            while len(cache) > 3:
+                cache.pop(next(iter(cache)))
+        return cache[keys[0]]
 
     def half_positions(self):
         """Valid positions, split into a half and its mirror image when the grid allows."""
