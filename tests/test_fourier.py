@@ -175,3 +175,32 @@ def test_extract_command_imports_no_scipy():
             "print(sorted(m for m in ('scipy.stats', 'scipy.optimize') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_separable_uses_half_the_x_frequencies_and_stays_exact(psf_frames):
+    """Products for |m| only (cos even, sin odd in m): the same V as dense, to rounding."""
+    uv = KernelModel.from_pupil(make_pupil("subaru")).uv.value
+    sep = fourier_operator(uv, WL, PIX.value * MAS, (40, 40), method="separable")
+    dense = fourier_operator(uv, WL, PIX.value * MAS, (40, 40), method="dense")
+    m = uv_lattice(uv)[2]
+    assert (m < 0).any() and sep._ex.shape[1] == 2 * len(np.unique(np.abs(m)))
+    for a, b in zip(sep.apply(psf_frames), dense.apply(psf_frames)):
+        assert np.abs(a - b).max() < 1e-12 * np.abs(b).max()
+
+
+def test_windows_into_out_and_phase_wrap():
+    """`ExtractionWindow.apply(out=)` equals the in-place product; the cheap phase wrap of
+    extraction equals ``(x + pi) % 2 pi - pi``."""
+    from kpifs.extract import _wrap_phases
+    rng = np.random.default_rng(7)
+    win = ExtractionWindow(32, 12.8)
+    imgs = rng.random((20, 40, 40))
+    delta = rng.uniform(-0.5, 0.5, (20, 2))
+    view = imgs[:, 4:36, 4:36]
+    out = win.apply(view, delta, out=np.empty((20, 32, 32)))
+    np.testing.assert_array_equal(out, win.apply(view.copy(), delta))
+    assert np.array_equal(imgs[:, 4:36, 4:36], view)           # the input is left alone
+    for spread in (np.pi + 2.3, 40.0):                          # one turn, and many
+        ph = rng.uniform(-spread, spread, (50, 300))
+        ref = _wrap(ph)
+        assert np.abs(_wrap_phases(ph.copy()) - ref).max() < 1e-12
