@@ -14,13 +14,13 @@ interpolating the image. The apodisation follows the star to
 `extract_kernel_phases` checks its inputs once (`_check_inputs`) and then runs
 `_extract_batch` on each batch of frames of each channel.
 """
+import functools
 import logging
 import warnings
 from dataclasses import dataclass
 
 import numpy as np
 from astropy import units as u
-from astropy.table import QTable
 
 from ._utils import progress as progress_bar
 from ._utils import to_quantity
@@ -270,6 +270,18 @@ def _wrap_phases(ph):
     return ph
 
 
+def _centre_table(frames, wavelengths, centres):
+    """The star centres used, as a `~astropy.table.QTable` (made when first read)."""
+    from astropy.table import QTable      # not at import: the command line's start
+    nwave = len(wavelengths)
+    frame_idx, _ = np.meshgrid(frames, np.arange(nwave), indexing="ij")
+    ctab = QTable([frame_idx.ravel(), np.broadcast_to(wavelengths, (len(frames), nwave)).ravel(),
+                   centres[..., 0].ravel(), centres[..., 1].ravel()],
+                  names=("frame", "wavelength", "x", "y"))
+    ctab["x"].unit = ctab["y"].unit = u.pix
+    return ctab
+
+
 def _ranges(idx):
     """``[0, 1, 2, 5, 7, 8]`` -> ``'0-2, 5, 7-8'`` (frame lists in messages and cards)."""
     out, idx = [], sorted(int(i) for i in idx)
@@ -447,11 +459,7 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
             phases, amps = phases[keep], amps[keep]
         if detpa is not None:
             detpa = detpa[keep]
-    frame_idx, wave_idx = np.meshgrid(keep, np.arange(nwave), indexing="ij")
-    ctab = QTable([frame_idx.ravel(), np.broadcast_to(wl, (len(keep), nwave)).ravel(),
-                   used_centres[..., 0].ravel(), used_centres[..., 1].ravel()],
-                  names=("frame", "wavelength", "x", "y"))
-    ctab["x"].unit = ctab["y"].unit = u.pix
+    ctab = functools.partial(_centre_table, keep, wl, used_centres)
     meta = {"source": str(source), "centroid": centroid if centres is None else "given",
             "n_bad_pixels": count["n_bad_pixels"], "bad_pixels": bad_pixels,
             "bad_frames": bad_frames, "dropped_frames": [int(f) for f in drop]}

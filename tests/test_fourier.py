@@ -177,6 +177,24 @@ def test_extract_command_imports_no_scipy():
     assert out.stdout.strip() == "[]"
 
 
+def test_extract_command_imports_no_table_module(tmp_path):
+    """A whole `kpifs extract` run (read, extract, write) never imports astropy.table."""
+    import subprocess
+    import sys
+    from kpifs.io.layouts import write_plain_cube
+    wl = [1.6, 1.7] * u.um
+    cube = simulate_psf("subaru", wl, pixscale=PIX, shape=(32, 32))
+    frames = np.stack([1e5 * cube, 1.01e5 * cube, 0.99e5 * cube]).astype(np.float32)
+    path = str(tmp_path / "c.fits")
+    write_plain_cube(path, frames, wl, PIX)
+    code = ("import sys\nfrom kpifs.cli import main\n"
+            f"assert main(['extract', {path!r}, '-o', {str(tmp_path / 'kp.fits')!r}, '-q']) == 0\n"
+            "print(sorted(m for m in ('astropy.table', 'scipy.stats', 'scipy.optimize', "
+            "'matplotlib', 'kpifs.detect') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "[]"
+
+
 def test_separable_uses_half_the_x_frequencies_and_stays_exact(psf_frames):
     """Products for |m| only (cos even, sin odd in m): the same V as dense, to rounding."""
     uv = KernelModel.from_pupil(make_pupil("subaru")).uv.value
