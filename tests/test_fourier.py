@@ -222,3 +222,28 @@ def test_windows_into_out_and_phase_wrap():
         ph = rng.uniform(-spread, spread, (50, 300))
         ref = _wrap(ph)
         assert np.abs(_wrap_phases(ph.copy()) - ref).max() < 1e-12
+
+
+def test_single_precision_extraction_error_against_photon_noise():
+    """precision='single': kernel phases within a few 1e-6 rad of the dense float64
+    reference, a few 1e-4 of the frame-to-frame (photon-noise) scatter of the frames."""
+    rng = np.random.default_rng(11)
+    wl = [1.2, 1.6, 2.2] * u.um
+    pix = PIX
+    jit = rng.uniform(-0.4, 0.4, (4, 2))
+    psfs = np.stack([simulate_psf("subaru", wl, pixscale=pix, shape=(48, 48), npup=64,
+                                  centre=tuple(j)) for j in jit])
+    frames = rng.poisson(2e5 * psfs[rng.integers(0, 4, 24)]) + rng.normal(0, 10, (24, 3, 48, 48))
+    frames = frames.astype(np.float32)
+    km = KernelModel.from_pupil(make_pupil("subaru"))
+    args = dict(wavelengths=wl, pixscale=pix)
+    ref = extract_kernel_phases(frames, km, fourier="dense", **args)
+    dbl = extract_kernel_phases(frames, km, **args)
+    sgl = extract_kernel_phases(frames, km, precision="single", **args)
+    assert np.abs(dbl.kp - ref.kp).max() < 1e-9
+    err = np.abs(sgl.kp - ref.kp)
+    noise = ref.kp.std(axis=0)
+    assert 0 < err.max() < 2e-5
+    assert (err / noise).max() < 2e-3
+    with pytest.raises(KpifsError, match="precision"):
+        extract_kernel_phases(frames, km, precision="half", **args)
