@@ -12,11 +12,25 @@ cards), then times, alternately and --repeat times each, whole processes:
 - optionally ``--baseline-path DIR``: ``kpifs extract`` of another checkout
   (e.g. the commit before issue 13), run with PYTHONPATH=DIR.
 
-Prints the median wall time of each and the ratios. Peak memory of one
-process: run it under ``/usr/bin/time -v`` ("Maximum resident set size").
+Prints the median wall time and peak resident memory of each, the reference's
+time over kpifs's (target >= 10), and the command line's start: the import
+time (``python -X importtime``, median) of ``kpifs --help`` and of the modules
+``kpifs extract`` loads before it reads anything (target < 0.25 s).
+
+``--memory FRAMES SIZE`` instead writes a FRAMES x 22 x SIZE^2 cube frame by
+frame (e.g. ``--memory 2000 128``: 2.9 GB) and reports the peak resident
+memory of ``kpifs extract`` on it (target: below ~1 GB plus the output).
+
+Modules are byte-compiled first (``compileall``), as in an installed package,
+so that neither side pays for compiling kpifs at every start when
+PYTHONDONTWRITEBYTECODE is set (``--no-compile`` to skip). ``--threads N``
+sets OPENBLAS_NUM_THREADS/OMP_NUM_THREADS for every process (on a machine
+shared with other work, N=1 gives steadier figures).
 """
 import argparse
+import compileall
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -25,10 +39,11 @@ from pathlib import Path
 
 import numpy as np
 
+ROOT = Path(__file__).resolve().parent.parent
 
-def write_cube(path, nframe=300, nwave=22, size=64, seed=0):
+
+def _psfs(nwave, size, seed):
     import astropy.units as u
-    from kpifs.io.layouts import write_plain_cube
     from kpifs.simulate import simulate_psf
     rng = np.random.default_rng(seed)
     wl = np.geomspace(1.15956, 2.36934, nwave) * u.um
@@ -36,10 +51,34 @@ def write_cube(path, nframe=300, nwave=22, size=64, seed=0):
     jit = rng.uniform(-0.4, 0.4, (8, 2))
     psfs = np.stack([simulate_psf("subaru", wl, pixscale=pix, shape=(size, size), npup=64,
                                   centre=tuple(j)) for j in jit]).astype(np.float32)
+    return rng, wl, pix, psfs
+
+
+def write_cube(path, nframe=300, nwave=22, size=64, seed=0):
+    from kpifs.io.layouts import write_plain_cube
+    rng, wl, pix, psfs = _psfs(nwave, size, seed)
     cube = np.empty((nframe, nwave, size, size), np.float32)
     for f in range(nframe):
         cube[f] = rng.poisson(2e5 * psfs[rng.integers(0, 8)]) + rng.normal(0, 10, cube.shape[1:])
     write_plain_cube(path, cube, wl, pix, overwrite=True)
+    return path
+
+
+def write_large_cube(path, nframe, nwave=22, size=128, seed=0):
+    """The same kind of cube, streamed to disk frame by frame (16 noisy frames repeated)."""
+    from astropy.io import fits
+    from kpifs.io.layouts import write_plain_cube
+    rng, wl, pix, psfs = _psfs(nwave, size, seed)
+    frames = np.stack([rng.poisson(2e5 * psfs[i % 8]) + rng.normal(0, 10, psfs.shape[1:])
+                       for i in range(16)]).astype(">f4")
+    write_plain_cube(path, frames[:1], wl, pix, overwrite=True)   # header of one frame
+    hdr = fits.getheader(path)
+    hdr["NAXIS4"] = nframe
+    os.remove(path)
+    shdu = fits.StreamingHDU(path, hdr)
+    for f in range(nframe):
+        shdu.write(frames[f % 16])
+    shdu.close()
     return path
 
 
@@ -74,15 +113,36 @@ def reference(cube_path, out_path):
     np.save(out_path, kp)
 
 
-def time_commands(commands, repeat, env=None):
-    times = {name: [] for name in commands}
+def run_once(cmd, env):
+    """Wall time (s) and peak resident memory (MiB) of one process."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, cwd=tempfile.gettempdir())
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode:
+        raise SystemExit(f"{' '.join(cmd)} exited with {proc.returncode}")
+    return wall, usage.ru_maxrss / 1024
+
+
+def time_commands(commands, repeat, base_env):
+    """Median wall time and peak memory of each command, run in turn (A B A B ...)."""
+    runs = {name: [] for name in commands}
     for _ in range(repeat):
         for name, (cmd, extra_env) in commands.items():
-            e = dict(os.environ, **(extra_env or {}))
-            t0 = time.perf_counter()
-            subprocess.run(cmd, check=True, env=e, stdout=subprocess.DEVNULL)
-            times[name].append(time.perf_counter() - t0)
-    return {k: float(np.median(v)) for k, v in times.items()}
+            runs[name].append(run_once(cmd, dict(base_env, **(extra_env or {}))))
+    return {k: tuple(np.median(np.array(v), axis=0)) for k, v in runs.items()}
+
+
+def import_time(args, base_env, repeat):
+    """Median total import time (s) that ``python -X importtime ARGS`` reports."""
+    totals = []
+    for _ in range(repeat):
+        err = subprocess.run([sys.executable, "-X", "importtime", *args], env=base_env,
+                             capture_output=True, text=True, cwd=tempfile.gettempdir()).stderr
+        self_us = [int(m.group(1)) for m in re.finditer(r"import time:\s+(\d+) \|", err)]
+        totals.append(sum(self_us) / 1e6)
+    return float(np.median(totals))
 
 
 def main(argv=None):
@@ -93,27 +153,56 @@ def main(argv=None):
     ap.add_argument("--baseline-path", help="another kpifs checkout to time as well")
     ap.add_argument("--no-reference", action="store_true",
                     help="skip the (slow) reference-library re-implementation")
+    ap.add_argument("--no-compile", action="store_true",
+                    help="do not byte-compile the kpifs modules first")
+    ap.add_argument("--threads", type=int, help="BLAS threads of every process")
+    ap.add_argument("--memory", nargs=2, type=int, metavar=("FRAMES", "SIZE"),
+                    help="peak memory of kpifs extract on a FRAMES x 22 x SIZE^2 cube")
     ap.add_argument("--reference", metavar="CUBE", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.reference:
         reference(args.reference, tempfile.mktemp(suffix=".npy"))
         return 0
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    if args.threads:
+        env.update(OPENBLAS_NUM_THREADS=str(args.threads), OMP_NUM_THREADS=str(args.threads))
+    if not args.no_compile:
+        for root in [ROOT] + ([Path(args.baseline_path)] if args.baseline_path else []):
+            compileall.compile_dir(str(root / "kpifs"), quiet=1)
     tmp = tempfile.mkdtemp()
-    cube = args.cube or write_cube(str(Path(tmp) / "cube300.fits"))
     out = str(Path(tmp) / "kp.fits")
-    kpifs = [sys.executable, "-m", "kpifs", "extract", cube, "-o", out, "--overwrite", "-q"]
+    kpifs = [sys.executable, "-m", "kpifs", "extract", "CUBE", "-o", out, "--overwrite", "-q"]
+    if args.memory:
+        nframe, size = args.memory
+        cube = args.cube or write_large_cube(str(Path(tmp) / "large.fits"), nframe, size=size)
+        wall, peak = run_once([cube if a == "CUBE" else a for a in kpifs], env)
+        print(f"kpifs extract, {nframe} x 22 x {size}^2 cube "
+              f"({os.path.getsize(cube) / 2 ** 30:.2f} GiB): {wall:.1f} s, "
+              f"peak resident memory {peak:.0f} MiB, output {os.path.getsize(out) / 2 ** 20:.0f} "
+              f"MiB")
+        return 0
+    cube = args.cube or write_cube(str(Path(tmp) / "cube300.fits"))
+    kpifs = [cube if a == "CUBE" else a for a in kpifs]
     commands = {"kpifs extract": (kpifs, None)}
     if args.baseline_path:
         commands["kpifs extract (baseline checkout)"] = (kpifs, {"PYTHONPATH":
                                                                  args.baseline_path})
     if not args.no_reference:
         commands["reference: dense complex128 per channel"] = (
-            [sys.executable, __file__, "--reference", cube], None)
-    med = time_commands(commands, args.repeat)
-    base = med["kpifs extract"]
-    print(f"{'whole process (median of %d)' % args.repeat:48s} {'wall (s)':>9s} {'ratio':>7s}")
-    for name, t in med.items():
-        print(f"{name:48s} {t:9.2f} {t / base:7.1f}")
+            [sys.executable, str(Path(__file__).resolve()), "--reference", cube], None)
+    med = time_commands(commands, args.repeat, env)
+    base = med["kpifs extract"][0]
+    print(f"{'whole process (median of %d)' % args.repeat:48s} {'wall (s)':>9s} "
+          f"{'/ kpifs':>8s} {'peak MiB':>9s}")
+    for name, (t, peak) in med.items():
+        print(f"{name:48s} {t:9.2f} {t / base:8.1f} {peak:9.0f}")
+    ref = med.get("reference: dense complex128 per channel")
+    if ref:
+        print(f"speed-up over the reference: {ref[0] / base:.1f}x   (target >= 10x)")
+    help_t = import_time(["-m", "kpifs", "--help"], env, args.repeat)
+    start_t = import_time(["-c", "import kpifs._cli.extract"], env, args.repeat)
+    print(f"CLI start, python -X importtime (median): kpifs --help {help_t:.3f} s, "
+          f"kpifs extract's modules {start_t:.3f} s   (target < 0.25 s)")
     return 0
 
 

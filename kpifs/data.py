@@ -46,8 +46,11 @@ class KernelPhaseData:
         The extraction window (its attenuation matters for contrasts).
     phases, amplitudes : ndarray, shape (nframe, nwave, nuv), optional
         Raw Fourier phases (rad) and normalised amplitudes, for diagnostics.
-    centres : `~astropy.table.QTable`, optional
-        Star centres used, one row per (frame, wavelength).
+    centres : `~astropy.table.QTable` or callable, optional
+        Star centres used, one row per (frame, wavelength); a callable
+        returning the table is called on first access (extraction passes one:
+        `astropy.table` is slow to import and the command line never reads
+        the table).
     covariance : ndarray, shape (nwave, nkp, nkp), optional
         Covariance of one frame's kernel phases, per channel (the same for
         every frame). Given per frame, shape (nframe, nwave, nkp, nkp) as other
@@ -94,6 +97,18 @@ class KernelPhaseData:
 
     _io_format = "kpfits"
     read, write = io_methods("KernelPhaseData")
+
+    @property
+    def centres(self):
+        """Star centres used (`~astropy.table.QTable`, one row per (frame, wavelength)), or
+        None."""
+        if callable(self._centres):
+            self._centres = self._centres()
+        return self._centres
+
+    @centres.setter
+    def centres(self, value):
+        self._centres = value
 
     def __init__(self, kp, wavelengths, pixscale, kernel_model, *, window=None, phases=None,
                  amplitudes=None, centres=None, covariance=None, joint_covariance=None,

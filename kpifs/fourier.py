@@ -20,7 +20,9 @@ scale in radians. Three ways, one result:
     transform factorises: one product along x for the distinct ``m``, one
     along y for the distinct ``n``, then a gather of the uv points. About
     ``4 N_y ny nx + 8 N_y nx M_x`` flops per image (y first; x first when
-    that is cheaper): ~13x fewer than dense for the usual models.
+    that is cheaper), ``M_x`` the number of distinct ``|m|`` (cos is even
+    and sin odd in m: the sign is applied in the gather): ~18x fewer than
+    dense for the usual models.
 ``'nufft'``
     Any other model (a grid rotated on the detector, irregular
     sub-apertures): a type-2 non-uniform FFT with `finufft` (optional
@@ -179,7 +181,9 @@ class FourierOperator:
             self.nbytes = self.matrix.nbytes
         elif method == "separable":
             sxm, sym, m, n = lattice
-            mu, mi = np.unique(m, return_inverse=True)
+            # cos(m x) is even and sin(m x) odd in m: products for |m| only, the sign of
+            # m applied in the gather (exact: a negation), half the x columns
+            mu, mi = np.unique(np.abs(m), return_inverse=True)
             nu, ni = np.unique(n, return_inverse=True)
             ax = k * sxm * np.outer(mu, xs)                        # (Mx, nx)
             ay = k * sym * np.outer(nu, ys)                        # (Ny, ny)
@@ -194,6 +198,8 @@ class FourierOperator:
             self._i_cs = self._i_cc + Mx
             self._i_sc = self._i_cc + Ny * w
             self._i_ss = self._i_sc + Mx
+            self._sign = np.where(m < 0, -1.0, 1.0).astype(self.dtype)
+            self._flip = bool((m < 0).any())
             # contract the axis with fewer frequencies first (y: the uv points fill a
             # half plane, so N_y ~ M_x / 2 for a pupil model)
             fx_first = 4.0 * ny * nx * Mx + 8.0 * Ny * ny * Mx
@@ -235,8 +241,13 @@ class FourierOperator:
             else:
                 p = np.matmul(self._ey, (x.reshape(n * ny, nx) @ self._ex).reshape(n, ny, -1))
                 p = p.reshape(n, -1)
-            re = p[:, self._i_cc] - p[:, self._i_ss]
-            im = p[:, self._i_cs] + p[:, self._i_sc]
+            # Re V = cc - sgn(m) ss, Im V = -(sgn(m) cs + sc)
+            ss, cs = p[:, self._i_ss], p[:, self._i_cs]
+            if self._flip:
+                ss *= self._sign
+                cs *= self._sign
+            re = p[:, self._i_cc] - ss
+            im = cs + p[:, self._i_sc]
             np.negative(im, out=im)
             return re.astype(float, copy=False), im.astype(float, copy=False)
         import finufft
@@ -262,7 +273,7 @@ def _choose(uv, shape, method):
                          "transform (use 'auto', 'nufft' or 'dense')")
     if method == "auto":
         if lattice is not None:
-            Mx, Ny = len(np.unique(lattice[2])), len(np.unique(lattice[3]))
+            Mx, Ny = len(np.unique(np.abs(lattice[2]))), len(np.unique(lattice[3]))
             sep = 4.0 * ny * nx * Mx + 8.0 * Ny * ny * Mx
             if sep < 0.5 * 4.0 * len(uv) * ny * nx:
                 return "separable", lattice

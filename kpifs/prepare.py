@@ -160,13 +160,14 @@ def fill_bad_pixels(images, *, sigma=1.0):
     return images
 
 
-def cut_out(sl, centres, ws):
+def cut_out(sl, centres, ws, *, copy=True):
     """``ws x ws`` cut-outs of images ``sl`` (n, ny, nx) around their star centres.
 
     Each cut-out is centred on the integer pixel nearest its centre ``(x, y)``
     (that pixel lands at index ``ws // 2``). Returns the cut-outs (a new
-    array) and the sub-pixel remainders ``delta`` (centre minus that pixel).
-    Pixels outside the image are 0.
+    array; with ``copy=False`` a view of *sl* where one plain slice serves
+    every image) and the sub-pixel remainders ``delta`` (centre minus that
+    pixel). Pixels outside the image are 0.
 
     Examples
     --------
@@ -184,7 +185,8 @@ def cut_out(sl, centres, ws):
     inside = (lo_x >= 0) & (lo_y >= 0) & (lo_x + ws <= nx) & (lo_y + ws <= ny)
     if inside.all() and np.all(ic == ic[0]):
         # the usual case: one window for the whole batch, a plain slice
-        return sl[:, lo_y[0]:lo_y[0] + ws, lo_x[0]:lo_x[0] + ws].copy(), delta
+        view = sl[:, lo_y[0]:lo_y[0] + ws, lo_x[0]:lo_x[0] + ws]
+        return (view.copy() if copy else view), delta
     # one slice copy per image (faster than a gather through a padded copy)
     out = np.zeros((nb, ws, ws), dtype=sl.dtype)
     xa, xb = np.maximum(lo_x, 0), np.minimum(lo_x + ws, nx)

@@ -19,7 +19,6 @@ import logging
 import numpy as np
 from astropy import units as u
 from astropy.io import fits
-from astropy.table import QTable
 
 from ._utils import to_quantity
 from .apertures import (BINARY_MIN_TRANSMISSION, MODEL_DEFAULTS, TELESCOPES,  # noqa: F401
@@ -102,6 +101,7 @@ class PupilModel:
 
     def to_table(self):
         """Return the model as a `~astropy.table.QTable` (columns x, y, transmission)."""
+        from astropy.table import QTable     # not at import: the command line's start
         t = QTable([self._xy[:, 0] * u.m, self._xy[:, 1] * u.m, self._transmission],
                    names=("x", "y", "transmission"))
         t.meta.update(self.meta)

@@ -159,8 +159,8 @@ class ExtractionWindow:
         out[:, 2] = g * dy
         return out
 
-    def apply(self, cuts, delta, *, quantum=WINDOW_QUANTUM):
-        """Multiply cut-outs *cuts* (n, size, size) in place by their windows.
+    def apply(self, cuts, delta, *, quantum=WINDOW_QUANTUM, out=None):
+        """Multiply cut-outs *cuts* (n, size, size) by their windows, in place or into *out*.
 
         Windows are computed at each frame's *delta* rounded to *quantum*
         pixels and kept, with their first derivatives, in a bounded
@@ -168,7 +168,9 @@ class ExtractionWindow:
         expansion ``w(q) + (delta - q) . grad w(q)``, so a sequence of frames
         computes each window once and the result differs from the exact
         window (*quantum* None or 0) by ~``(quantum / 2)**2`` times the
-        window's curvature (1e-7 relative for the default window).
+        window's curvature (1e-7 relative for the default window). With
+        *out* (an array of the shape of *cuts*) the products go there and
+        *cuts* (a view of the images, say) is left alone; *out* is returned.
 
         Examples
         --------
@@ -181,11 +183,13 @@ class ExtractionWindow:
         True
         """
         delta = np.atleast_2d(np.asarray(delta, float))
+        if out is None:
+            out = cuts
         if not quantum or not 2 <= self.order < np.inf:
             # exact windows; so too for orders below 2 (a cusp at the centre) and a hard
             # disk (a step at the edge), where a first-order expansion is not good enough
-            cuts *= self.weights(delta)
-            return cuts
+            np.multiply(cuts, self.weights(delta), out=out)
+            return out
         q = np.rint(delta / quantum).astype(np.int64)
         keys, inverse = np.unique(q, axis=0, return_inverse=True)
         inverse = inverse.ravel()
@@ -206,18 +210,17 @@ class ExtractionWindow:
                     _window_nbytes[0] += w.nbytes
                 while _window_nbytes[0] > WINDOW_CACHE_BYTES and len(_window_cache) > 1:
                     _window_nbytes[0] -= _window_cache.popitem(last=False)[1].nbytes
-        windows = [found[k] for k in map(tuple, keys)]
-        err = delta - q * quantum
-        buf = np.empty(cuts.shape[1:])
-        tmp = np.empty(cuts.shape[1:])
+        # each frame's window is (1, ex, ey) @ (w, dw/dx, dw/dy): one small product
+        windows = [found[k].reshape(3, -1) for k in map(tuple, keys)]
+        coef = np.empty((len(delta), 3))
+        coef[:, 0] = 1.0
+        coef[:, 1:] = delta - q * quantum
+        buf = np.empty(self.size * self.size)
+        buf2 = buf.reshape(self.size, self.size)
         for i, j in enumerate(inverse):     # one product per image: no stack of windows
-            w = windows[j]
-            np.multiply(w[1], err[i, 0], out=buf)
-            buf += w[0]
-            np.multiply(w[2], err[i, 1], out=tmp)
-            buf += tmp
-            cuts[i] *= buf
-        return cuts
+            np.dot(coef[i], windows[j], out=buf)
+            np.multiply(cuts[i], buf2, out=out[i])
+        return out
 
     def at(self, separation, pixscale):
         """The window's value at *separation* (mas) for images of *pixscale* (mas).

@@ -23,14 +23,11 @@ from pathlib import Path
 import numpy as np
 from astropy import units as u
 
+from ._lazy import lazy_module
 from ._utils import check_output_dir, check_output_path, to_quantity
 from .calibrate import calibrate
 from .covariance import empirical_covariance
 from .data import KernelPhaseData
-from .detect.null import NULL_METHODS, check_draws
-from .detect.pipeline import default_grid, detect
-from .detect.sky import search_frame
-from .detect.stats import TESTS, check_probability
 from .exceptions import KpifsError
 from .extract import extract_kernel_phases
 from .io.angles import frame_detpa, parse_angles
@@ -46,6 +43,13 @@ __all__ = ["ExtractOptions", "DetectOptions", "DEFAULT_PUPIL", "kernel_model_for
            "extract_observation", "calibrate_observation", "detect_observation",
            "process_observation", "parse_spectrum", "options_record", "inputs_digest",
            "products_digest", "observation_digest"]
+
+# kpifs.detect brings astropy.table (a tenth of a second): loaded when a search runs,
+# not for `kpifs extract`
+_null = lazy_module("kpifs.detect.null")
+_pipeline = lazy_module("kpifs.detect.pipeline")
+_sky = lazy_module("kpifs.detect.sky")
+_stats = lazy_module("kpifs.detect.stats")
 
 log = logging.getLogger(__name__)
 
@@ -139,15 +143,16 @@ class DetectOptions:
 
     def validate(self):
         """Refuse options no search can run with (before any work); return self."""
+        TESTS, check_probability = _stats.TESTS, _stats.check_probability
         if self.test not in TESTS:
             raise KpifsError(f"unknown test {self.test!r}: use one of {TESTS}")
         check_probability(self.pfa, "P_FA")
         check_probability(self.pd, "P_D")
-        check_draws(self.draws)
+        _null.check_draws(self.draws)
         if self.frame not in ("auto", "sky", "detector"):
             raise KpifsError(f"unknown frame {self.frame!r}: use auto, sky or detector")
-        if self.null not in NULL_METHODS:
-            raise KpifsError(f"unknown null {self.null!r}: use one of {NULL_METHODS}")
+        if self.null not in _null.NULL_METHODS:
+            raise KpifsError(f"unknown null {self.null!r}: use one of {_null.NULL_METHODS}")
         return self
 
 
@@ -356,6 +361,7 @@ def detect_observation(kpd, options=None, *, calibrators=(), progress=False):
     >>> _example_result().test                           # made by detect()
     'B'
     """
+    detect, default_grid = _pipeline.detect, _pipeline.default_grid
     options = options or DetectOptions()
     if calibrators:
         kpd = calibrate_observation(kpd, calibrators, ExtractOptions(shrinkage=options.shrinkage))
@@ -365,7 +371,7 @@ def detect_observation(kpd, options=None, *, calibrators=(), progress=False):
         grid = default_grid(kpd, step=_mas(options.grid_step, "grid step"),
                             max_sep=_mas(options.max_sep, "maximum separation"),
                             min_sep=_mas(options.min_sep, "minimum separation"),
-                            frame=search_frame(kpd, options.frame))
+                            frame=_sky.search_frame(kpd, options.frame))
     result = detect(kpd, test=options.test, pfa=options.pfa, pd=options.pd, grid=grid,
                     spectrum=parse_spectrum(options.spectrum, kpd.n_wave),
                     n_draws=options.draws, seed=options.seed, shrinkage=options.shrinkage,

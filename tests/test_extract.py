@@ -220,3 +220,24 @@ def test_warnings_for_suspicious_pixels(subaru_model, paper_wavelengths):
     assert not any("PSF core" in str(w.message) for w in rec)
     with pytest.warns(KpifsWarning, match="negative pixels hold more than 10%"):
         extract_kernel_phases(cube - 0.3 * cube.max() / 40, subaru_model, **args)
+
+
+def test_memory_mapped_pages_released_by_byte_budget(subaru_model, paper_wavelengths, tmp_path,
+                                                     monkeypatch):
+    """Pages of a memory-mapped cube are given back every RELEASE_BYTES read, not per batch;
+    the kernel phases do not depend on it."""
+    from kpifs import extract as ex
+    cube = simulate_psf("subaru", paper_wavelengths, pixscale=PIX, shape=(32, 32))
+    frames = (1e5 * cube[None] * np.linspace(0.9, 1.1, 6)[:, None, None, None]).astype(">f4")
+    path = tmp_path / "c.fits"
+    fits.writeto(path, frames)
+    calls = []
+    monkeypatch.setattr(ex, "release_pages", lambda data: calls.append(1))
+    args = dict(wavelengths=paper_wavelengths, pixscale=PIX, batch_size=2, centres=(16, 16))
+    with fits.open(path, memmap=True) as hdul:
+        ref = extract_kernel_phases(hdul[0].data, subaru_model, **args)
+        assert calls == []                               # 3 x 6 x 4 kB read: below the budget
+        monkeypatch.setattr(ex, "RELEASE_BYTES", 2 * 32 * 32 * 4)
+        kpd = extract_kernel_phases(hdul[0].data, subaru_model, **args)
+    assert len(calls) == 3 * 3                            # every batch of two frames
+    np.testing.assert_array_equal(kpd.kp, ref.kp)

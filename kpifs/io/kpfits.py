@@ -41,12 +41,11 @@ import logging
 import numpy as np
 from astropy import units as u
 from astropy.io import fits
-from astropy.table import Table
 
 from .._meta import VERSION
 from .._utils import write_hdulist
 from ._kpfits_common import (_ERROR_MODEL_CARDS, _INSTRUMENT_CARDS, KPCOV_COPY_LIMIT, _clean_header,
-                             _label_columns, _number, card)
+                             _label_columns, _number, _table_hdu, card)
 from .kpfits_model import (has_kernel_model, model_hdulist, model_hdus, read_model_file,
                            read_model_parts)
 from .kpfits_read import is_kpfits, read_kpfits_parts  # noqa: F401 (the registry's identifier)
@@ -161,7 +160,7 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
         hdr.add_history(line)
     hdr.add_history(f"kpifs {VERSION}: kernel phases of {kpd.meta.get('source', '?')}")
     hdus = [fits.PrimaryHDU(header=hdr), *model_hdus(km)]
-    kd = fits.ImageHDU(kpd.kp.astype(np.float64), name="KP-DATA")
+    kd = fits.ImageHDU(np.asarray(kpd.kp, np.float64), name="KP-DATA")   # no copy
     kd.header["BUNIT"] = "rad"
     kd.header["COMMENT"] = "kernel phases (nframe, nwave, nkp)"
     hdus.append(kd)
@@ -217,10 +216,9 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
     bw = (u.Quantity(kpd.bandwidth, u.um).to_value(u.m) if kpd.bandwidth is not None
           else (np.gradient(wl) if len(wl) > 1 else 0.05 * wl))
     bw = np.broadcast_to(np.asarray(bw, float), wl.shape)
-    cw = Table([wl, bw, bw], names=("CWAVEL", "BWIDTH", "DWAVEL"))
-    for name in cw.colnames:
-        cw[name].unit = "m"
-    hdus.append(_label_columns(fits.BinTableHDU(cw, name="CWAVEL"), {
+    cw = _table_hdu({"CWAVEL": wl, "BWIDTH": bw, "DWAVEL": bw}, "CWAVEL",
+                    dict.fromkeys(("CWAVEL", "BWIDTH", "DWAVEL"), "m"))
+    hdus.append(_label_columns(cw, {
         "CWAVEL": "central wavelength of the channel [m]",
         "BWIDTH": "channel bandwidth [m]",
         "DWAVEL": "channel bandwidth [m] (same as BWIDTH)"}))
@@ -240,11 +238,14 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
         hf.header["COMMENT"] = "detector position angle of each averaged target frame"
         hdus.append(hf)
     if kpd.phases is not None and kpd.amplitudes is not None:
-        ph, amp = np.asarray(kpd.phases), np.asarray(kpd.amplitudes)
-        # diagnostics, stored in float32 (~1e-7 relative): half the file and the write
-        cv = np.empty((2,) + ph.shape, np.float32)
-        np.multiply(amp, np.cos(ph), out=cv[0], casting="same_kind")
-        np.multiply(amp, np.sin(ph), out=cv[1], casting="same_kind")
+        # diagnostics, stored in float32 (~1e-7 relative): half the file and the write;
+        # cos and sin in float32 too (5x faster), off by < 2e-7 (|V| <= 1), as storage is
+        # (ufuncs cast their float64 inputs chunk by chunk: no temporary of the data's size)
+        cv = np.empty((2,) + np.shape(kpd.phases), np.float32)
+        np.cos(kpd.phases, out=cv[0], dtype=np.float32, casting="same_kind")
+        np.sin(kpd.phases, out=cv[1], dtype=np.float32, casting="same_kind")
+        for part in cv:
+            np.multiply(part, kpd.amplitudes, out=part, dtype=np.float32, casting="same_kind")
         hv = fits.ImageHDU(cv, name="CVIS-DATA")
         hv.header["CVISFORM"] = ("REIM", "real and imaginary parts")
         hv.header["COMMENT"] = ("flux-normalised complex visibilities (2, nframe, nwave, nuv): "

@@ -4,11 +4,10 @@ import logging
 import numpy as np
 from astropy import units as u
 from astropy.io import fits
-from astropy.table import Table
 
 from .._meta import VERSION
 from ..exceptions import KpifsError
-from ._kpfits_common import _column, _label_columns, _number
+from ._kpfits_common import _column, _label_columns, _number, _table_hdu
 from .cube import open_fits
 
 __all__ = ["model_hdus", "model_hdulist", "read_model_parts", "read_model_file", "has_kernel_model"]
@@ -33,10 +32,9 @@ def model_hdus(model):
     """
     pupil = model.pupil
     xy = pupil.xy.to_value(u.m)
-    ap = Table([xy[:, 0], xy[:, 1], np.asarray(pupil.transmission, float)],
-               names=("XXC", "YYC", "TRM"))
-    ap["XXC"].unit = ap["YYC"].unit = "m"
-    hap = _label_columns(fits.BinTableHDU(ap, name="APERTURE"), {
+    ap = _table_hdu({"XXC": xy[:, 0], "YYC": xy[:, 1], "TRM": pupil.transmission},
+                    "APERTURE", {"XXC": "m", "YYC": "m"})
+    hap = _label_columns(ap, {
         "XXC": "sub-aperture x (along image columns) [m]",
         "YYC": "sub-aperture y (along image rows) [m]",
         "TRM": "sub-aperture transmission (0 < t <= 1)"})
@@ -44,10 +42,9 @@ def model_hdus(model):
     if pupil.step is not None:
         hap.header["STEP"] = (pupil.step.to_value(u.m), "[m] grid step")
     uv = model.uv.to_value(u.m)
-    uvt = Table([uv[:, 0], uv[:, 1], np.asarray(model.redundancy, float)],
-                names=("UUC", "VVC", "RED"))
-    uvt["UUC"].unit = uvt["VVC"].unit = "m"
-    huv = _label_columns(fits.BinTableHDU(uvt, name="UV-PLANE"), {
+    uvt = _table_hdu({"UUC": uv[:, 0], "VVC": uv[:, 1], "RED": model.redundancy},
+                     "UV-PLANE", {"UUC": "m", "VVC": "m"})
+    huv = _label_columns(uvt, {
         "UUC": "baseline u (along image columns) [m]",
         "VVC": "baseline v (along image rows) [m]",
         "RED": "redundancy: summed pair weights (float)"})

@@ -6,7 +6,6 @@ astropy's unified I/O registry (``DetectionResult.read(path)``).
 
 import numpy as np
 from astropy.io import fits
-from astropy.table import QTable
 
 from .._meta import VERSION
 from .._utils import write_hdulist
@@ -195,6 +194,7 @@ def read_detection_parts(path):
     ('B', 2, ['B', 'B-paper', 'E', 'NP'])
     """
     path = str(path)
+    from astropy.table import QTable     # not at import: the command line's start
     out = {"images": {}, "limits": {}, "tables": {}}
     try:
         with open_fits(path, verify=True) as hdul:
