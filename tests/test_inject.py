@@ -80,10 +80,13 @@ def test_injection_curve_with_one_separation(tmp_path, capsys):
                  str(tmp_path / "sim" / "calibrator.fits"), "--curve", "--separations",
                  "80mas", "--contrasts", "0.05", "--angles", "1", "--draws", "1000",
                  "--step", "0.8m", "-q", "-o", str(out)]) == 0
-    assert "80 mas: injections" in capsys.readouterr().out
+    printed = capsys.readouterr()
+    assert "80 mas: injections" in printed.out
+    assert "HIERARCH" not in printed.err and "truncated" not in printed.err   # plain cards
     with fits.open(out) as h:
         assert len(h["INJECTIONS"].data) == 1 and len(h["LIMITS"].data) == 1
         assert h["INJECTIONS"].data["n_injected"][0] == 1
+        assert h["INJECTIONS"].header["NANGLES"] == 1 and h["INJECTIONS"].header["PFA"] == 1e-3
     from kpifs import KernelModel, extract_kernel_phases, make_pupil
     from kpifs.inject import injection_limits
     from kpifs.io import read_cube

@@ -94,7 +94,12 @@ def run(args):
     hdr["NANGLES"] = (args.angles, "position angles per separation and contrast")
     hdr["SEED"] = (args.seed, "seed of the position angles")
     hdr.add_history(f"kpifs {VERSION}: injections into {name}")
-    t1 = fits.table_to_hdu(tab)
+    hdr["COMMENT"] = tab.meta["method"]
+    # the table's own meta holds lists (the limits: in LIMITS) and long names: plain cards
+    inj = tab.copy(copy_data=False)
+    inj.meta = {"PFA": tab.meta["pfa"], "PD": tab.meta["pd"], "NANGLES": tab.meta["n_angles"],
+                "SEED": tab.meta["seed"], "NDRAWS": tab.meta["n_draws"]}
+    t1 = fits.table_to_hdu(inj)
     t1.name = "INJECTIONS"
     t2 = fits.table_to_hdu(lim)
     t2.name = "LIMITS"
