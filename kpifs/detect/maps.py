@@ -261,7 +261,9 @@ class DetectionModel:
 
     # --- what the Monte-Carlo null needs ------------------------------------------
     def key(self):
-        """A digest of everything the projection depends on (for caches)."""
+        """A digest of everything the projection depends on (for caches; computed once)."""
+        if "_digest" in self.__dict__:
+            return self._digest
         h = hashlib.sha1()
         for arr in (self.kernel_model.kernel, self.kernel_model.uv.value, self.whitening,
                     self.wavelengths.value, self._wfac):
@@ -270,7 +272,8 @@ class DetectionModel:
             h.update(repr(part).encode())
         h.update(repr([(None if a is None else float(a), float(w))
                        for a, w in self._poses]).encode())
-        return h.hexdigest()
+        self._digest = h.hexdigest()
+        return self._digest
 
     def _unit_signatures(self, rows):
         """Unit-norm whitened signatures at flat grid positions *rows*: (q, npos, p), float32."""

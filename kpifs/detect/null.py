@@ -58,8 +58,8 @@ MIN_SIGN_ROWS = 6
 #: Nulls of a search: ``'auto'`` is ``'both'`` when the data carry block rows.
 NULL_METHODS = ("auto", "gaussian", "empirical", "both")
 
-#: Most sign-flip draws of the empirical null (every pattern of up to 14 blocks).
-EMPIRICAL_DRAWS = 2 ** 13
+#: Most sign-flip draws of the empirical null (every pattern of up to 13 blocks).
+EMPIRICAL_DRAWS = 2 ** 12
 
 
 def check_draws(n_draws):
@@ -149,8 +149,15 @@ class NullCalibration:
         self.progress = progress
 
     def _key(self, form=None):
+        form = form or self.form
+        keys = self.__dict__.setdefault("_keys", {})
+        if form not in keys:
+            keys[form] = self._digest(form)
+        return keys[form]
+
+    def _digest(self, form):
         h = hashlib.sha1(self.model.key().encode())
-        h.update(f"{form or self.form}|{self.n_draws}|{self.seed}|{self.spectrum!r}|"
+        h.update(f"{form}|{self.n_draws}|{self.seed}|{self.spectrum!r}|"
                  f"{self.coefficients}".encode())
         if self.noise_rows is not None:
             h.update(np.ascontiguousarray(self.noise_rows).tobytes())
