@@ -190,3 +190,23 @@ def test_cli_null_option_and_report(km, grid, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "noblocks.fits: no time blocks" in err and "--null gaussian" in err
     assert main(args[:-4] + ["--null", "gaussian", "-o", str(tmp_path / "det2.fits")]) == 0
+
+
+def test_correlated_limits_on_half_the_grid_are_mirrored(km, grid):
+    """The correlated limits are computed on half a symmetric grid and mirrored (the
+    signature at -pos is minus that at pos): complete and symmetric maps."""
+    rng = np.random.default_rng(2)
+    common = rng.standard_normal((30, 1, km.n_kp))        # channels correlated
+    wl = [1.6, 1.7] * u.um
+
+    def kpd(x):
+        return KernelPhaseData(x, wl, PIX, km)
+    t = kpd(np.concatenate([common, common], axis=1) + 0.3 * rng.standard_normal((30, 2, km.n_kp)))
+    c = kpd(0.3 * rng.standard_normal((30, 2, km.n_kp)))
+    res = detect(calibrate(t, c), grid=grid, n_draws=2000, seed=3)
+    assert res.meta["null_channels"] == "covariance rows"
+    valid = grid.valid
+    for f in ("B", "B-paper", "E"):
+        lim = res.limits[f]
+        assert np.all(np.isfinite(lim[valid])) and np.all(np.isnan(lim[~valid]))
+        assert np.array_equal(lim, lim[::-1, ::-1], equal_nan=True)

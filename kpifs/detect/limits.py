@@ -33,7 +33,8 @@ optimize = lazy_module("scipy.optimize")
 stats = lazy_module("scipy.stats")
 
 __all__ = ["spectrum_shape", "limit_np", "energy_lambda", "limit_energy", "limit_binary",
-           "limit_binary_correlated_forms", "limit_energy_correlated", "radial_curves",
+           "limit_binary_correlated_forms", "limit_energy_correlated", "mirror_half_map",
+           "radial_curves",
            "pfa_to_sigma", "sigma_to_pfa", "chi2_ratio_sigma"]
 
 
@@ -323,6 +324,23 @@ def _clipped_moments(mu, power):
         return m1, m2 - m1 ** 2
     m4 = (mu ** 4 + 6 * mu ** 2 + 3) * cdf + (mu ** 3 + 5 * mu) * pdf
     return m2, m4 - m2 ** 2
+
+
+def mirror_half_map(values):
+    """A limit map known on half a symmetric grid (NaN on the other half), completed.
+
+    The signature at ``-pos`` is minus that at ``pos`` and the noise's law is
+    symmetric, so the limit at ``-pos`` is that at ``pos``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.limits import mirror_half_map
+    >>> mirror_half_map(np.array([[np.nan, np.nan], [1.0, 2.0]])).tolist()
+    [[2.0, 1.0], [1.0, 2.0]]
+    """
+    values = np.asarray(values, float)
+    return np.where(np.isnan(values), values[::-1, ::-1], values)
 
 
 def radial_curves(limits, grid, *, bin_width=None):

@@ -287,9 +287,11 @@ class DetectionModel:
         return out
 
     def row_projections(self, noise_rows, *, chunk=512, also=()):
-        """Whitened noise rows projected on the unit signatures at every valid position.
+        """Whitened noise rows projected on the unit signatures (half the grid).
 
-        Returns ``(rows_idx, Z)``: the flat indices of the valid positions and
+        A signature at ``-pos`` is minus that at ``pos``, so on a symmetric grid
+        only the positions of `half_positions` are projected (every valid one
+        otherwise). Returns ``(rows_idx, Z)``: the flat indices of those positions and
         ``Z`` of shape (npos, nrow, q) with ``Z[k, r, i] = u_i(pos_k) . R_w[r, i]``,
         so that ``Z[k]^T Z[k]`` is the covariance of ``(z_1 ... z_q)`` at position
         ``k`` (channel correlations included). The row sets in *also* (the
@@ -302,7 +304,7 @@ class DetectionModel:
         cache = self.__dict__.setdefault("_row_projections", {})
         todo = [j for j, k in enumerate(keys) if k not in cache]
         if todo:
-            rows = np.flatnonzero(self.grid.valid.ravel())
+            rows = self.half_positions()[0]
             q = len(self.wavelengths)
             outs = {j: np.empty((len(rows), len(sets[j]), q)) for j in todo}
             for a in range(0, len(rows), chunk):

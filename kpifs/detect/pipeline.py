@@ -17,7 +17,8 @@ from .sky import (add_sky_columns, data_angles, pa_bins, rotated_binary_kernel_p
                   search_frame, sky_search_columns)
 from .skyfit import refit_on_sky
 from .limits import (energy_lambda, limit_binary, limit_binary_correlated_forms, limit_energy,
-                     limit_energy_correlated, limit_np, radial_curves, spectrum_shape)
+                     limit_energy_correlated, limit_np, mirror_half_map, radial_curves,
+                     spectrum_shape)
 from .maps import DetectionModel
 from .null import check_draws, energy_null, scale_block_rows, search_null
 from .stats import TESTS, check_probability, energy_threshold
@@ -293,6 +294,9 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
     if form == "NP":
         limits["NP"] = (threshold - stats.norm.isf(pd)) / np.sqrt(
             np.tensordot(a ** 2, model.norm2, axes=(0, 0)))
+    if corr is not None and model.half_positions()[1]:
+        for f in ("E", "B", "B-paper"):
+            limits[f] = mirror_half_map(limits[f])
     limits = {k: np.where(valid, v * np.sqrt(scale), np.nan) for k, v in limits.items()}
     curves = radial_curves(limits, grid)
     meta = {"test": test, "pfa": pfa, "pd": pd, "n_draws": n_draws, "seed": seed,
@@ -327,7 +331,8 @@ def _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands, th
 
 def _correlated_inputs(model, rows, a, energy, te, seed):
     """Per-position z covariance (for the binary limit) and the energy limit, both
-    with the channel correlations carried by the covariance rows."""
+    with the channel correlations carried by the covariance rows; on a symmetric grid
+    for half the positions (NaN elsewhere: see `~kpifs.detect.limits.mirror_half_map`)."""
     shape = model.grid.shape
     q = len(model.wavelengths)
     idx, z = model.row_projections(rows)                              # (npos, nrow, q)
