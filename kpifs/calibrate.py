@@ -274,15 +274,11 @@ def _result(target, calibrators, d, cov, jcov, rows, extra, n_cal):
                           stacklevel=2)
     log.info("calibrated %s (%d frames) with %d calibrator(s)", _name(target), n_t,
              len(calibrators))
-    out = KernelPhaseData(d[None], target.wavelengths, target.pixscale,
-                          target.kernel_model, window=target.window, covariance=cov,
-                          joint_covariance=jcov,
-                          covariance_rows=rows, header=target.header, detpa=detpa,
-                          bandwidth=target.bandwidth, meta=meta)
-    out.block_rows = block_rows(target, calibrators)
-    if out.block_rows is not None:
-        meta["null_blocks"] = len(out.block_rows)
-    return out
+    return KernelPhaseData(d[None], target.wavelengths, target.pixscale,
+                           target.kernel_model, window=target.window, covariance=cov,
+                           joint_covariance=jcov, covariance_rows=rows,
+                           block_rows=block_rows(target, calibrators), header=target.header,
+                           detpa=detpa, bandwidth=target.bandwidth, meta=meta)
 
 
 def _smear_limit(kpd, span):

@@ -22,7 +22,7 @@ from ._registry import io_methods, register
 from ._utils import to_quantity
 from .exceptions import KpifsError
 from .io.kpfits import is_kpfits, read_kpfits_parts, write_kpfits
-from .io.products import is_detection, read_detection_parts, write_detection
+from .io.products import NULL_CARDS, is_detection, read_detection_parts, write_detection
 from .io.wavelengths import check_wavelengths
 from .kernel import KernelModel
 from .window import ExtractionWindow
@@ -405,9 +405,7 @@ def _read_detection(path):
         meta.update(chi2_red=hdr["CHI2RED"], noise_scale=hdr.get("NOISESC", 1.0))
     if "NULLMETH" in hdr:
         meta["null"] = {"method": hdr["NULLMETH"], "threshold": hdr["THRESH"],
-                        **{key: hdr[name] for key, name in (
-                            ("threshold_gaussian", "THRGAUS"), ("threshold_empirical", "THREMP"),
-                            ("n_blocks", "NBLOCKS"), ("empirical_draws", "NEMPDRAW"))
+                        **{key: hdr[name] for key, (name, _) in NULL_CARDS.items()
                            if name in hdr}}
     return DetectionResult(grid=grid, test=hdr["TEST"], pfa=hdr["PFA"], pd=hdr["PD"],
                            statistic=stat, pfa_local=images["PFA_LOCAL"],

@@ -20,7 +20,7 @@ between parts of the sequence, with their own non-Gaussian shape, drifts
 longer than a frame and correlations between channels. There are only
 ``2**(nblock - 1)`` distinct draws (a global sign changes nothing on a
 symmetric grid); when *n_draws* reaches that number they are enumerated, an
-exact randomisation law. `combine_nulls` gives the more conservative of two
+exact randomisation law. `CombinedNull` gives the more conservative of two
 nulls at every level, as `~kpifs.detect.detect` does by default.
 """
 import hashlib
@@ -33,7 +33,7 @@ from .._utils import progress as progress_bar
 from ..exceptions import KpifsError
 from .stats import check_probability
 
-__all__ = ["NullCalibration", "CombinedNull", "combine_nulls", "search_null", "scale_block_rows",
+__all__ = ["NullCalibration", "CombinedNull", "search_null", "scale_block_rows",
            "energy_null",
            "check_draws", "MIN_DRAWS", "COEFFICIENTS", "NULL_METHODS", "EMPIRICAL_DRAWS"]
 
@@ -81,6 +81,11 @@ def check_draws(n_draws):
                          f"use at least {MIN_DRAWS} (--draws); below 10 / P_FA draws the "
                          f"null's tail is extrapolated")
     return n
+
+
+def _via_rows(rows, n_kp):
+    """Whether draws go through the rows' projections (fewer rows than kernel phases)."""
+    return rows is not None and len(rows) < n_kp
 
 
 class NullCalibration:
@@ -190,7 +195,7 @@ class NullCalibration:
             mfw = model._mf_weights(self.spectrum).reshape(q, -1)[:, positions]
             mfw = mfw.astype(np.float32)
         # z = eps @ unit^T with eps = coef @ rows: project the rows once when they are few
-        via_rows = rows is not None and len(rows) < p
+        via_rows = _via_rows(rows, p)
         if via_rows:
             # the rows' projections on every valid position (the limits use them too)
             valid, z = model.row_projections(rows)                        # (nvalid, nrow, q)
@@ -314,8 +319,9 @@ class CombinedNull:
 
     `threshold` is the largest of their thresholds and `pfa` the largest of
     their false-alarm probabilities, so that a false alarm is controlled when
-    any one of them describes the data. ``noise_rows`` (which fits use for
-    their errors) and the form are those of the first. Built by `combine_nulls`.
+    any one of them describes the data. *noise_rows* are the rows fits take
+    their errors from (default: the first null's); the form is the first's.
+    `search_null` builds it.
 
     Examples
     --------
@@ -334,10 +340,13 @@ class CombinedNull:
     True
     """
 
-    def __init__(self, nulls):
+    def __init__(self, nulls, *, noise_rows=None):
         self.nulls = list(nulls)
+        if not self.nulls:
+            raise KpifsError("no null to combine")
         first = self.nulls[0]
-        self.form, self.noise_rows, self.model = first.form, first.noise_rows, first.model
+        self.form, self.model = first.form, first.model
+        self.noise_rows = first.noise_rows if noise_rows is None else noise_rows
 
     def threshold(self, pfa):
         """Largest threshold of the nulls at global false-alarm *pfa*."""
@@ -352,32 +361,6 @@ class CombinedNull:
         best = np.take_along_axis(p, k[None], 0)[0]
         tail = np.take_along_axis(np.stack([o[1] for o in out]), k[None], 0)[0]
         return (best, tail) if return_method else best
-
-
-def combine_nulls(*nulls):
-    """A `CombinedNull` of the given nulls (None entries skipped); one null is returned
-    as it is.
-
-    Examples
-    --------
-    >>> import numpy as np, astropy.units as u
-    >>> from kpifs import KernelModel, make_pupil
-    >>> from kpifs.data import DetectionGrid
-    >>> from kpifs.detect import DetectionModel, NullCalibration
-    >>> from kpifs.detect.null import combine_nulls
-    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
-    >>> grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
-    >>> dm = DetectionModel(km, [1.6] * u.um, np.eye(km.n_kp)[None], grid)
-    >>> a = NullCalibration(dm, n_draws=2000, seed=1)
-    >>> b = NullCalibration(dm, n_draws=2000, seed=1, noise_rows=2 * np.eye(km.n_kp)[:, None])
-    >>> both = combine_nulls(a, b)
-    >>> both.threshold(0.01) == b.threshold(0.01) > a.threshold(0.01)
-    True
-    """
-    nulls = [n for n in nulls if n is not None]
-    if not nulls:
-        raise KpifsError("no null to combine")
-    return nulls[0] if len(nulls) == 1 else CombinedNull(nulls)
 
 
 def scale_block_rows(blocks, rank):
@@ -411,16 +394,17 @@ def scale_block_rows(blocks, rank):
 
 
 def search_null(model, *, form, noise_rows, block_rows=None, method="auto", n_draws=30000,
-                seed=0, spectrum=None, progress=False):
+                seed=0, spectrum=None, progress=False, source="data"):
     """The null a search judges its maxima by, and how it was made.
 
     *method* ``'gaussian'``: the Monte-Carlo null of the error model
     (*noise_rows*); ``'empirical'``: the sign-flip null of *block_rows* (every
     sign pattern when there are at most `EMPIRICAL_DRAWS`, else that many random
-    ones, fewer if *n_draws* is); ``'both'``: the more conservative of the two at
-    every level (`combine_nulls`); ``'auto'``: 'both' when there are enough
-    block rows, else 'gaussian'. Returns ``(null, parts)``, *parts* a dict of
-    the nulls by name.
+    ones); ``'both'``: the more conservative of the two at every level
+    (`CombinedNull`); ``'auto'``: 'both' when there are enough block rows, else
+    'gaussian'. Fits take their errors from *noise_rows* whichever the method.
+    Returns ``(null, parts)``, *parts* a dict of the nulls by name; *source*
+    names the data in errors.
 
     Examples
     --------
@@ -437,6 +421,8 @@ def search_null(model, *, form, noise_rows, block_rows=None, method="auto", n_dr
     ...                           n_draws=2000)
     >>> sorted(parts), parts["empirical"].n_draws        # 2**11 sign patterns, all of them
     (['empirical', 'gaussian'], 2048)
+    >>> null.threshold(0.01) == max(p.threshold(0.01) for p in parts.values())
+    True
     """
     if method not in NULL_METHODS:
         raise KpifsError(f"unknown null {method!r}: use one of {NULL_METHODS}")
@@ -444,26 +430,24 @@ def search_null(model, *, form, noise_rows, block_rows=None, method="auto", n_dr
     if method == "auto":
         method = "both" if usable else "gaussian"
     if method != "gaussian" and not usable:
-        raise KpifsError(f"the {method!r} null needs the time blocks of the stars' frames "
-                         f"(KP-BLKROWS, written by calibrate from >= 2 frames per star and "
-                         f"{MIN_SIGN_ROWS} blocks in all): use null='gaussian'")
+        raise KpifsError(f"{source}: no time blocks of the stars' frames (KP-BLKROWS, written "
+                         f"when kpifs calibrates frames; at least {MIN_SIGN_ROWS} in all): the "
+                         f"{method!r} null cannot be drawn; use null='gaussian' (--null gaussian)")
+    if method == "gaussian":
+        null = NullCalibration(model, form=form, n_draws=n_draws, seed=seed, spectrum=spectrum,
+                               noise_rows=noise_rows, progress=progress)
+        return null, {"gaussian": null}
     parts = {}
-    if method in ("gaussian", "both"):
+    if method == "both":
+        if _via_rows(noise_rows, model.kernel_model.n_kp):
+            model.row_projections(noise_rows, also=(block_rows,))     # one pass for both
         parts["gaussian"] = NullCalibration(model, form=form, n_draws=n_draws, seed=seed,
                                             spectrum=spectrum, noise_rows=noise_rows,
                                             progress=progress)
-    if method in ("empirical", "both"):
-        # the exact law (every sign pattern) whenever it is affordable
-        n_sign = EMPIRICAL_DRAWS if 2 ** (len(block_rows) - 1) <= EMPIRICAL_DRAWS else \
-            max(MIN_DRAWS, min(n_draws, EMPIRICAL_DRAWS))
-        parts["empirical"] = NullCalibration(
-            model, form=form, n_draws=n_sign, seed=seed, spectrum=spectrum,
-            noise_rows=block_rows, coefficients="sign")
-    null = combine_nulls(*parts.values())
-    if method == "empirical":       # fits still take their errors from the error model
-        null = CombinedNull([parts["empirical"]])
-        null.noise_rows = noise_rows
-    return null, parts
+    parts["empirical"] = NullCalibration(model, form=form, n_draws=EMPIRICAL_DRAWS, seed=seed,
+                                         spectrum=spectrum, noise_rows=block_rows,
+                                         coefficients="sign")
+    return CombinedNull(list(parts.values()), noise_rows=noise_rows), parts
 
 
 def energy_null(rows, n_draws, seed):

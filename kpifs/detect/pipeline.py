@@ -204,18 +204,11 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
     if kpd.block_rows is not None:       # the empirical null: its scale from the error model
         blocks, block_energy = scale_block_rows(whiten(kpd.block_rows, w), rank)
     null_method = null
-    if null in ("empirical", "both") and blocks is None:
-        raise KpifsError(f"{kpd.name}: no time blocks of the stars' frames (KP-BLKROWS, written "
-                         f"when kpifs calibrates frames): the {null!r} null cannot be drawn; "
-                         f"use null='gaussian' (--null gaussian)")
-    if rows is not None and blocks is not None and null != "gaussian" and \
-            len(rows) < kpd.n_kp:
-        model.row_projections(rows, also=(blocks,))     # both nulls' rows, one pass
 
     def make_null(f):
         return search_null(model, form=f, noise_rows=rows, block_rows=blocks, method=null_method,
                            n_draws=n_draws, seed=seed, spectrum=spectrum if f == "NP" else None,
-                           progress=progress)
+                           progress=progress, source=kpd.name)
     null, parts = make_null(form)
     threshold = null.threshold(pfa)
     null_info = {"method": "+".join(parts), "threshold": threshold,

@@ -71,10 +71,7 @@ def detection_hdulist(result, *, header=None, inputs=()):
     nul = result.meta.get("null") or {}
     if nul:
         hdr["NULLMETH"] = (nul["method"], "null of the grid maximum (THRESH: the larger)")
-        for key, name, comment in (("threshold_gaussian", "THRGAUS", "Gaussian Monte-Carlo"),
-                                   ("threshold_empirical", "THREMP", "sign flips of time blocks"),
-                                   ("n_blocks", "NBLOCKS", "time blocks of the stars' frames"),
-                                   ("empirical_draws", "NEMPDRAW", "sign-flip draws")):
+        for key, (name, comment) in NULL_CARDS.items():
             if nul.get(key) is not None:
                 v = nul[key]
                 hdr[name] = (round(float(v), 6) if isinstance(v, float) else int(v),
@@ -126,13 +123,19 @@ def detection_hdulist(result, *, header=None, inputs=()):
     return fits.HDUList(hdus)
 
 
+#: ``result.meta['null']`` entries written as cards: key -> (card, comment).
+NULL_CARDS = {"threshold_gaussian": ("THRGAUS", "Gaussian Monte-Carlo"),
+              "threshold_empirical": ("THREMP", "sign flips of time blocks"),
+              "n_blocks": ("NBLOCKS", "time blocks of the stars' frames"),
+              "empirical_draws": ("NEMPDRAW", "sign-flip draws")}
+
 # cards the products write themselves: an inherited copy is dropped, so that the
 # products' own cards come in one order however often a result is written
 _PRODUCT_CARDS = {"KPIFSVER", "CONTENT", "TEST", "MAPTEST", "PFA", "PD", "THRESH", "NDRAWS",
                   "PFAFLOOR", "MCSEED", "NCAND", "ESTAT", "EDOF", "EPFA", "ETHRESH", "GRIDFRM",
                   "GRIDMIN", "GRIDMAX",
-                  "NULLCHAN", "CALIB", "CHI2RED", "NOISESC", "DETPA", "NULLMETH", "THRGAUS",
-                  "THREMP", "NBLOCKS", "NEMPDRAW"}
+                  "NULLCHAN", "CALIB", "CHI2RED", "NOISESC", "DETPA", "NULLMETH",
+                  *(name for name, _ in NULL_CARDS.values())}
 _PRODUCT_PREFIXES = ("WAVE", "SPEC", "KPCAL", "KPIN")
 
 
