@@ -35,7 +35,7 @@ DEMO_SCENE = dict(shape=(64, 64), exptime=1.0 * u.s, npup=96,
 DEMO_STEP = 0.8 * u.m
 
 
-def run_demo(outdir, *, frames=200, seed=1, overwrite=False, progress=True, draws=20000):
+def run_demo(outdir, *, frames=200, seed=1, overwrite=False, progress=True, draws=5000):
     """Run the demonstration; returns the `~kpifs.data.DetectionResult`.
 
     Writes in *outdir*: ``charis/target/*_cube.fits`` and

@@ -130,7 +130,7 @@ def _detected(result, x, y, radius):
 
 def injection_limits(target, calibrators, model, *, wavelengths, pixscale, window,
                      separations, contrasts, n_angles=6, pfa=1e-3, pd=0.5, seed=0,
-                     n_draws=10000, progress=False):
+                     n_draws=5000, progress=False):
     """Empirical contrast curve from companions injected into the target's frames.
 
     Parameters

@@ -132,7 +132,7 @@ class DetectOptions:
     min_sep: object = None
     grid_step: object = None
     spectrum: object = None
-    draws: int = 30000
+    draws: int = 5000
     seed: int = 0
     shrinkage: str = "auto"
     fit: bool = True

@@ -142,7 +142,7 @@ def _extraction_options(p):
                    help="store the frames' covariance even without a calibrator")
 
 
-def _search_options(p, *, grid_step_aliases=("--grid-step",), draws=30000):
+def _search_options(p, *, grid_step_aliases=("--grid-step",), draws=5000):
     g = p.add_argument_group("search")
     g.add_argument("--test", default="B", choices=TESTS,
                    help="B: GLR sum max(z,0)^2 (default); B-paper: sum max(z,0); NP: matched "
@@ -258,7 +258,7 @@ def build_parser():
     p.add_argument("--angles", type=int, default=6,
                    help="with --curve: position angles per step (default 6)")
     p.add_argument("--pfa", type=float, default=1e-3, help="global P_FA (default 1e-3)")
-    p.add_argument("--draws", type=int, default=10000, help="Monte-Carlo draws (default 10000)")
+    p.add_argument("--draws", type=int, default=5000, help="Monte-Carlo draws (default 5000)")
     p.add_argument("--seed", type=int, default=0, help="seed of the angles (default 0)")
     p.add_argument("--plots", metavar="DIR", help="with --curve: write the figure there")
     _cube_options(p)
@@ -333,8 +333,8 @@ def build_parser():
     p = command("demo", "run the whole chain on simulated data",
                 "example:\n  kpifs demo -o demo_output")
     p.add_argument("--frames", type=int, default=200, help="exposures per star (default 200)")
-    p.add_argument("--draws", type=int, default=20000,
-                   help="Monte-Carlo draws calibrating the search (default 20000)")
+    p.add_argument("--draws", type=int, default=5000,
+                   help="Monte-Carlo draws calibrating the search (default 5000)")
     p.add_argument("--seed", type=int, default=1)
     _output(p, "output directory", required=False, default="kpifs_demo")
     return parser

@@ -8,8 +8,9 @@ is the mean contrast over channels) the whitened signal at a position is
 - energy detector: ``c_lim = sqrt(lambda) / ||s_a||`` with ``lambda`` solving
   ``ncx2.sf(xi, dof, lambda) = P_D``;
 - binary test: the contrast at which ``P(sum_i max(z_i, 0)^k > xi) = P_D`` with
-  ``z_i ~ N(c a_i ||s_i||, 1)`` and ``xi`` the (grid-search) threshold, found by
-  bisection with a fixed set of Monte-Carlo draws.
+  ``z_i ~ N(c a_i ||s_i||, 1)`` and ``xi`` the (grid-search) threshold: each of a
+  fixed set of Latin-hypercube draws is solved for the contrast at which it
+  crosses ``xi``, and the limit is their ``P_D`` quantile.
 
 When the data carry covariance rows (calibrated with kpifs), the binary and
 energy limits are computed with the channels' correlations (per-position
@@ -27,10 +28,10 @@ from astropy.table import QTable
 
 from .._lazy import lazy_module
 from ..exceptions import KpifsError
+from ._laws import chi2_cdf, chi2_ppf, chi2_sf, norm_isf, norm_sf
 from .stats import check_probability, energy_threshold
 
-optimize = lazy_module("scipy.optimize")
-stats = lazy_module("scipy.stats")
+special = lazy_module("scipy.special")
 
 __all__ = ["spectrum_shape", "limit_np", "energy_lambda", "limit_energy", "limit_binary",
            "limit_binary_correlated_forms", "limit_energy_correlated", "mirror_half_map",
@@ -75,7 +76,7 @@ def limit_np(norm2, pfa, pd, spectrum=None):
     pd = check_probability(pd, "P_D")
     a = spectrum_shape(spectrum, len(norm2))
     with np.errstate(divide="ignore"):
-        return (stats.norm.isf(pfa) - stats.norm.isf(pd)) / _norm_a(norm2, a)
+        return (norm_isf(pfa) - norm_isf(pd)) / _norm_a(norm2, a)
 
 
 def energy_lambda(pfa, pd, dof):
@@ -90,12 +91,9 @@ def energy_lambda(pfa, pd, dof):
     pfa = check_probability(pfa, "P_FA")
     pd = check_probability(pd, "P_D")
     xi = energy_threshold(pfa, dof)
-    if stats.chi2.sf(xi, dof) >= pd:
+    if chi2_sf(xi, dof) >= pd:
         return 0.0
-    hi = 1.0
-    while stats.ncx2.sf(xi, dof, hi) < pd:
-        hi *= 2
-    return optimize.brentq(lambda lam: stats.ncx2.sf(xi, dof, lam) - pd, 0, hi, xtol=1e-10)
+    return float(special.chndtrinc(xi, dof, 1 - pd))      # the inverse of chndtr in lambda
 
 
 def limit_energy(norm2, pfa, pd, dof, spectrum=None):
@@ -117,10 +115,11 @@ def limit_binary(norm2, threshold, pd, *, form="B", spectrum=None, n_draws=4096,
                  correlation=None):
     """Binary-test limit map for a detection *threshold* on the (local) statistic.
 
-    Solves ``P(T_B > threshold) = P_D`` for the contrast at every position by
-    bisection. Up to 8 channels ``P_D`` comes from one fixed set of
-    scrambled-Sobol normal draws (common random numbers make the limit a smooth
-    function of position; quasi-random draws make ``P_D`` accurate to ~1e-3);
+    Solves ``P(T_B > threshold) = P_D`` for the contrast at every position. Up
+    to 8 channels ``P_D`` comes from one fixed set of Latin-hypercube normal
+    draws (common random numbers make the limit a smooth function of position),
+    each solved exactly for the contrast at which it crosses the threshold: the
+    limit is their ``P_D`` quantile, within 0.4 % (rms) of that of 65 536 draws;
     with more channels the statistic, a sum of many independent terms, is
     taken as Gaussian with its exact mean and variance (truncated-normal
     moments of ``max(z_i, 0)``). With *correlation* (an array (ny, nx, q, q),
@@ -143,76 +142,34 @@ def limit_binary(norm2, threshold, pd, *, form="B", spectrum=None, n_draws=4096,
     if correlation is not None:
         return _limit_binary_correlated(m, correlation.reshape(-1, q, q), [threshold], pd,
                                         [power], n_draws, seed)[0].reshape(shape)
+    good = np.all(np.isfinite(m), axis=1) & (m.sum(axis=1) > 0)
+    out = np.full(len(m), np.nan)
     if q > 8:
-        def pdet(c, idx):
-            mean, var = _clipped_moments(c[:, None] * m[idx], power)
-            return stats.norm.sf((threshold - mean.sum(1)) / np.sqrt(var.sum(1)))
-    else:
-        z = _qmc_normal(n_draws, q, seed)
-
-        def pdet(c, idx):
-            out = np.empty(len(c))
-            for s in range(0, len(c), 256):
-                mu = c[s:s + 256, None] * m[idx[s:s + 256]]           # (n, q)
-                t = np.sum(np.clip(z[None] + mu[:, None, :], 0, None) ** power, axis=2)
-                out[s:s + 256] = np.mean(t > threshold, axis=1)
-            return out
-
-    total = m.sum(axis=1)
-    ok = np.all(np.isfinite(m), axis=1) & (total > 0)
-    hi = np.where(ok, (np.sqrt(threshold) + 6) / np.where(ok, total / np.sqrt(q), 1), np.nan)
-    return _bisect(pdet, pd, hi).reshape(shape)
+        out[good] = _moment_guess(m[good], np.ones((good.sum(), q)), threshold, power, pd)
+        return out.reshape(shape)
+    z = _lhs_normal(n_draws, q, seed).astype(np.float32).T                 # (q, N)
+    todo = np.flatnonzero(good)
+    for s in range(0, len(todo), 64):
+        sl = todo[s:s + 64]
+        start = _moment_guess(m[sl], np.ones((len(sl), q)), threshold, power, pd)
+        c = _crossings(np.broadcast_to(z, (len(sl),) + z.shape), m[sl], threshold, power,
+                       start)
+        out[sl] = _order_quantile(c, pd)
+    return out.reshape(shape)
 
 
-def _qmc_normal(n, d, seed):
-    from scipy.stats import qmc
-    n_pow2 = 1 << int(np.ceil(np.log2(max(n, 2))))
-    u01 = qmc.Sobol(d=d, scramble=True, seed=seed).random(n_pow2)
-    return stats.norm.ppf(np.clip(u01, 1e-12, 1 - 1e-12))
+def _lhs_normal(n, d, seed):
+    """*n* standard normal draws in *d* dimensions by Latin hypercube sampling.
 
-
-def _bisect(pdet, pd, hi, n_iter=40, rtol=1e-3):
-    """Smallest c with pdet(c, idx) >= pd, for every position at once.
-
-    A bracketing root finder on ``pdet(c) - pd`` (monotone in c): a regula-falsi
-    step while the bracket's ends alternate, a bisection step when the same end
-    has moved twice in a row (the safeguard of Illinois-type methods, needed
-    here also because ``pdet`` from a finite set of draws is a fine staircase).
-    On the smooth curves common random numbers give, each position needs about
-    half the evaluations of a plain bisection. Positions stop as soon as their
-    bracket is within *rtol*.
+    Every dimension has exactly one draw at the middle of each of *n*
+    equiprobable strata (in an independent random order): its marginal law is
+    reproduced to ``1 / n`` and the variance of any sum of one-dimensional
+    functions, which the binary statistic nearly is, falls far below plain
+    Monte Carlo's (McKay, Beckman & Conover 1979; Stein 1987).
     """
-    ok = np.isfinite(hi) & (hi > 0)
-    n = len(hi)
-    lo = np.zeros(n)
-    hi = np.where(ok, hi, np.nan)
-    f_lo = np.full(n, -pd)                 # bounds on pdet - pd at the ends
-    f_hi = np.full(n, 1.0 - pd)
-    last = np.zeros(n, int)                # end moved by the previous step: +1 hi, -1 lo
-    again = np.ones(n, bool)               # the same end moved twice: bisect
-    active = np.flatnonzero(ok)
-    for _ in range(n_iter):
-        if not len(active):
-            break
-        a, b, fa, fb = lo[active], hi[active], f_lo[active], f_hi[active]
-        denom = fb - fa
-        falsi = b - fb * (b - a) / np.where(denom > 0, denom, 1.0)
-        c = np.where(again[active] | (denom <= 0), 0.5 * (a + b),
-                     np.clip(falsi, a + 0.05 * (b - a), b - 0.05 * (b - a)))
-        fc = pdet(c, active) - pd
-        up = fc >= 0
-        moved = np.where(up, 1, -1)
-        again[active] = moved == last[active]
-        last[active] = moved
-        hi[active] = np.where(up, c, b)
-        f_hi[active] = np.where(up, fc, fb)
-        lo[active] = np.where(up, a, c)
-        f_lo[active] = np.where(up, fa, fc)
-        done = hi[active] - lo[active] <= rtol * hi[active]
-        active = active[~done]
-    out = np.full(n, np.nan)
-    out[ok] = 0.5 * (lo[ok] + hi[ok])
-    return out
+    rng = np.random.default_rng(seed)
+    strata = rng.permuted(np.tile(np.arange(n), (d, 1)), axis=1).T
+    return special.ndtri((strata + 0.5) / n)
 
 
 def limit_binary_correlated_forms(norm2, thresholds, pd, *, spectrum=None, n_draws=4096,
@@ -247,34 +204,101 @@ def _limit_binary_correlated(m, corr, thresholds, pd, powers, n_draws, seed):
     """Binary limits with channel correlations: z = L eps at each position.
 
     Positions are taken in chunks; each chunk's correlated draws are built once
-    and reused by every step of the root finding, for every (threshold, power).
+    and serve every (threshold, power) through their crossing contrasts
+    (`_crossings`).
     """
     npos, q = m.shape
-    eps = _qmc_normal(min(n_draws, 1024), q, seed)                      # (N, q)
+    eps = _lhs_normal(min(n_draws, 1024), q, seed)                      # (N, q)
     good = np.all(np.isfinite(corr.reshape(npos, -1)), axis=1) & np.all(np.isfinite(m), axis=1)
+    good &= m.sum(axis=1) > 0
     outs = [np.full(npos, np.nan) for _ in thresholds]
-    total = np.where(good, m.sum(axis=1), np.nan)
     jitter = 1e-9 * np.eye(q)
     todo = np.flatnonzero(good)
-    for a in range(0, len(todo), 128):
-        sl = todo[a:a + 128]
+    for a in range(0, len(todo), 64):
+        sl = todo[a:a + 64]
         # single precision: P_D from ~1e3 draws does not need more
-        z = np.einsum("kij,nj->kni", np.linalg.cholesky(corr[sl] + jitter),
-                      eps).astype(np.float32)
-        msl = m[sl].astype(np.float32)
-
+        z = np.einsum("kij,nj->kin", np.linalg.cholesky(corr[sl] + jitter),
+                      eps).astype(np.float32)                            # (k, q, N)
+        sigma = np.sqrt(np.einsum("kii->ki", corr[sl]))
         for out, threshold, power in zip(outs, thresholds, powers):
-            def pdet(c, idx, z=z, msl=msl, threshold=threshold, power=power):
-                t = z[idx] + (c.astype(np.float32)[:, None] * msl[idx])[:, None, :]
-                np.maximum(t, 0, out=t)
-                if power == 2:
-                    t *= t
-                return np.mean(t.sum(axis=2) > threshold, axis=1)
-
-            tot = np.where(total[sl] > 0, total[sl], np.nan)
-            hi = (np.sqrt(threshold) * np.sqrt(q) + 6 * q) / tot
-            out[sl] = _bisect(pdet, pd, hi)
+            start = _moment_guess(m[sl], sigma, threshold, power, pd)
+            out[sl] = _order_quantile(_crossings(z, m[sl], threshold, power, start), pd)
     return outs
+
+
+def _moment_guess(m, sigma, threshold, power, pd):
+    """Contrast at which the binary statistic, taken as Gaussian, is above *threshold*
+    with probability *pd*: its mean minus ``Phi^-1(pd)`` standard deviations reaches
+    the threshold, channels independent ``N(c m, sigma^2)`` (exact moments of
+    ``max(z, 0)^power``). The limit for many channels, and where the exact
+    per-draw solution starts otherwise."""
+    k = -special.ndtri(pd)
+
+    def excess(c):
+        mean, var = _clipped_moments(c[:, None] * m / sigma, power)
+        spread = np.sqrt(np.sum(sigma ** (2 * power) * var, 1))
+        return np.sum(sigma ** power * mean, 1) + k * spread - threshold
+    lo, hi = np.zeros(len(m)), np.ones(len(m)) / np.maximum(m.max(axis=1), 1e-300)
+    for _ in range(60):                       # bracket, then bisect: cheap (k, q) arrays
+        grow = excess(hi) < 0
+        if not grow.any():
+            break
+        lo, hi = np.where(grow, hi, lo), np.where(grow, 2 * hi, hi)
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        up = excess(mid) >= 0
+        lo, hi = np.where(up, lo, mid), np.where(up, mid, hi)
+    return hi
+
+
+def _crossings(z, m, threshold, power, start, n_iter=12, rtol=1e-5):
+    """Per draw, the contrast at which the binary statistic crosses *threshold*.
+
+    For draws *z* (k, q, N) and the signal per unit contrast *m* (k, q) (``m >= 0``),
+    ``T(c) = sum_i max(z_i + c m_i, 0)^power`` is convex and non-decreasing in
+    ``c``, so Newton's method from *start* (k,) lands right of the crossing in one
+    step and then falls monotonically onto it (at most a few steps where ``T`` is
+    piecewise polynomial). Returns (k, N), 0 for draws above the threshold
+    without a companion. ``P_D(c)`` is the fraction of draws crossing below ``c``
+    (`_order_quantile`): no root finding on a Monte-Carlo ``P_D``.
+    """
+    k, q, n = z.shape
+    m32 = m.astype(np.float32)
+    c = np.repeat(np.asarray(start, np.float32)[:, None], n, axis=1)
+    u = np.empty_like(z)
+    for _ in range(n_iter):
+        np.multiply(m32[:, :, None], c[:, None, :], out=u)
+        u += z
+        np.maximum(u, 0, out=u)
+        if power == 2:
+            f = np.einsum("kqn,kqn->kn", u, u) - threshold
+            g = 2 * np.matmul(m32[:, None, :], u)[:, 0]
+        else:
+            f = u.sum(axis=1) - threshold
+            g = np.matmul(m32[:, None, :], (u > 0).astype(np.float32))[:, 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            new = np.maximum(c - f / g, 0)
+            off = g <= 0
+            if off.any():
+                # every channel off: go to where the first channel alone would reach
+                # the threshold, which is right of the crossing (T is at least that term)
+                alone = np.where(m32[:, :, None] > 0,
+                                 (threshold ** (1 / power) - z) / m32[:, :, None], np.inf)
+                new = np.where(off, np.maximum(alone.min(axis=1), c), new)
+        done = np.all(np.abs(new - c) <= rtol * np.maximum(new, 1e-30))
+        c = new
+        if done:
+            break
+    return c
+
+
+def _order_quantile(crossings, pd):
+    """Smallest contrast detected in a fraction *pd* of the draws (axis -1): an order
+    statistic of their crossing contrasts (NaN where that is never reached)."""
+    n = crossings.shape[-1]
+    k = min(n - 1, max(0, int(np.ceil(pd * n)) - 1))
+    out = np.partition(crossings, k, axis=-1)[..., k]
+    return np.where(np.isfinite(out), out, np.nan)
 
 
 def limit_energy_correlated(signal_proj, signal_norm2, noise_energy, threshold, pd):
@@ -300,24 +324,23 @@ def limit_energy_correlated(signal_proj, signal_norm2, noise_energy, threshold, 
     """
     pd = check_probability(pd, "P_D")
 
-    proj32 = np.asarray(signal_proj, np.float32)
-    # T_E(c) > thr  <=>  2 c n.x > thr - ||n||^2 - c^2 ||x||^2: one (N, npos) product a call
-    slack = (threshold - np.asarray(noise_energy, float)).astype(np.float32)[:, None]
-
-    def pdet(c, idx):
-        c32 = c.astype(np.float32)
-        t = proj32[:, idx] * (2 * c32)[None, :]
-        t += (c32 ** 2 * signal_norm2[idx].astype(np.float32))[None, :]
-        return np.mean(t > slack, axis=0)
-
-    hi = 2 * (np.sqrt(threshold) + 10) / np.sqrt(np.where(signal_norm2 > 0, signal_norm2,
-                                                          np.nan))
-    return _bisect(pdet, pd, hi)
+    # T_E(c) = thr is a quadratic in c per draw: its larger root is where that draw
+    # crosses (the draws already above the threshold alone, a fraction P_FA, at 0)
+    x2 = np.asarray(signal_norm2, float)
+    slack = (threshold - np.asarray(noise_energy, float))[:, None]
+    out = np.empty(len(x2))
+    for a in range(0, len(x2), 256):
+        proj = np.asarray(signal_proj[:, a:a + 256], float)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            root = (np.sqrt(np.maximum(proj * proj + x2[a:a + 256] * slack, 0)) - proj) \
+                / x2[a:a + 256]
+        out[a:a + 256] = _order_quantile(np.where(slack <= 0, 0.0, np.maximum(root, 0)).T, pd)
+    return np.where(x2 > 0, out, np.nan)
 
 
 def _clipped_moments(mu, power):
     """Mean and variance of ``max(z, 0) ** power`` for ``z ~ N(mu, 1)`` (power 1 or 2)."""
-    cdf, pdf = stats.norm.cdf(mu), stats.norm.pdf(mu)
+    cdf, pdf = special.ndtr(mu), np.exp(-0.5 * mu ** 2) / np.sqrt(2 * np.pi)
     m1 = mu * cdf + pdf
     m2 = (mu ** 2 + 1) * cdf + mu * pdf
     if power == 1:
@@ -397,7 +420,7 @@ def pfa_to_sigma(pfa):
     >>> round(float(pfa_to_sigma(2.8665e-7)), 3)
     5.0
     """
-    return stats.norm.isf(pfa)
+    return norm_isf(pfa)
 
 
 def sigma_to_pfa(n_sigma):
@@ -409,7 +432,7 @@ def sigma_to_pfa(n_sigma):
     >>> float(f"{sigma_to_pfa(5):.4e}")
     2.8665e-07
     """
-    return stats.norm.sf(n_sigma)
+    return norm_sf(n_sigma)
 
 
 def chi2_ratio_sigma(chi2r_test, chi2r_true, ndof):
@@ -430,5 +453,5 @@ def chi2_ratio_sigma(chi2r_test, chi2r_true, ndof):
     >>> round(float(chi2_ratio_sigma(1 + 8.54 ** 2 / 303, 1.0, 303)), 1)
     3.0
     """
-    p = stats.chi2.cdf(ndof * np.asarray(chi2r_test, float) / chi2r_true, ndof)
-    return np.sqrt(stats.chi2.ppf(p, 1))
+    p = chi2_cdf(ndof * np.asarray(chi2r_test, float) / chi2r_true, ndof)
+    return np.sqrt(chi2_ppf(p, 1))

@@ -31,13 +31,16 @@ from ..data import DetectionGrid
 from ..exceptions import KpifsError
 from ..kernel import MAS
 from ..window import ExtractionWindow
+from ._laws import norm_sf
 from .limits import spectrum_shape
 from .stats import binary_pfa, binary_statistic
 
-stats = lazy_module("scipy.stats")
 ndimage = lazy_module("scipy.ndimage")
 
 __all__ = ["DetectionModel"]
+
+#: Largest store of unit signatures a `DetectionModel` keeps (bytes, single precision).
+UNIT_CACHE_BYTES = 256 * 2 ** 20
 
 log = logging.getLogger(__name__)
 
@@ -172,16 +175,47 @@ class DetectionModel:
         return out
 
     def _signature_norms(self):
-        q = len(self.wavelengths)
+        """``||s_i||^2`` everywhere; on the way, the unit signatures of `half_positions`
+        are kept (single precision, within `UNIT_CACHE_BYTES`) for the nulls and limits."""
+        q, p = len(self.wavelengths), self.kernel_model.n_kp
         ny, nx = self.grid.shape
-        out = np.zeros((q, ny * nx))
-        rows = np.arange(ny * nx)
+        n = ny * nx
+        keep, mirrored = self.half_positions()
+        if mirrored:
+            # flat position n - 1 - r is -pos(r), of the same norm: one of each pair
+            pair = np.zeros(n, bool)
+            pair[keep] = pair[n - 1 - keep] = True
+            rest = np.flatnonzero(~pair)
+            rows = np.concatenate([keep, rest[rest <= n - 1 - rest]])
+        else:
+            rows = np.arange(n)
+            keep = np.flatnonzero(self.grid.valid.ravel())
+        cache = q * len(keep) * p * 4 <= UNIT_CACHE_BYTES
+        at = np.searchsorted(rows, keep) if not mirrored else np.arange(len(keep))
+        unit = np.empty((q, len(keep), p), np.float32) if cache else None
+        wf = self._wfac.ravel()[keep]
+        out = np.zeros((q, n))
         for i in range(q):
             # ||W K sin||^2 through the (nuv, p) lift: fewer flops than the (nuv, nuv) Gram
+            raw = np.empty(len(rows))
             for a in range(0, len(rows), 2048):
                 s = self._sin_rows(i, rows[a:a + 2048]) @ self._lift[i]
-                out[i, a:a + 2048] = np.einsum("ij,ij->i", s, s)
+                raw[a:a + len(s)] = np.einsum("ij,ij->i", s, s)
+                if cache:
+                    sel = (at >= a) & (at < a + len(s))
+                    with np.errstate(invalid="ignore", divide="ignore"):
+                        norm = np.where(wf[sel] > 0, np.sqrt(raw[at[sel]]), 0.0)
+                        unit[i, sel] = -s[at[sel] - a] / norm[:, None]
+            out[i, rows] = raw
+            if mirrored:
+                out[i, n - 1 - rows] = raw
+        if cache:
+            self._unit_cache = (keep, unit)
         return out.reshape(q, ny, nx) * self._wfac[None] ** 2
+
+    def _symmetric_grid(self):
+        g = self.grid
+        return bool(np.allclose(g.x, -g.x[::-1]) and np.allclose(g.y, -g.y[::-1]))
 
     # --- maps -------------------------------------------------------------------
     def dot_maps(self, y):
@@ -256,7 +290,7 @@ class DetectionModel:
     def local_pfa(self, t, form="B"):
         """False-alarm probability of a local statistic at a known position."""
         if form == "NP":
-            return stats.norm.sf(np.nan_to_num(t, nan=-np.inf))
+            return norm_sf(np.nan_to_num(t, nan=-np.inf))
         return binary_pfa(np.nan_to_num(t, nan=0.0), len(self.wavelengths), form)
 
     # --- what the Monte-Carlo null needs ------------------------------------------
@@ -277,6 +311,12 @@ class DetectionModel:
 
     def _unit_signatures(self, rows):
         """Unit-norm whitened signatures at flat grid positions *rows*: (q, npos, p), float32."""
+        cached = self.__dict__.get("_unit_cache")
+        if cached is not None:
+            at = np.searchsorted(cached[0], rows)
+            if np.all(at < len(cached[0])) and np.array_equal(cached[0][np.minimum(
+                    at, len(cached[0]) - 1)], rows):
+                return cached[1][:, at]
         q, p = len(self.wavelengths), self.kernel_model.n_kp
         out = np.empty((q, len(rows), p), np.float32)
         wf = self._wfac.ravel()[rows]
@@ -322,8 +362,7 @@ class DetectionModel:
         """Valid positions, split into a half and its mirror image when the grid allows."""
         g = self.grid
         rows = np.flatnonzero(g.valid.ravel())
-        symmetric = (np.allclose(g.x, -g.x[::-1]) and np.allclose(g.y, -g.y[::-1])
-                     and np.array_equal(g.valid, g.valid[::-1, ::-1]))
+        symmetric = self._symmetric_grid() and np.array_equal(g.valid, g.valid[::-1, ::-1])
         if not symmetric:
             return rows, False
         x, y = g.X.ravel()[rows], g.Y.ravel()[rows]

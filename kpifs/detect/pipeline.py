@@ -6,12 +6,12 @@ import numpy as np
 from astropy import units as u
 from astropy.table import vstack
 
-from .._lazy import lazy_module
 from ..covariance import empirical_covariance, whiten, whitening_matrix
 from ..data import DetectionGrid, DetectionResult, KernelPhaseData
 from ..exceptions import KpifsError, KpifsWarning
 from ..kernel import MAS, KernelModel
 from ..pupil import make_pupil
+from ._laws import chi2_sf, norm_isf
 from .fit import fit_binary
 from .sky import (add_sky_columns, data_angles, pa_bins, rotated_binary_kernel_phases,
                   search_frame, sky_search_columns)
@@ -20,10 +20,9 @@ from .limits import (energy_lambda, limit_binary, limit_binary_correlated_forms,
                      limit_energy_correlated, limit_np, mirror_half_map, radial_curves,
                      spectrum_shape)
 from .maps import DetectionModel
-from .null import check_draws, energy_null, scale_block_rows, search_null
+from .null import DEFAULT_DRAWS, check_draws, energy_null, scale_block_rows, search_null
 from .stats import TESTS, check_probability, energy_threshold
 
-stats = lazy_module("scipy.stats")
 
 __all__ = ["detect", "default_grid"]
 
@@ -106,7 +105,7 @@ def _prepare(kpd, shrinkage, allow_uncalibrated):
 
 
 def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
-           n_draws=30000, seed=0, shrinkage="auto", fit=True, max_candidates=20,
+           n_draws=DEFAULT_DRAWS, seed=0, shrinkage="auto", fit=True, max_candidates=20,
            allow_uncalibrated=False, frame="auto", limits=True, null="auto", progress=False):
     """Search calibrated kernel phases for a companion.
 
@@ -256,7 +255,7 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
 
     dof = int(rank.sum())
     t_e = float(np.sum(y ** 2))
-    energy = {"statistic": t_e, "dof": dof, "pfa": float(stats.chi2.sf(t_e, dof)),
+    energy = {"statistic": t_e, "dof": dof, "pfa": float(chi2_sf(t_e, dof)),
               "threshold": float(energy_threshold(pfa, dof)), "pd": pd}
     te = None
     if not limits:
@@ -265,7 +264,8 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
                                 "n_draws": n_draws, "seed": seed, "test": test, "pfa": pfa,
                                 "pd": pd, "null": null_info})
     if rows is not None:   # correlated channels: the energy's law from the same null model
-        te = energy_null(rows, n_draws, seed)
+        # a one-number statistic: its draws are cheap, and its threshold is read directly
+        te = energy_null(rows, max(n_draws, ENERGY_DRAWS), seed)
         energy["pfa"] = float((np.sum(te["energy"] >= t_e) + 1) / (len(te["energy"]) + 1))
         if pfa * len(te["energy"]) >= 10:
             energy["threshold"] = float(np.quantile(te["energy"], 1 - pfa))
@@ -285,7 +285,7 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
                                                     seed=seed, correlation=corr))
     # the NP reference uses the local threshold; with the grid search its own global one
     if form == "NP":
-        limits["NP"] = (threshold - stats.norm.isf(pd)) / np.sqrt(
+        limits["NP"] = (threshold - norm_isf(pd)) / np.sqrt(
             np.tensordot(a ** 2, model.norm2, axes=(0, 0)))
     if corr is not None and model.half_positions()[1]:
         for f in ("E", "B", "B-paper"):
@@ -339,6 +339,9 @@ def _correlated_inputs(model, rows, a, energy, te, seed):
                                        energy["threshold"], energy["pd"])
     return corr.reshape(shape + (q, q)), lim.reshape(shape)
 
+
+#: Draws of the energy detector's correlated null (its threshold read from them).
+ENERGY_DRAWS = 30000
 
 #: How each statistic scales with the noise variance (B: a sum of squares).
 _POWER = {"B": 1.0, "B-paper": 0.5, "NP": 0.5}

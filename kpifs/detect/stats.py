@@ -18,6 +18,7 @@ import numpy as np
 
 from .._lazy import lazy_module
 from ..exceptions import KpifsError
+from ._laws import chi2_isf, chi2_sf, ncx2_sf, norm_isf, norm_sf
 
 optimize = lazy_module("scipy.optimize")
 special = lazy_module("scipy.special")
@@ -72,7 +73,7 @@ def np_threshold(pfa, norm_x):
     >>> round(float(np_threshold(0.01, 3.0)), 4)
     6.979
     """
-    return norm_x * stats.norm.isf(check_probability(pfa, "P_FA"))
+    return norm_x * norm_isf(check_probability(pfa, "P_FA"))
 
 
 def np_pd(pfa, norm_x):
@@ -84,7 +85,7 @@ def np_pd(pfa, norm_x):
     >>> round(float(np_pd(0.01, 3.0)), 4)
     0.7497
     """
-    return stats.norm.sf(stats.norm.isf(check_probability(pfa, "P_FA")) - np.asarray(norm_x))
+    return norm_sf(norm_isf(check_probability(pfa, "P_FA")) - np.asarray(norm_x))
 
 
 # --- energy detector -----------------------------------------------------------
@@ -110,7 +111,7 @@ def energy_threshold(pfa, dof):
     >>> round(float(energy_threshold(0.01, 303)), 3)
     363.191
     """
-    return stats.chi2.isf(check_probability(pfa, "P_FA"), dof)
+    return chi2_isf(check_probability(pfa, "P_FA"), dof)
 
 
 def energy_pd(pfa, dof, norm_x):
@@ -122,7 +123,7 @@ def energy_pd(pfa, dof, norm_x):
     >>> round(float(energy_pd(0.01, 303, 3.0)), 4)
     0.0258
     """
-    return stats.ncx2.sf(energy_threshold(pfa, dof), dof, np.asarray(norm_x) ** 2)
+    return ncx2_sf(energy_threshold(pfa, dof), dof, np.asarray(norm_x) ** 2)
 
 
 # --- binary test at a known position --------------------------------------------
@@ -154,7 +155,7 @@ def _half_normal_sum_sf(xi, k):
     if k == 0:
         return np.where(np.asarray(xi) < 0, 1.0, 0.0)
     if k == 1:
-        return 2 * stats.norm.sf(np.clip(xi, 0, None))
+        return 2 * norm_sf(np.clip(xi, 0, None))
     from scipy.signal import fftconvolve
     dx = 0.001
     edges = np.arange(0, 8.5 + 2 * np.sqrt(k) + dx, dx)
@@ -183,15 +184,17 @@ def binary_pfa(xi, n_channels, form="B"):
     """
     xi = np.asarray(xi, float)
     q = int(n_channels)
-    total = np.zeros_like(xi)
-    for k in range(1, q + 1):
-        weight = special.comb(q, k) / 2 ** q
-        if form == "B":
-            total = total + weight * stats.chi2.sf(xi, k)
-        elif form == "B-paper":
-            total = total + weight * _half_normal_sum_sf(xi, k)
-        else:
-            raise KpifsError(f"unknown binary-test form {form!r}: 'B' or 'B-paper'")
+    if form not in ("B", "B-paper"):
+        raise KpifsError(f"unknown binary-test form {form!r}: 'B' or 'B-paper'")
+    weights = special.comb(q, np.arange(1, q + 1)) / 2 ** q
+    if form == "B":
+        # one ufunc call over (degrees of freedom, values)
+        total = np.tensordot(weights, chi2_sf(xi[None], np.arange(1, q + 1).reshape(
+            (q,) + (1,) * xi.ndim)), axes=(0, 0))
+    else:
+        total = np.zeros_like(xi)
+        for k in range(1, q + 1):
+            total = total + weights[k - 1] * _half_normal_sum_sf(xi, k)
     return np.where(xi <= 0, 1.0, total)
 
 
