@@ -51,6 +51,46 @@ def as_rng(seed):
     return np.random.default_rng(seed)
 
 
+def threads():
+    """Threads the array work of a search may use: the processor cores this process
+    may run on (``KPIFS_THREADS`` overrides; 1 turns threading off)."""
+    env = os.environ.get("KPIFS_THREADS")
+    if env:
+        try:
+            return max(1, int(env))
+        except ValueError:
+            raise KpifsError(f"KPIFS_THREADS must be an integer, got {env!r}") from None
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:                                  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def thread_map(fn, items, *, wrap=None):
+    """``[fn(x) for x in items]`` on `threads` threads, in order.
+
+    numpy releases the interpreter lock in its array operations, so independent
+    chunks of one computation (batches of null draws, blocks of positions) run
+    side by side on the cores; each chunk's numbers do not depend on the others
+    or on the number of threads. *wrap* wraps the iterator of results as they
+    come (a progress bar).
+    """
+    from threadpoolctl import threadpool_limits
+    items = list(items)
+    wrap = wrap or (lambda it: it)
+    n = min(threads(), len(items))
+    # one BLAS thread per chunk, however many chunks run at once: BLAS's own threads on
+    # top would oversubscribe the cores (the null's draws: 0.40 s on one thread, 0.52 s
+    # on two without this, 0.26 s with), and a chunk's rounding is then the same for
+    # any number of threads
+    with threadpool_limits(limits=1, user_api="blas"):
+        if n <= 1:
+            return list(wrap(fn(x) for x in items))
+        from concurrent.futures import ThreadPoolExecutor
+        with ThreadPoolExecutor(n) as pool:
+            return list(wrap(pool.map(fn, items)))
+
+
 def _check_writable(folder, what):
     """Refuse a folder that cannot take a new file (tried, not guessed from permissions)."""
     try:

@@ -113,7 +113,7 @@ class ErrorModel:
         if joint:
             r = self.rows.reshape(k, q * p)
             return r.T @ r
-        return np.einsum("kip,kiq->ipq", self.rows, self.rows)
+        return np.matmul(self.rows.transpose(1, 2, 0), self.rows.transpose(1, 0, 2))
 
     def meta(self):
         """Plain numbers for product headers and ``meta['error_model']``."""

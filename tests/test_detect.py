@@ -374,3 +374,62 @@ def test_detect_without_limits_finds_the_same_candidates():
     assert fast.limits == {} and len(fast.candidates) == len(full.candidates) == 1
     assert float(fast.candidates["fit_x"][0].value) == float(full.candidates["fit_x"][0].value)
     assert fast.threshold == full.threshold
+
+
+def test_window_max_is_ndimage_maximum_filter():
+    """The search's local maxima use a numpy window maximum: scipy.ndimage's, exactly."""
+    ndimage = pytest.importorskip("scipy.ndimage")
+    from kpifs.detect.maps import _window_max
+    rng = np.random.default_rng(1)
+    for size in (3, 5, 9):
+        t = rng.standard_normal((23, 31))
+        t[rng.random(t.shape) < 0.2] = -np.inf
+        np.testing.assert_array_equal(
+            _window_max(t, size),
+            ndimage.maximum_filter(t, size=size, mode="constant", cval=-np.inf))
+
+
+def test_null_and_limits_do_not_depend_on_the_thread_count(monkeypatch):
+    """Batches of null draws and blocks of limit positions run on several threads: the
+    numbers are the same on one."""
+    from kpifs.detect.null import NullCalibration, _CACHE
+    from kpifs.detect.limits import limit_binary_correlated_forms
+    km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    rng = np.random.default_rng(4)
+    dm = DetectionModel(km, [1.5, 1.7] * u.um, np.stack([np.eye(km.n_kp)] * 2), grid)
+    rows = rng.standard_normal((8, 2, km.n_kp)) / 8 ** 0.5
+    corr = np.broadcast_to([[1.0, 0.6], [0.6, 1.0]], grid.shape + (2, 2))
+    out = []
+    for n in ("1", "2"):
+        monkeypatch.setenv("KPIFS_THREADS", n)
+        _CACHE.clear()
+        draws = NullCalibration(dm, n_draws=1500, seed=2, noise_rows=rows).draws
+        lim = limit_binary_correlated_forms(dm.norm2, {"B": 30.0, "B-paper": 9.0}, 0.5,
+                                            correlation=corr)
+        out.append((draws, lim))
+    np.testing.assert_array_equal(out[0][0], out[1][0])
+    for f in ("B", "B-paper"):
+        np.testing.assert_array_equal(out[0][1][f], out[1][1][f])
+
+
+def test_null_threshold_read_through_the_fitted_tail():
+    """Fewer than 100 draws above a level: the threshold comes from the exponential tail
+    fitted to the upper decile, and 5000 draws give the threshold 100 000 read directly."""
+    from kpifs.detect.null import _CACHE
+    km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    dm = DetectionModel(km, [1.6] * u.um, np.eye(km.n_kp)[None], grid)
+    _CACHE.clear()
+    ref = NullCalibration(dm, n_draws=100000, seed=9)
+    assert 1e-3 * len(ref.draws) >= ref.exceedances         # read directly
+    truth = ref.threshold(1e-3)
+    small = [NullCalibration(dm, n_draws=5000, seed=s) for s in range(6)]
+    u0, beta = small[0]._tail()
+    assert small[0].threshold(1e-3) == pytest.approx(u0 + beta * np.log(100), rel=1e-12)
+    assert small[0].threshold(0.05) == np.quantile(small[0].draws, 0.95, method="higher")
+    thr = np.array([n.threshold(1e-3) for n in small])
+    # the true false-alarm rate at each threshold (from the reference draws) is near 1e-3
+    rate = np.array([np.mean(ref.draws > t) for t in thr])
+    assert 0.5e-3 < rate.min() and rate.max() < 2e-3
+    assert abs(np.mean(thr) / truth - 1) < 0.02

@@ -28,7 +28,7 @@ import logging
 
 import numpy as np
 
-from .._utils import as_rng
+from .._utils import as_rng, thread_map
 from .._utils import progress as progress_bar
 from ..exceptions import KpifsError
 from .stats import check_probability
@@ -199,7 +199,6 @@ class NullCalibration:
         than kernel phases the rows are projected once and the draws combine them.
         Draws go in batches whose work arrays stay in the processor's cache."""
         model, form, rows = self.model, self.form, self.noise_rows
-        rng = as_rng(self.seed)
         q, p = len(model.wavelengths), model.kernel_model.n_kp
         positions, mirrored = model.half_positions()
         forms = (form,) if form == "NP" else ("B", "B-paper")
@@ -218,13 +217,10 @@ class NullCalibration:
             unit = model._unit_signatures(positions)                      # (q, npos, p)
             flat_rows = None if rows is None else rows.reshape(len(rows), -1).astype(np.float32)
         maxima = {f: np.empty(self.n_draws) for f in forms}
-        starts = progress_bar(range(0, self.n_draws, batch), desc=f"calibrating sup-{form}",
-                              unit="batch", enabled=self.progress)
         npos = len(positions)
-        zbuf = np.empty((batch, npos), np.float32)          # work buffers, reused
-        wbuf = np.empty((batch, npos), np.float32)
-        for a in starts:
-            b = min(self.n_draws, a + batch)
+
+        def one(job):
+            (a, b), rng = job
             n = b - a
             acc = {f: np.zeros((n, npos), np.float32) for f in forms}
             # mirrored positions: sum max(-z, 0)^2 = sum min(z, 0)^2 and
@@ -236,7 +232,7 @@ class NullCalibration:
                 joint = rng.standard_normal((n, q, p), dtype=np.float32)
             else:
                 joint = (self._coefficients(rng, a, b) @ flat_rows).reshape(n, q, p)
-            z, w = zbuf[:n], wbuf[:n]
+            z, w = np.empty((n, npos), np.float32), np.empty((n, npos), np.float32)
             total = 0.0
             for i in range(q):
                 if via_rows:
@@ -256,6 +252,7 @@ class NullCalibration:
                     np.minimum(z, 0, out=z)
                     z *= z
                     neg += z
+            out = {}
             for f in forms:
                 best = acc[f].max(axis=1)
                 if f == "NP" and mirrored:
@@ -266,7 +263,18 @@ class NullCalibration:
                     if via_rows:
                         total = coef @ proj_sum
                     best = np.maximum(best, (acc[f] - total).max(axis=1))
-                maxima[f][a:b] = best
+                out[f] = best
+            return out
+
+        # each batch its own random stream: the same draws whatever the number of threads
+        spans = [(a, min(self.n_draws, a + batch)) for a in range(0, self.n_draws, batch)]
+        jobs = list(zip(spans, as_rng(self.seed).spawn(len(spans))))
+        done = thread_map(one, jobs, wrap=lambda it: progress_bar(
+            it, desc=f"calibrating sup-{form}", unit="batch", total=len(jobs),
+            enabled=self.progress))
+        for (a, b), out in zip(spans, done):
+            for f in forms:
+                maxima[f][a:b] = out[f]
         for f in forms:
             maxima[f].sort()
         return maxima

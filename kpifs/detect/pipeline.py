@@ -224,8 +224,8 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
         # positions and contrasts from the error model with more modes (calibrate's
         # fit_modes), whose rows also carry its channel correlations
         fr = kpd.fit_covariance_rows
-        fw, frank = whitening_matrix(np.einsum("rip,riq->ipq", fr, fr), return_rank=True,
-                                     source="characterisation covariance")
+        fcov = np.matmul(fr.transpose(1, 2, 0), fr.transpose(1, 0, 2))       # (q, p, p)
+        fw, frank = whitening_matrix(fcov, return_rank=True, source="characterisation covariance")
         characterise = (fw, whiten(fr, fw), int(np.sum(frank)))
     cands, kappa = _sequential_search(model, kp, w, kpd, threshold=threshold, null=null,
                                       spectrum=spectrum, fit=fit, max_candidates=max_candidates,
@@ -330,7 +330,7 @@ def _correlated_inputs(model, rows, a, energy, te, seed):
     q = len(model.wavelengths)
     idx, z = model.row_projections(rows)                              # (npos, nrow, q)
     corr = np.full((shape[0] * shape[1], q, q), np.nan)
-    corr[idx] = np.einsum("kri,krj->kij", z, z)
+    corr[idx] = np.matmul(z.transpose(0, 2, 1), z)
     amp = a[None, :] * np.sqrt(model.norm2.reshape(q, -1)[:, idx].T)     # (npos, q)
     n = min(4096, len(te["energy"]))      # enough draws for P_D, far from the tail
     proj = te["coef"][:n] @ np.einsum("kri,ki->rk", z, amp)             # (N, npos)

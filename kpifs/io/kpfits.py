@@ -113,7 +113,7 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
     hdr = _clean_header(kpd.header)
     inst, tel = _instrument_cards(kpd)
     hdr["CONTENT"] = ("KPFITS1", "kernel-phase FITS exchange format")
-    hdr["PROCSOFT"] = (f"kpifs {VERSION}", "software that wrote this file")
+    hdr["PROCSOFT"] = (f"kpifs {VERSION}", "writing software")
     hdr["KPIFSVER"] = (VERSION, "kpifs version")
     hdr["INSTRUME"] = (inst, "instrument")
     hdr["TELESCOP"] = (tel, "telescope")

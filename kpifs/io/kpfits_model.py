@@ -71,7 +71,7 @@ def model_hdulist(model):
     """
     hdr = fits.Header()
     hdr["CONTENT"] = ("KPFITS1", "kernel-phase FITS exchange format")
-    hdr["PROCSOFT"] = (f"kpifs {VERSION}", "software that wrote this file")
+    hdr["PROCSOFT"] = (f"kpifs {VERSION}", "writing software")
     hdr["KPIFSVER"] = (VERSION, "kpifs version")
     hdr["NSUB"] = (model.pupil.n_sub, "number of sub-apertures")
     hdr["NUV"] = (model.n_uv, "number of uv points")
