@@ -73,7 +73,10 @@ def thread_map(fn, items, *, wrap=None):
     chunks of one computation (batches of null draws, blocks of positions) run
     side by side on the cores; each chunk's numbers do not depend on the others
     or on the number of threads. *wrap* wraps the iterator of results as they
-    come (a progress bar).
+    come (a progress bar). *fn* must not touch the warnings filters
+    (``warnings.catch_warnings`` is process-wide: two threads in it leave the
+    filters of one behind), which is why the extraction, whose centring and
+    bad-pixel filling silence third-party warnings, runs its channels in turn.
     """
     from threadpoolctl import threadpool_limits
     items = list(items)
