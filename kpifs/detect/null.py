@@ -155,21 +155,13 @@ class NullCalibration:
             distinct = 2 ** min(len(noise_rows) - int(self._fixed_first), 40)
             self.enumerated = distinct <= n_draws
             n_draws = min(n_draws, distinct)
-        self.coefficients = coefficients
-        self.model = model
-        self.form = form
-        self.n_draws = n_draws
-        self.seed = seed
-        self.spectrum = spectrum
-        self.noise_rows = noise_rows
-        self.progress = progress
+        self.coefficients, self.model, self.form = coefficients, model, form
+        self.n_draws, self.seed, self.spectrum = n_draws, seed, spectrum
+        self.noise_rows, self.progress = noise_rows, progress
 
     def _key(self, form=None):
-        form = form or self.form
-        keys = self.__dict__.setdefault("_keys", {})
-        if form not in keys:
-            keys[form] = self._digest(form)
-        return keys[form]
+        keys, form = self.__dict__.setdefault("_keys", {}), form or self.form
+        return keys[form] if form in keys else keys.setdefault(form, self._digest(form))
 
     def _digest(self, form):
         h = hashlib.sha1(self.model.key().encode())
@@ -203,8 +195,7 @@ class NullCalibration:
         positions, mirrored = model.half_positions()
         forms = (form,) if form == "NP" else ("B", "B-paper")
         if form == "NP":
-            mfw = model._mf_weights(self.spectrum).reshape(q, -1)[:, positions]
-            mfw = mfw.astype(np.float32)
+            mfw = model._mf_weights(self.spectrum).reshape(q, -1)[:, positions].astype(np.float32)
         # z = eps @ unit^T with eps = coef @ rows: project the rows once when they are few
         via_rows = _via_rows(rows, p)
         if via_rows:
