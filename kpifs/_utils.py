@@ -57,9 +57,13 @@ def threads():
     env = os.environ.get("KPIFS_THREADS")
     if env:
         try:
-            return max(1, int(env))
+            n = int(env)
         except ValueError:
-            raise KpifsError(f"KPIFS_THREADS must be an integer, got {env!r}") from None
+            n = 0
+        if n < 1:
+            raise KpifsError(f"KPIFS_THREADS must be a whole number of threads (1 or more), "
+                             f"got {env!r}")
+        return n
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:                                  # not on Linux

@@ -433,3 +433,11 @@ def test_null_threshold_read_through_the_fitted_tail():
     rate = np.array([np.mean(ref.draws > t) for t in thr])
     assert 0.5e-3 < rate.min() and rate.max() < 2e-3
     assert abs(np.mean(thr) / truth - 1) < 0.02
+
+
+@pytest.mark.parametrize("value", ["abc", "0", "-2", "1.5"])
+def test_bad_thread_count_is_refused(monkeypatch, value):
+    from kpifs._utils import threads
+    monkeypatch.setenv("KPIFS_THREADS", value)
+    with pytest.raises(KpifsError, match="KPIFS_THREADS must be a whole number"):
+        threads()
