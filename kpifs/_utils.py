@@ -52,18 +52,20 @@ def as_rng(seed):
 
 
 def threads():
-    """Threads the array work of a search may use: the processor cores this process
-    may run on (``KPIFS_THREADS`` overrides; 1 turns threading off)."""
+    """Threads the array work of a search may use: ``KPIFS_THREADS`` if set (1 turns
+    threading off), else ``OMP_NUM_THREADS`` if set (what a batch worker is given:
+    Dask's are given 1, so that workers side by side do not oversubscribe the
+    cores), else the processor cores this process may run on."""
     env = os.environ.get("KPIFS_THREADS")
     if env:
-        try:
-            n = int(env)
-        except ValueError:
-            n = 0
+        n = int(env) if env.strip().isdigit() else 0
         if n < 1:
             raise KpifsError(f"KPIFS_THREADS must be a whole number of threads (1 or more), "
                              f"got {env!r}")
         return n
+    omp = os.environ.get("OMP_NUM_THREADS", "").split(",")[0].strip()
+    if omp.isdigit() and int(omp) >= 1:          # OpenMP's own syntax: a list, the outer first
+        return int(omp)
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:                                  # not on Linux

@@ -441,3 +441,18 @@ def test_bad_thread_count_is_refused(monkeypatch, value):
     monkeypatch.setenv("KPIFS_THREADS", value)
     with pytest.raises(KpifsError, match="KPIFS_THREADS must be a whole number"):
         threads()
+
+
+def test_thread_count_follows_the_environment(monkeypatch):
+    """KPIFS_THREADS first, then OMP_NUM_THREADS (a batch worker's 1), then the cores."""
+    from kpifs._utils import threads
+    monkeypatch.delenv("KPIFS_THREADS", raising=False)
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert threads() == 1
+    monkeypatch.setenv("OMP_NUM_THREADS", "3,2")            # OpenMP's nested form
+    assert threads() == 3
+    monkeypatch.setenv("KPIFS_THREADS", "2")
+    assert threads() == 2
+    monkeypatch.delenv("KPIFS_THREADS")
+    monkeypatch.setenv("OMP_NUM_THREADS", "many")            # not ours to refuse: the cores
+    assert threads() >= 1
