@@ -72,7 +72,7 @@ def threads():
         return max(1, os.cpu_count() or 1)
 
 
-def thread_map(fn, items, *, wrap=None):
+def thread_map(fn, items, *, wrap=None, serial=False):
     """``[fn(x) for x in items]`` on `threads` threads, in order.
 
     numpy releases the interpreter lock in its array operations, so independent
@@ -81,13 +81,13 @@ def thread_map(fn, items, *, wrap=None):
     or on the number of threads. *wrap* wraps the iterator of results as they
     come (a progress bar). *fn* must not touch the warnings filters
     (``warnings.catch_warnings`` is process-wide: two threads in it leave the
-    filters of one behind), which is why the extraction, whose centring and
-    bad-pixel filling silence third-party warnings, runs its channels in turn.
+    filters of one behind, and silence the others' warnings meanwhile); with
+    *serial* the items run in turn (the extraction with photutils' centroids).
     """
     from threadpoolctl import threadpool_limits
     items = list(items)
     wrap = wrap or (lambda it: it)
-    n = min(threads(), len(items))
+    n = 1 if serial else min(threads(), len(items))
     # one BLAS thread per chunk, however many chunks run at once: BLAS's own threads on
     # top would oversubscribe the cores (the null's draws: 0.40 s on one thread, 0.52 s
     # on two without this, 0.26 s with), and a chunk's rounding is then the same for

@@ -23,6 +23,7 @@ import numpy as np
 from astropy import units as u
 
 from ._utils import progress as progress_bar
+from ._utils import thread_map
 from ._utils import to_quantity
 from .data import KernelPhaseData
 from .exceptions import KpifsError, KpifsWarning
@@ -440,25 +441,29 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
     amps = np.empty((nframe, nwave, km.n_uv)) if keep_phases else None
     used_centres = np.empty((nframe, nwave, 2))
     bad = np.full((nframe, nwave), "", dtype=object)
-    count = dict.fromkeys(("n_bad_pixels", "n_inf", "n_clipped", "core_nan", "negative"), 0)
+    keys = ("n_bad_pixels", "n_inf", "n_clipped", "core_nan", "negative")
     uv = km.uv.to_value(u.m)
     prad = plan.pixscale.to_value(u.mas) * MAS
-    # wavelength outermost: each operator is built (or fetched) once per call
-    for iw in progress_bar(range(nwave), desc=f"extracting {source}"[:40], unit="channel",
-                           enabled=progress):
+
+    def channel(iw):
+        # wavelength outermost: each operator is built (or fetched) once per call; the
+        # channels are independent (each writes its own slices) and share the cores
         op = fourier_operator(uv, wl[iw].to_value(u.m), prad, (win.size, win.size),
                               method=plan.fourier, dtype=PRECISIONS[plan.precision])
+        counts = np.zeros(len(keys), int)
         for f0 in range(0, nframe, batch_size):
             f1 = min(nframe, f0 + batch_size)
             res = _extract_batch(plan, iw, f0, f1, op)
-            kp[f0:f1, iw] = res.kp
-            used_centres[f0:f1, iw] = res.centres
-            bad[f0:f1, iw] = res.bad
-            for k in count:
-                count[k] += getattr(res, k)
+            kp[f0:f1, iw], used_centres[f0:f1, iw], bad[f0:f1, iw] = res.kp, res.centres, res.bad
+            counts += [getattr(res, k) for k in keys]
             if keep_phases:
-                phases[f0:f1, iw] = res.phases
-                amps[f0:f1, iw] = res.amplitudes
+                phases[f0:f1, iw], amps[f0:f1, iw] = res.phases, res.amplitudes
+        return counts
+    # photutils' centroids run with the warnings filters changed: those channels in turn
+    serial = plan.centres is None and plan.centroid in ("quadratic", "2dg")
+    count = dict(zip(keys, np.sum(thread_map(channel, range(nwave), serial=serial, wrap=(
+        lambda it: progress_bar(it, desc=f"extracting {source}"[:40], unit="channel",
+                                total=nwave, enabled=progress))), axis=0).tolist()))
     drop = _bad_frames(bad, wl, bad_frames, source)
     keep = np.setdiff1d(np.arange(nframe), drop)
     n_slices = len(keep) * nwave
@@ -471,8 +476,7 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
         warnings.warn(f"{source}: bad or NaN pixels on the PSF core (more than "
                       f"{CORE_FLUX_WARN:.0%} of the flux interpolated) in {count['core_nan']} "
                       f"of {n_slices} slice(s): their kernel phases rest on interpolated or "
-                      f"missing pixels",
-                      KpifsWarning, stacklevel=2)
+                      f"missing pixels", KpifsWarning, stacklevel=2)
     if count["n_inf"]:
         warnings.warn(f"{source}: {count['n_inf']} infinite pixel value(s), treated as bad "
                       f"pixels", KpifsWarning, stacklevel=2)
@@ -485,10 +489,8 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
                  count["n_bad_pixels"])
     if len(drop):
         kp, used_centres = kp[keep], used_centres[keep]
-        if keep_phases:
-            phases, amps = phases[keep], amps[keep]
-        if detpa is not None:
-            detpa = detpa[keep]
+        phases, amps = (None, None) if not keep_phases else (phases[keep], amps[keep])
+        detpa = None if detpa is None else detpa[keep]
     ctab = functools.partial(_centre_table, keep, wl, used_centres)
     meta = {"source": str(source), "centroid": centroid if centres is None else "given",
             "n_bad_pixels": count["n_bad_pixels"], "bad_pixels": bad_pixels,

@@ -241,3 +241,20 @@ def test_memory_mapped_pages_released_by_byte_budget(subaru_model, paper_wavelen
         kpd = extract_kernel_phases(hdul[0].data, subaru_model, **args)
     assert len(calls) == 3 * 3                            # every batch of two frames
     np.testing.assert_array_equal(kpd.kp, ref.kp)
+
+
+def test_channels_on_threads_give_the_same_numbers(subaru_model, paper_wavelengths, rng,
+                                                   monkeypatch):
+    """Channels are extracted side by side: the same kernel phases on one thread, and a
+    channel's warning (here from bad pixels filled on the core) is not lost meanwhile."""
+    cube = simulate_psf("subaru", paper_wavelengths, pixscale=PIX, shape=(40, 40))
+    frames = cube[None] * (1 + 0.01 * rng.standard_normal((6, 3, 1, 1)))
+    frames[1, 2, 19:22, 19:22] = np.nan
+    out = []
+    for n in ("1", "3"):
+        monkeypatch.setenv("KPIFS_THREADS", n)
+        with pytest.warns(KpifsWarning, match=r"PSF core .* in 1 of 18"):
+            out.append(extract_kernel_phases(frames, subaru_model, wavelengths=paper_wavelengths,
+                                             pixscale=PIX, batch_size=4))
+    np.testing.assert_array_equal(out[0].kp, out[1].kp)
+    np.testing.assert_array_equal(out[0].phases, out[1].phases)
