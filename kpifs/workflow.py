@@ -100,6 +100,7 @@ class ExtractOptions:
     bad_frames: str = "drop"
     on_nyquist: str = "drop"
     mask: object = None
+    precision: str = "double"
     # covariance
     shrinkage: str = "auto"
     joint_covariance: bool = False
@@ -251,7 +252,7 @@ def extract_observation(files, options=None, *, model=None, progress=False):
             cube.data, km, wavelengths=cube.wavelengths, pixscale=cube.pixscale,
             window=window, mask=mask, centroid=options.centroid,
             bad_pixels=options.bad_pixels, bad_frames=options.bad_frames,
-            on_nyquist=options.on_nyquist,
+            on_nyquist=options.on_nyquist, precision=options.precision,
             header=cube.header, source=cube.name, detpa=detpa, progress=progress)
     kpd.meta["instrument"] = cube.instrument
     kpd.meta["detpa_source"] = pa_source

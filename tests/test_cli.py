@@ -92,6 +92,19 @@ def test_extract_nyquist_option(sim_dir, tmp_path, capsys):
     assert not out.exists()
 
 
+def test_extract_single_precision_option(sim_dir, tmp_path):
+    """--precision single: the same kernel phases to ~1e-6 rad, recorded in KPXOPTS."""
+    out = {}
+    for prec in ("double", "single"):
+        out[prec] = tmp_path / f"{prec}.fits"
+        assert main(["extract", str(sim_dir / "target.fits"), "--precision", prec, "-q",
+                     "-o", str(out[prec])]) == 0
+    a, b = (fits.getdata(out[p], "KP-DATA") for p in ("double", "single"))
+    diff = np.max(np.abs(a - b))
+    assert 0 < diff < 1e-5
+    assert '"precision": "single"' in fits.getheader(out["single"])["KPXOPTS"]
+
+
 @pytest.fixture
 def bad_files(tmp_path, sim_dir):
     with fits.open(sim_dir / "target.fits") as h:

@@ -15,7 +15,7 @@ def extract_options(args):
         ("hexagonal", "hexagonal"), ("window_size", "window_size"),
         ("window_radius", "window_radius"), ("centroid", "centroid"),
         ("bad_pixels", "bad_pixels"), ("bad_frames", "bad_frames"),
-        ("on_nyquist", "nyquist"), ("shrinkage", "shrinkage"),
+        ("on_nyquist", "nyquist"), ("precision", "precision"), ("shrinkage", "shrinkage"),
         ("joint_covariance", "joint_covariance"), ("covariance", "covariance"))
         if hasattr(args, a)}
     return ExtractOptions(**get)
