@@ -316,6 +316,7 @@ def run_batch(entries, outdir, *, extract_options=None, detect_options=None, ove
     except KeyboardInterrupt:
         interrupted = True
         client.cancel(futures)
+        _quiet_shutdown(client)
     finally:
         client.close()
         if cluster is not None:
@@ -343,6 +344,22 @@ def run_batch(entries, outdir, *, extract_options=None, detect_options=None, ove
         raise BatchInterrupted(f"{len(table) - n} entries finished, {n} interrupted; "
                                f"{outdir / 'summary.ecsv'} records them; rerun to resume")
     return table
+
+
+def _silence_distributed():
+    logging.getLogger("distributed").setLevel(logging.CRITICAL)
+
+
+def _quiet_shutdown(client):
+    """Before an interrupted batch closes its cluster: the workers' and nannies' complaints
+    that the scheduler went away mid-heartbeat (tracebacks, on a race of the shutdown)
+    are noise then, and the user asked for a short message."""
+    _silence_distributed()
+    for nanny in (False, True):
+        try:
+            client.run(_silence_distributed, nanny=nanny)
+        except Exception:    # no nannies (a threaded cluster), or workers already gone
+            pass
 
 
 class BatchInterrupted(KeyboardInterrupt):
