@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ._utils import thread_map
 from .exceptions import KpifsError, KpifsWarning
 
 __all__ = ["ErrorModel", "fit_error_model", "RESIDUAL_METHODS"]
@@ -305,16 +306,16 @@ def fit_error_model(target, calibrators, *, n_modes=0.5, residual="auto", n_grou
     pooled = np.concatenate([wi * (x - x.mean(0)) / np.sqrt(ni * (ni - 1))
                              for wi, x, ni in zip(w, sets, n)])         # (sum N, q, p)
     rows = np.zeros_like(pooled)
-    chans = []
-    for i in range(q):
-        ch = _channel_model([x[:, i] for x in sets], w, n, k, n_groups, cv_blocks, method)
+    # the channels' models are independent: side by side on the cores
+    chans = thread_map(lambda i: _channel_model([x[:, i] for x in sets], w, n, k, n_groups,
+                                                cv_blocks, method), range(q))
+    for i, ch in enumerate(chans):
         if ch is None:
             raise KpifsError(f"{source}: the frames do not vary at channel {i}: no noise to "
                              f"model")
         # pooled deviations on the channel's modes, each mode rescaled to its model variance
         coef = (pooled[:, i] @ ch["v"].T) * np.sqrt(ch["c"] / ch["e"])
         rows[:, i] = coef @ ch["v"]
-        chans.append(ch)
     if method == "chi2":
         warnings.warn(f"{source}: too few frames ({n.tolist()}) to measure the calibration "
                       f"residual between calibrators or halves of a sequence: it is left to "

@@ -169,3 +169,19 @@ def test_simulated_images_with_drift_and_static_difference(model):
                           null="gaussian" if error_model == "frames" else "auto").candidates)
     assert [search(s, grey, 2) for s in range(4)] == [0, 0, 0, 0]
     assert search(0, model, 1, "frames") >= 2          # the old model
+
+
+def test_channels_on_threads_give_the_same_model(monkeypatch):
+    """The channels' models are fitted side by side: the same rows on one thread."""
+    rng = np.random.default_rng(5)
+    mix = rng.standard_normal((4, 3 * 20))
+
+    def frames(n):
+        drift = np.cumsum(rng.standard_normal((n, 4)), axis=0) * 0.3
+        return (drift @ mix + rng.standard_normal((n, 60))).reshape(n, 3, 20)
+    t, c = frames(30), frames(30)
+    out = []
+    for n in ("1", "3"):
+        monkeypatch.setenv("KPIFS_THREADS", n)
+        out.append(fit_error_model(t, [c]).rows)
+    np.testing.assert_array_equal(out[0], out[1])
