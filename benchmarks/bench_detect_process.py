@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_process import ROOT, time_commands  # noqa: E402
+from bench_process import ROOT, print_medians, time_commands  # noqa: E402
 
 
 def prepare(tmp):
@@ -90,12 +90,7 @@ def main(argv=None):
                 "kpifs detect, KPIFS_THREADS=1": (cmd, {"KPIFS_THREADS": "1"})}
     if args.baseline_path:
         commands["kpifs detect (baseline checkout)"] = (cmd, {"PYTHONPATH": args.baseline_path})
-    med = time_commands(commands, args.repeat, env)
-    base = med["kpifs detect"][0]
-    print(f"{'whole process (median of %d)' % args.repeat:40s} {'wall (s)':>9s} "
-          f"{'/ kpifs':>8s} {'peak MiB':>9s}")
-    for name, (t, peak) in med.items():
-        print(f"{name:40s} {t:9.2f} {t / base:8.2f} {peak:9.0f}")
+    print_medians(time_commands(commands, args.repeat, env), args.repeat)
     print("target: < 3 s")
     t_null, t_bare, shape = null_versus_products(cal)
     print(f"Gaussian null, 5000 draws, {shape[0]} channels x {shape[1]} rows x {shape[2]} "

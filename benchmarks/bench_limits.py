@@ -4,7 +4,7 @@ The binary-test limit solves ``P_D(c) = 0.5`` at every grid position from 1024
 correlated draws. Baseline, same run, same draws: a plain bisection on the
 Monte-Carlo ``P_D`` (each step evaluates the statistic of every draw). kpifs:
 each draw solved for its crossing contrast (Newton on the convex statistic),
-the limit their median (`kpifs.detect.limits._limit_binary_correlated`), on
+the limit their median (`kpifs.detect.limits._limit_binary_draws`), on
 all threads and on one (``KPIFS_THREADS=1``). Reports wall times, the ratio and
 the largest relative difference of the limits (the bisection stops at 1e-3).
 """
@@ -56,7 +56,7 @@ def main():
         else:
             os.environ["KPIFS_THREADS"] = n
         t0 = time.perf_counter()
-        lim = L._limit_binary_correlated(m, corr, [thr], 0.5, [2], 1024, 0)[0]
+        lim = L._limit_binary_draws(m, corr, [thr], 0.5, [2], 1024, 0)[0]
         times[label] = time.perf_counter() - t0
     os.environ.pop("KPIFS_THREADS", None)
     print(f"{npos} positions, {q} channels, 1024 draws")

@@ -134,6 +134,15 @@ def time_commands(commands, repeat, base_env):
     return {k: tuple(np.median(np.array(v), axis=0)) for k, v in runs.items()}
 
 
+def print_medians(med, repeat):
+    """The table of `time_commands`, each wall time also over the first command's."""
+    base = next(iter(med.values()))[0]
+    print(f"{'whole process (median of %d)' % repeat:48s} {'wall (s)':>9s} "
+          f"{'/ kpifs':>8s} {'peak MiB':>9s}")
+    for name, (t, peak) in med.items():
+        print(f"{name:48s} {t:9.2f} {t / base:8.2f} {peak:9.0f}")
+
+
 def import_time(args, base_env, repeat):
     """Median total import time (s) that ``python -X importtime ARGS`` reports."""
     totals = []
@@ -191,11 +200,8 @@ def main(argv=None):
         commands["reference: dense complex128 per channel"] = (
             [sys.executable, str(Path(__file__).resolve()), "--reference", cube], None)
     med = time_commands(commands, args.repeat, env)
+    print_medians(med, args.repeat)
     base = med["kpifs extract"][0]
-    print(f"{'whole process (median of %d)' % args.repeat:48s} {'wall (s)':>9s} "
-          f"{'/ kpifs':>8s} {'peak MiB':>9s}")
-    for name, (t, peak) in med.items():
-        print(f"{name:48s} {t:9.2f} {t / base:8.1f} {peak:9.0f}")
     ref = med.get("reference: dense complex128 per channel")
     if ref:
         print(f"speed-up over the reference: {ref[0] / base:.1f}x   (target >= 10x)")

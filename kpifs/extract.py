@@ -18,6 +18,7 @@ import functools
 import logging
 import warnings
 from dataclasses import dataclass
+from threading import Lock
 
 import numpy as np
 from astropy import units as u
@@ -74,7 +75,6 @@ class _Plan:
     source: str
     fourier: str = "auto"
     precision: str = "double"
-    bytes_read: int = 0           # of a memory-mapped input since its pages were released
 
     def __post_init__(self):
         # the model's arrays in the layout the products want, made once per extraction
@@ -204,11 +204,6 @@ def _extract_batch(plan, iw, f0, f1, op):
     win = plan.window
     nx, ny = plan.cube.shape[3], plan.cube.shape[2]
     sl = np.array(plan.cube[f0:f1, iw], dtype=float)
-    # memory-mapped input: give back the pages read once they add up to RELEASE_BYTES
-    plan.bytes_read += sl.size * np.dtype(getattr(plan.cube, "dtype", float)).itemsize
-    if plan.bytes_read >= RELEASE_BYTES:
-        release_pages(plan.cube)
-        plan.bytes_read = 0
     nb = f1 - f0
     if plan.mask is not None:
         sl[plan.mask[f0:f1, iw]] = np.nan
@@ -442,8 +437,8 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
     used_centres = np.empty((nframe, nwave, 2))
     bad = np.full((nframe, nwave), "", dtype=object)
     keys = ("n_bad_pixels", "n_inf", "n_clipped", "core_nan", "negative")
-    uv = km.uv.to_value(u.m)
-    prad = plan.pixscale.to_value(u.mas) * MAS
+    uv, prad = km.uv.to_value(u.m), plan.pixscale.to_value(u.mas) * MAS
+    image_bytes, read, lock = plan.cube[0, 0].nbytes, [0], Lock()
 
     def channel(iw):
         # wavelength outermost: each operator is built (or fetched) once per call; the
@@ -454,14 +449,20 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
         for f0 in range(0, nframe, batch_size):
             f1 = min(nframe, f0 + batch_size)
             res = _extract_batch(plan, iw, f0, f1, op)
+            with lock:    # a memory-mapped input's pages go back every RELEASE_BYTES read
+                read[0] += (f1 - f0) * image_bytes
+                release = read[0] >= RELEASE_BYTES
+                read[0] = 0 if release else read[0]
+            if release:
+                release_pages(plan.cube)
             kp[f0:f1, iw], used_centres[f0:f1, iw], bad[f0:f1, iw] = res.kp, res.centres, res.bad
             counts += [getattr(res, k) for k in keys]
             if keep_phases:
                 phases[f0:f1, iw], amps[f0:f1, iw] = res.phases, res.amplitudes
         return counts
     # photutils' centroids run with the warnings filters changed: those channels in turn
-    serial = plan.centres is None and plan.centroid in ("quadratic", "2dg")
-    count = dict(zip(keys, np.sum(thread_map(channel, range(nwave), serial=serial, wrap=(
+    count = dict(zip(keys, np.sum(thread_map(channel, range(nwave), serial=(
+        plan.centres is None and plan.centroid in ("quadratic", "2dg")), wrap=(
         lambda it: progress_bar(it, desc=f"extracting {source}"[:40], unit="channel",
                                 total=nwave, enabled=progress))), axis=0).tolist()))
     drop = _bad_frames(bad, wl, bad_frames, source)

@@ -140,23 +140,14 @@ def limit_binary(norm2, threshold, pd, *, form="B", spectrum=None, n_draws=4096,
     shape = norm2.shape[1:]
     m = (a[:, None] * np.sqrt(norm2.reshape(q, -1))).T           # (npos, q) signal per unit c
     power = 2 if form == "B" else 1
-    if correlation is not None:
-        return _limit_binary_correlated(m, correlation.reshape(-1, q, q), [threshold], pd,
-                                        [power], n_draws, seed)[0].reshape(shape)
-    good = np.all(np.isfinite(m), axis=1) & (m.sum(axis=1) > 0)
-    out = np.full(len(m), np.nan)
-    if q > 8:
+    if correlation is None and q > 8:
+        good = np.all(np.isfinite(m), axis=1) & (m.sum(axis=1) > 0)
+        out = np.full(len(m), np.nan)
         out[good] = _moment_guess(m[good], np.ones((good.sum(), q)), threshold, power, pd)
         return out.reshape(shape)
-    z = _lhs_normal(n_draws, q, seed).astype(np.float32).T                 # (q, N)
-    todo = np.flatnonzero(good)
-    for s in range(0, len(todo), 64):
-        sl = todo[s:s + 64]
-        start = _moment_guess(m[sl], np.ones((len(sl), q)), threshold, power, pd)
-        c = _crossings(np.broadcast_to(z, (len(sl),) + z.shape), m[sl], threshold, power,
-                       start)
-        out[sl] = _order_quantile(c, pd)
-    return out.reshape(shape)
+    corr = None if correlation is None else correlation.reshape(-1, q, q)
+    return _limit_binary_draws(m, corr, [threshold], pd, [power], n_draws,
+                               seed)[0].reshape(shape)
 
 
 def _lhs_normal(n, d, seed):
@@ -195,37 +186,42 @@ def limit_binary_correlated_forms(norm2, thresholds, pd, *, spectrum=None, n_dra
     shape = norm2.shape[1:]
     m = (a[:, None] * np.sqrt(norm2.reshape(q, -1))).T
     forms = list(thresholds)
-    maps = _limit_binary_correlated(m, np.asarray(correlation).reshape(-1, q, q),
-                                    [thresholds[f] for f in forms], pd,
-                                    [2 if f == "B" else 1 for f in forms], n_draws, seed)
+    maps = _limit_binary_draws(m, np.asarray(correlation).reshape(-1, q, q),
+                               [thresholds[f] for f in forms], pd,
+                               [2 if f == "B" else 1 for f in forms], n_draws, seed)
     return {f: v.reshape(shape) for f, v in zip(forms, maps)}
 
 
-def _limit_binary_correlated(m, corr, thresholds, pd, powers, n_draws, seed):
-    """Binary limits with channel correlations: z = L eps at each position.
+def _limit_binary_draws(m, corr, thresholds, pd, powers, n_draws, seed):
+    """Binary limits from draws of the ``z_i``: independent (*corr* None, *n_draws*
+    draws) or correlated, ``z = L eps`` at each position (*corr* (npos, q, q), at
+    most 1024 draws).
 
-    Positions are taken in chunks; each chunk's correlated draws are built once
-    and serve every (threshold, power) through their crossing contrasts
-    (`_crossings`).
+    Positions are taken in blocks, side by side on the cores; each block's draws
+    serve every (threshold, power) through their crossing contrasts (`_crossings`).
     """
     npos, q = m.shape
-    eps = _lhs_normal(min(n_draws, 1024), q, seed)                      # (N, q)
-    good = np.all(np.isfinite(corr.reshape(npos, -1)), axis=1) & np.all(np.isfinite(m), axis=1)
-    good &= m.sum(axis=1) > 0
+    n = n_draws if corr is None else min(n_draws, 1024)
+    eps = _lhs_normal(n, q, seed).T.astype(np.float32)                   # (q, N)
+    good = np.all(np.isfinite(m), axis=1) & (m.sum(axis=1) > 0)
+    if corr is not None:
+        good &= np.all(np.isfinite(corr.reshape(npos, -1)), axis=1)
     outs = [np.full(npos, np.nan) for _ in thresholds]
-    jitter = 1e-9 * np.eye(q)
-    eps32 = eps.T.astype(np.float32)                                      # (q, N)
 
-    def chunk(sl):
-        # single precision: P_D from ~1e3 draws does not need more
-        z = np.matmul(np.linalg.cholesky(corr[sl] + jitter).astype(np.float32), eps32)
-        sigma = np.sqrt(np.einsum("kii->ki", corr[sl]))
+    def block(sl):
+        if corr is None:
+            z, sigma = np.broadcast_to(eps, (len(sl),) + eps.shape), np.ones((len(sl), q))
+        else:
+            # single precision: P_D from ~1e3 draws does not need more
+            z = np.matmul(np.linalg.cholesky(corr[sl] + 1e-9 * np.eye(q)).astype(np.float32),
+                          eps)
+            sigma = np.sqrt(np.einsum("kii->ki", corr[sl]))
         return [_order_quantile(_crossings(z, m[sl], threshold, power,
                                            _moment_guess(m[sl], sigma, threshold, power, pd)),
                                 pd) for threshold, power in zip(thresholds, powers)]
     todo = np.flatnonzero(good)
     blocks = [todo[a:a + 64] for a in range(0, len(todo), 64)]
-    for sl, lims in zip(blocks, thread_map(chunk, blocks)):
+    for sl, lims in zip(blocks, thread_map(block, blocks)):
         for out, lim in zip(outs, lims):
             out[sl] = lim
     return outs

@@ -202,9 +202,7 @@ class DetectionModel:
                 raw[a:a + len(s)] = np.einsum("ij,ij->i", s, s)
                 if cache:
                     sel = (at >= a) & (at < a + len(s))
-                    with np.errstate(invalid="ignore", divide="ignore"):
-                        norm = np.where(wf[sel] > 0, np.sqrt(raw[at[sel]]), 0.0)
-                        unit[i, sel] = -s[at[sel] - a] / norm[:, None]
+                    unit[i, sel] = _unit(s[at[sel] - a], raw[at[sel]], wf[sel])
             out[i, rows] = raw
             if mirrored:
                 out[i, n - 1 - rows] = raw
@@ -311,19 +309,17 @@ class DetectionModel:
 
     def _unit_signatures(self, rows):
         """Unit-norm whitened signatures at flat grid positions *rows*: (q, npos, p), float32."""
-        cached = self.__dict__.get("_unit_cache")
-        if cached is not None:
-            at = np.searchsorted(cached[0], rows)
-            if np.all(at < len(cached[0])) and np.array_equal(cached[0][np.minimum(
-                    at, len(cached[0]) - 1)], rows):
-                return cached[1][:, at]
+        if "_unit_cache" in self.__dict__:            # kept by `_signature_norms`
+            keep, unit = self._unit_cache
+            at = np.minimum(np.searchsorted(keep, rows), len(keep) - 1)
+            if np.array_equal(keep[at], rows):
+                return unit[:, at]
         q, p = len(self.wavelengths), self.kernel_model.n_kp
         out = np.empty((q, len(rows), p), np.float32)
         wf = self._wfac.ravel()[rows]
         for i in range(q):
-            sig = -self._sin_rows(i, rows) @ self._lift[i]          # (npos, p)
-            norm = np.sqrt(self.norm2[i].ravel()[rows]) / np.where(wf > 0, wf, 1)
-            out[i] = sig / norm[:, None]
+            s = self._sin_rows(i, rows) @ self._lift[i]             # (npos, p)
+            out[i] = _unit(s, np.einsum("ij,ij->i", s, s), wf)
         return out
 
     def row_projections(self, noise_rows, *, chunk=512, also=()):
@@ -413,6 +409,13 @@ class DetectionModel:
         tab.meta["threshold"] = float(threshold)
         tab.meta["position_angle"] = "degrees from +y (image rows) towards +x (columns)"
         return tab
+
+
+def _unit(s, norm2, wf):
+    """Unit signatures ``-s / ||s||`` from ``s = sin(theta) L`` and its squared norms
+    (NaN where the window factor *wf* is 0, as the norms there are)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return -s / np.where(wf > 0, np.sqrt(norm2), 0.0)[:, None]
 
 
 def _window_max(t, size):

@@ -203,10 +203,13 @@ class NullCalibration:
             valid, z = model.row_projections(rows)                        # (nvalid, nrow, q)
             proj = np.ascontiguousarray(
                 z[np.searchsorted(valid, positions)].transpose(2, 1, 0), np.float32)
-            proj_sum = proj.sum(axis=0)
+            # the sum of z over channels is one product: coef @ sum_i proj_i
+            channel_sum = proj.sum(axis=0)
         else:
             unit = model._unit_signatures(positions)                      # (q, npos, p)
             flat_rows = None if rows is None else rows.reshape(len(rows), -1).astype(np.float32)
+            # ... or eps (all channels) @ the stacked signatures
+            channel_sum = unit.transpose(0, 2, 1).reshape(q * p, -1) if mirrored else None
         maxima = {f: np.empty(self.n_draws) for f in forms}
         npos = len(positions)
 
@@ -224,7 +227,6 @@ class NullCalibration:
             else:
                 joint = (self._coefficients(rng, a, b) @ flat_rows).reshape(n, q, p)
             z, w = np.empty((n, npos), np.float32), np.empty((n, npos), np.float32)
-            total = 0.0
             for i in range(q):
                 if via_rows:
                     np.matmul(coef, proj[i], out=z)
@@ -238,8 +240,6 @@ class NullCalibration:
                 w *= w
                 acc["B"] += w
                 if neg is not None:
-                    if not via_rows:
-                        total = total + z
                     np.minimum(z, 0, out=z)
                     z *= z
                     neg += z
@@ -251,8 +251,7 @@ class NullCalibration:
                 elif f == "B" and mirrored:
                     best = np.maximum(best, neg.max(axis=1))
                 elif mirrored:
-                    if via_rows:
-                        total = coef @ proj_sum
+                    total = (coef if via_rows else joint.reshape(n, -1)) @ channel_sum
                     best = np.maximum(best, (acc[f] - total).max(axis=1))
                 out[f] = best
             return out
