@@ -396,6 +396,9 @@ def _read_detection(path):
     wl = [hdr[f"WAVE{i}"] for i in range(1, nwave + 1)] * u.um
     energy = {"statistic": hdr["ESTAT"], "dof": hdr["EDOF"], "pfa": hdr["EPFA"],
               "threshold": hdr.get("ETHRESH", np.nan), "pd": hdr["PD"]}
+    for key, card in (("raw", "ERAW"), ("map_noise", "MAPNOISE"), ("noise_scale", "NOISESC")):
+        if card in hdr:
+            energy[key] = hdr[card]
     meta = {"test": hdr["TEST"], "pfa": hdr["PFA"], "pd": hdr["PD"], "n_draws": hdr["NDRAWS"],
             "seed": hdr["MCSEED"], "null_channels": hdr["NULLCHAN"],
             "calibrators": [hdr[k] for k in hdr if k.startswith("KPCAL") and k[5:].isdigit()],

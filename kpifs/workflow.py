@@ -17,6 +17,7 @@ are searched). The steps are functions that every interface calls:
 import dataclasses
 import json
 import logging
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,7 +29,7 @@ from ._utils import check_output_dir, check_output_path, to_quantity
 from .calibrate import calibrate
 from .covariance import empirical_covariance
 from .data import KernelPhaseData
-from .exceptions import KpifsError
+from .exceptions import KpifsError, KpifsWarning
 from .extract import extract_kernel_phases
 from .io.angles import frame_detpa, parse_angles
 from .io.readers import read_cube
@@ -306,6 +307,15 @@ def calibrate_observation(target, calibrators=(), options=None):
     if calibrators:
         result = calibrate(target, calibrators, shrinkage=options.shrinkage,
                            joint=options.joint_covariance)
+        em = result.meta.get("error_model") or {}
+        if em.get("model") == "modes" and em.get("dof", np.inf) < target.n_kp:
+            frames = [k.n_frame for k in [target] + calibrators]
+            warnings.warn(f"{target.name}: too few frames ({frames}, {em['dof']} degrees of "
+                          f"freedom) for the covariance of {target.n_kp} kernel phases per "
+                          f"channel: it is modelled on its {em['n_modes']} best-measured modes "
+                          f"only, and its scale is measured on the calibrated data when "
+                          f"detecting (use several times more frames than kernel phases, or "
+                          f"a coarser pupil model, --step)", KpifsWarning, stacklevel=2)
         digest = combined_digest([k.header.get("KPINHASH", k.name)
                                   for k in [target] + calibrators])
         result.header["KPINHASH"] = (digest, "digest of the input files")

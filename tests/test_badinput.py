@@ -347,7 +347,7 @@ CASES = [
     ("star at the edge", lambda f: ["extract", f["edge"]], 0, "closer to the image edge"),
     ("fewer frames than kernels", lambda f: ["extract", f["target"], "--calibrator",
                                              f["cal"]], 0,
-     "too few frames ([4, 4]) to measure the calibration residual"),
+     "too few frames ([4, 4], 6 degrees of freedom) for the covariance"),
     ("Nyquist-limited channel", lambda f: ["extract", *f["charis_tgt"], "--calibrator",
                                            *f["charis_cal"]], 0, "beyond the Nyquist limit"),
 ]

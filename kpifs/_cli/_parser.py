@@ -75,7 +75,7 @@ EPILOG_SIMULATE = """examples:
       --static-diff 15nm -o unkind     # drifting aberrations, target != calibrator
 """
 
-TESTS = ("B", "B-paper", "NP", "E")
+TESTS = ("B", "B-paper", "S", "NP", "E")
 INSTRUMENTS = ("auto", "charis", "sphere", "generic")
 
 

@@ -29,6 +29,12 @@ def run(args):
         print(f"  threshold {res.threshold:.2f}, the larger of the Gaussian null's "
               f"{nul['threshold_gaussian']:.2f} and the empirical one's "
               f"{nul['threshold_empirical']:.2f} ({nul['n_blocks']} time blocks)")
+    e = res.energy
+    if e.get("raw") is not None and e.get("dof"):
+        print(f"  error model: whitened energy {e['raw'] / e['dof']:.2f} x its {e['dof']} dof "
+              f"from the frames; noise scale {e.get('noise_scale', 1.0):.2f} applied to every "
+              f"test (residual chi2 {res.meta.get('chi2_red', float('nan')):.2f}, map "
+              f"{e.get('map_noise', float('nan')):.2f}); energy test P_FA {e['pfa']:.1e}")
     for row in res.candidates:
         x = row["fit_x"] if "fit_x" in row.colnames else row["x"]
         y = row["fit_y"] if "fit_y" in row.colnames else row["y"]
@@ -41,7 +47,9 @@ def run(args):
                    f"{row[pre + 'pa_sky'].to_value(u.deg):.1f} deg East of North")
         print(f"  detector ({x.to_value(u.mas):.1f}, {y.to_value(u.mas):.1f}) mas, separation "
               f"{row['separation'].to_value(u.mas):.0f} mas{sky}, global P_FA "
-              f"{row['pfa_global']:.1e}{how}")
+              f"{row['pfa_global']:.1e}{how}"
+              + (f" [flagged: {row['flags']}]" if "flags" in row.colnames and row["flags"]
+                 else ""))
     if args.plots:
         truth = None
         if "KPSIMX" in kpd.header and "KPSIMY" in kpd.header:

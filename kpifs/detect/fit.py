@@ -69,7 +69,8 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
     dict
         ``x``, ``y`` (mas; ``dRA``, ``dDec`` with *detpa*), ``x_err``, ``y_err``,
         ``contrast`` (q,), ``contrast_err`` (q,), ``chi2``, ``dof``, ``success``,
-        ``frame`` (``'sky'`` or ``'detector'``).
+        ``frame`` (``'sky'`` or ``'detector'``) and ``model``, the fitted kernel
+        phases (q, p), window gain included (what a search subtracts).
 
     Examples
     --------
@@ -206,4 +207,4 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
     return {"x": res.x[0], "y": res.x[1], "x_err": err[0], "y_err": err[1],
             "contrast": res.x[2:], "contrast_err": err[2:], "chi2": float(2 * res.cost),
             "dof": dof, "success": bool(res.success),
-            "frame": "detector" if rot is None else "sky"}
+            "frame": "detector" if rot is None else "sky", "model": model(res.x)}

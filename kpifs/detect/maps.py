@@ -31,7 +31,10 @@ from ..exceptions import KpifsError
 from ..kernel import MAS
 from ..window import ExtractionWindow
 from ._laws import norm_sf
+from ._laws import chi2_sf
 from .limits import spectrum_shape
+from .channels import channel_shrinkage, whiten_weights
+from .spectral import spectral_basis, subspace_weights
 from .stats import binary_pfa, binary_statistic
 
 
@@ -59,6 +62,10 @@ class DetectionModel:
         The extraction window, whose attenuation enters the signatures.
     dof : sequence of int, optional
         Whitened dimension kept per channel (for the energy detector).
+    basis : optional
+        Spectral model of the subspace test ``'S'`` (`~kpifs.detect.spectral.spectral_basis`:
+        None for the default smooth basis, a rank, ``'blackbody'``, a file of
+        spectra or an array (q, r)).
     detpa : tuple, optional
         ``(angles, weights)``: detector position angles (deg) of the data's
         frames or PA bins (`kpifs.detect.sky.pa_bins`) and their weights. The
@@ -80,9 +87,10 @@ class DetectionModel:
     """
 
     def __init__(self, kernel_model, wavelengths, whitening, grid, *, pixscale=None,
-                 window=None, dof=None, detpa=None):
+                 window=None, dof=None, detpa=None, basis=None):
         self.kernel_model = kernel_model
         self.wavelengths = np.atleast_1d(to_quantity(wavelengths, u.um, name="wavelengths"))
+        self.basis = spectral_basis(basis, self.wavelengths)
         w = np.asarray(whitening, float)
         q, p = len(self.wavelengths), kernel_model.n_kp
         if w.shape != (q, p, p):
@@ -257,12 +265,74 @@ class DetectionModel:
         with np.errstate(invalid="ignore", divide="ignore"):
             return amp / np.sqrt(np.sum(amp ** 2, axis=0))
 
+    @property
+    def subspace(self):
+        """Weights ``U`` (r, q, ny, nx) of the subspace statistic (`kpifs.detect.spectral`).
+
+        With the channels' correlation (`correlate`), the weights of the GLR
+        under that correlation (shrunk towards independence by the cross-
+        validated ``channel_alpha``): the channels' common noise (one
+        optical-path error seen at every wavelength) is cancelled, as joint
+        whitening across channels would.
+        """
+        if "_subspace" not in self.__dict__:
+            w = subspace_weights(self.norm2, self.basis)
+            corr = self.__dict__.get("_channel_corr")
+            if corr is not None:
+                w = whiten_weights(w, corr, self.channel_alpha)
+            self._subspace = w
+            # the sign of the fitted spectrum's mean along the projections: beta = M gamma
+            # with M = (W^T D A)^-1, so mean(A beta) > 0 is h . gamma > 0, h = M^T A^T 1
+            q = len(self.wavelengths)
+            ww = w.reshape(w.shape[0], q, -1).transpose(2, 1, 0)          # (npos, q, r)
+            da = np.sqrt(np.nan_to_num(self.norm2.reshape(q, -1).T))[:, :, None] * self.basis
+            m = np.matmul(ww.transpose(0, 2, 1), da)                       # (npos, r, r)
+            ones = np.broadcast_to(self.basis.sum(axis=0), (len(m), self.basis.shape[1]))
+            h = np.zeros_like(ones)
+            ok = np.abs(np.linalg.det(m)) > 0
+            h[ok] = np.linalg.solve(m[ok].transpose(0, 2, 1), ones[ok][..., None])[..., 0]
+            self._subspace_sign = h.T.reshape((-1,) + self.grid.shape)
+        return self._subspace
+
+    @property
+    def subspace_sign(self):
+        """``h`` (r, ny, nx): a companion's fitted spectrum has a positive mean where
+        ``h . (U^T z) > 0`` (the subspace test counts only those: a spectrum of
+        negative mean is the mirror position's)."""
+        self.subspace
+        return self._subspace_sign
+
+    def correlate(self, noise_rows):
+        """Take the channels' correlation at every position from whitened *noise_rows*.
+
+        ``C(pos) = Z^T Z`` with ``Z`` the rows' projections on the unit
+        signatures (`row_projections`); used by the subspace test's weights
+        (`subspace`) and returned, shape (ny, nx, q, q) (NaN off the grid).
+        """
+        ny, nx = self.grid.shape
+        q = len(self.wavelengths)
+        idx, z = self.row_projections(noise_rows)
+        corr = np.full((ny * nx, q, q), np.nan)
+        corr[idx] = np.matmul(z.transpose(0, 2, 1), z)
+        if self.half_positions()[1]:                 # z(-pos) = -z(pos): the same C
+            corr[ny * nx - 1 - idx] = corr[idx]
+        self._channel_corr = corr.reshape(ny, nx, q, q)
+        self.channel_alpha = channel_shrinkage(z)
+        log.info("channels' correlation shrunk towards independence by %.2f "
+                 "(cross-validated)", self.channel_alpha)
+        self.__dict__.pop("_subspace", None)
+        self.__dict__.pop("_digest", None)
+        self._corr_key = hashlib.sha1(np.ascontiguousarray(noise_rows).tobytes()).hexdigest()
+        return self._channel_corr
+
     def local_statistic(self, y, form="B", spectrum=None):
         """Detection statistic at each grid position (NaN outside the searched area).
 
         ``'B'``/``'B-paper'``: the binary test; ``'NP'``: the matched filter for a
         companion of the given spectrum shape and unknown amplitude,
-        ``sum_i a_i s_i^T y_i / ||s_a||`` (N(0, 1) under H0).
+        ``sum_i a_i s_i^T y_i / ||s_a||`` (N(0, 1) under H0); ``'S'``: the
+        subspace (spectral-model) test ``||U^T z||^2`` (chi2_r at a known
+        position, `kpifs.detect.spectral`).
         """
         return self._statistic(self.dot_maps(y), form, spectrum)
 
@@ -281,6 +351,10 @@ class DetectionModel:
             z = dot / np.sqrt(self.norm2)
         if form == "NP":
             t = np.sum(self._mf_weights(spectrum) * z, axis=-3)
+        elif form == "S":
+            zz = np.nan_to_num(z)
+            g = np.sum(self.subspace * zz[..., None, :, :, :], axis=-3)        # (..., r, ny, nx)
+            t = np.sum(g ** 2, axis=-3) * (np.sum(self.subspace_sign * g, axis=-3) > 0)
         else:
             t = binary_statistic(np.moveaxis(z, -3, -1), form)
         return np.where(self.grid.valid, t, np.nan)
@@ -289,6 +363,9 @@ class DetectionModel:
         """False-alarm probability of a local statistic at a known position."""
         if form == "NP":
             return norm_sf(np.nan_to_num(t, nan=-np.inf))
+        if form == "S":       # one sign of the spectrum's mean: half the two-sided law
+            return np.where(np.nan_to_num(t) > 0,
+                            0.5 * chi2_sf(np.nan_to_num(t, nan=0.0), self.basis.shape[1]), 1.0)
         return binary_pfa(np.nan_to_num(t, nan=0.0), len(self.wavelengths), form)
 
     # --- what the Monte-Carlo null needs ------------------------------------------
@@ -298,12 +375,13 @@ class DetectionModel:
             return self._digest
         h = hashlib.sha1()
         for arr in (self.kernel_model.kernel, self.kernel_model.uv.value, self.whitening,
-                    self.wavelengths.value, self._wfac):
+                    self.wavelengths.value, self._wfac, self.basis):
             h.update(np.ascontiguousarray(arr).tobytes())
         for part in self.grid.key():
             h.update(repr(part).encode())
         h.update(repr([(None if a is None else float(a), float(w))
                        for a, w in self._poses]).encode())
+        h.update(self.__dict__.get("_corr_key", "").encode())
         self._digest = h.hexdigest()
         return self._digest
 

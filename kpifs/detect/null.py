@@ -34,7 +34,6 @@ from ..exceptions import KpifsError
 from .stats import check_probability
 
 __all__ = ["NullCalibration", "CombinedNull", "search_null", "scale_block_rows",
-           "energy_null",
            "check_draws", "MIN_DRAWS", "DEFAULT_DRAWS", "COEFFICIENTS", "NULL_METHODS",
            "EMPIRICAL_DRAWS"]
 
@@ -138,8 +137,8 @@ class NullCalibration:
 
     def __init__(self, model, *, form="B", n_draws=DEFAULT_DRAWS, seed=0, spectrum=None,
                  noise_rows=None, coefficients="gaussian", progress=False):
-        if form not in ("B", "B-paper", "NP"):
-            raise KpifsError(f"unknown map test {form!r}: 'B', 'B-paper' or 'NP'")
+        if form not in ("B", "B-paper", "NP", "S"):
+            raise KpifsError(f"unknown map test {form!r}: 'B', 'B-paper', 'NP' or 'S'")
         if coefficients not in COEFFICIENTS:
             raise KpifsError(f"unknown null coefficients {coefficients!r}: use one of "
                              f"{COEFFICIENTS}")
@@ -193,9 +192,15 @@ class NullCalibration:
         model, form, rows = self.model, self.form, self.noise_rows
         q, p = len(model.wavelengths), model.kernel_model.n_kp
         positions, mirrored = model.half_positions()
-        forms = (form,) if form == "NP" else ("B", "B-paper")
+        # the binary forms and the subspace test come from the same projections
+        forms = (form,) if form == "NP" else ("B", "B-paper", "S")
         if form == "NP":
             mfw = model._mf_weights(self.spectrum).reshape(q, -1)[:, positions].astype(np.float32)
+        else:
+            sub = model.subspace
+            sub = sub.reshape(sub.shape[:2] + (-1,))[:, :, positions].astype(np.float32)
+            r = len(sub)
+            sgn = model.subspace_sign.reshape(r, -1)[:, positions].astype(np.float32)
         # z = eps @ unit^T with eps = coef @ rows: project the rows once when they are few
         via_rows = _via_rows(rows, p)
         if via_rows:
@@ -210,13 +215,14 @@ class NullCalibration:
             flat_rows = None if rows is None else rows.reshape(len(rows), -1).astype(np.float32)
             # ... or eps (all channels) @ the stacked signatures
             channel_sum = unit.transpose(0, 2, 1).reshape(q * p, -1) if mirrored else None
-        maxima = {f: np.empty(self.n_draws) for f in forms}
+        maxima = {f: np.empty(self.n_draws) for f in forms + ("Z2",)}
         npos = len(positions)
 
         def one(job):
             (a, b), rng = job
             n = b - a
-            acc = {f: np.zeros((n, npos), np.float32) for f in forms}
+            acc = {f: np.zeros((n, npos), np.float32) for f in forms if f != "S"}
+            proj_s = np.zeros((r, n, npos), np.float32) if "S" in forms else None
             # mirrored positions: sum max(-z, 0)^2 = sum min(z, 0)^2 and
             # sum max(-z, 0) = sum max(z, 0) - sum z (one product for the sum over channels)
             neg = np.zeros((n, npos), np.float32) if mirrored and form != "NP" else None
@@ -227,14 +233,18 @@ class NullCalibration:
             else:
                 joint = (self._coefficients(rng, a, b) @ flat_rows).reshape(n, q, p)
             z, w = np.empty((n, npos), np.float32), np.empty((n, npos), np.float32)
+            z2 = np.zeros(n)
             for i in range(q):
                 if via_rows:
                     np.matmul(coef, proj[i], out=z)
                 else:
                     np.matmul(joint[:, i], unit[i].T, out=z)
+                z2 += np.einsum("nk,nk->n", z, z)
                 if form == "NP":
                     acc["NP"] += mfw[i] * z
                     continue
+                for j in range(r):
+                    proj_s[j] += sub[j, i] * z
                 np.maximum(z, 0, out=w)
                 acc["B-paper"] += w
                 w *= w
@@ -243,8 +253,16 @@ class NullCalibration:
                     np.minimum(z, 0, out=z)
                     z *= z
                     neg += z
-            out = {}
+            # the map's mean square (mirrored positions have the same): `noise_draws`
+            out = {"Z2": z2 / (q * npos)}
+            if proj_s is not None:
+                t_s = np.einsum("jnk,jnk->nk", proj_s, proj_s)
+                if not mirrored:    # the mirror carries the other sign: max over both is t_s
+                    t_s *= np.einsum("jk,jnk->nk", sgn, proj_s) > 0
+                out["S"] = t_s.max(axis=1)
             for f in forms:
+                if f == "S":
+                    continue
                 best = acc[f].max(axis=1)
                 if f == "NP" and mirrored:
                     best = np.maximum(best, -acc[f].min(axis=1))
@@ -263,11 +281,20 @@ class NullCalibration:
             it, desc=f"calibrating sup-{form}", unit="batch", total=len(jobs),
             enabled=self.progress))
         for (a, b), out in zip(spans, done):
-            for f in forms:
+            for f in maxima:
                 maxima[f][a:b] = out[f]
-        for f in forms:
+        for f in maxima:
             maxima[f].sort()
         return maxima
+
+    def noise_draws(self):
+        """Sorted draws, under H0, of the map's mean square ``mean z_i^2`` over the grid
+        and channels (1 on average): the law of `~kpifs.detect.channels.map_noise`."""
+        key = self._key("Z2")
+        if key not in _CACHE:
+            _CACHE.pop(self._key(), None)
+            self.draws
+        return _CACHE[key]
 
     def _coefficients(self, rng, a, b):
         """Coefficients of draws ``a:b`` (float32, one row of weights per draw)."""
@@ -378,6 +405,10 @@ class CombinedNull:
         """Largest threshold of the nulls at global false-alarm *pfa*."""
         return max(n.threshold(pfa) for n in self.nulls)
 
+    def noise_draws(self):
+        """The first null's `NullCalibration.noise_draws`."""
+        return self.nulls[0].noise_draws()
+
     def pfa(self, t, *, return_method=False):
         """Largest global false-alarm probability of *t* (with *return_method*, True
         where that of the null giving it was extrapolated from its tail)."""
@@ -474,25 +505,3 @@ def search_null(model, *, form, noise_rows, block_rows=None, method="auto",
                                          spectrum=spectrum, noise_rows=block_rows,
                                          coefficients="sign")
     return CombinedNull(list(parts.values()), noise_rows=noise_rows), parts
-
-
-def energy_null(rows, n_draws, seed):
-    """Noise draws ``n = a R_w`` from whitened covariance rows: coefficients and energies.
-
-    Returns a dict with ``coef`` (n_draws, nrow) and ``energy`` (n_draws,) =
-    ``||a R_w||^2``, the energy detector's law with the channels' correlations.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from kpifs.detect.null import energy_null
-    >>> rows = np.eye(50).reshape(50, 1, 50)        # white noise, 50 dimensions
-    >>> e = energy_null(rows, 20000, 0)["energy"]
-    >>> bool(abs(e.mean() - 50) < 0.5)
-    True
-    """
-    rng = np.random.default_rng(seed)
-    coef = rng.standard_normal((n_draws, len(rows)))
-    flat = rows.reshape(len(rows), -1)
-    energy = np.sum((coef @ (flat @ flat.T)) * coef, axis=1)
-    return {"coef": coef, "energy": energy}

@@ -17,10 +17,13 @@ from .sky import (add_sky_columns, data_angles, pa_bins, rotated_binary_kernel_p
                   search_frame, sky_search_columns)
 from .skyfit import refit_on_sky
 from .limits import (energy_lambda, limit_binary, limit_binary_correlated_forms, limit_energy,
-                     limit_energy_correlated, limit_np, mirror_half_map, radial_curves,
-                     spectrum_shape)
+                     limit_np, mirror_half_map, radial_curves, spectrum_shape)
 from .maps import DetectionModel
-from .null import DEFAULT_DRAWS, check_draws, energy_null, scale_block_rows, search_null
+from .null import DEFAULT_DRAWS, check_draws, scale_block_rows, search_null
+from .channels import (NOISE_CONFIDENCE, combined_scale, correlated_inputs, energy_null,
+                       energy_spread, map_noise, np_correlated)
+from .quality import add_spectrum_model, flag_candidates, resolution_mas
+from .spectral import limit_subspace
 from .stats import TESTS, check_probability, energy_threshold
 
 
@@ -104,7 +107,7 @@ def _prepare(kpd, shrinkage, allow_uncalibrated):
     return kpd.kp[0], kpd.covariance, kpd
 
 
-def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
+def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=None,
            n_draws=DEFAULT_DRAWS, seed=0, shrinkage="auto", fit=True, max_candidates=20,
            allow_uncalibrated=False, frame="auto", limits=True, null="auto", progress=False):
     """Search calibrated kernel phases for a companion.
@@ -116,9 +119,11 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
         `~kpifs.calibrate.calibrate`). Uncalibrated data are refused unless
         *allow_uncalibrated* (the frames' mean is then searched, with a
         warning).
-    test : {'B', 'B-paper', 'NP', 'E'}
+    test : {'B', 'B-paper', 'S', 'NP', 'E'}
         ``'B'``: the GLR binary test ``sum_i max(z_i, 0)^2``; ``'B-paper'``: the
-        seed paper's ``sum_i max(z_i, 0)``; ``'NP'``: the matched filter for the
+        seed paper's ``sum_i max(z_i, 0)``; ``'S'``: the spectral-model
+        (subspace) test, the GLR for a contrast spectrum in the span of *basis*
+        (`kpifs.detect.spectral`); ``'NP'``: the matched filter for the
         given *spectrum* shape; these give the detection map. ``'E'``: the
         energy detector (a single statistic for the whole data set, reported in
         ``result.energy``); its map is that of ``'B'``.
@@ -130,6 +135,10 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
     spectrum : array-like, optional
         Companion spectrum shape (per channel, any scale) for limits and the
         matched filter; flat by default.
+    basis : optional
+        Spectral model of test ``'S'`` (`~kpifs.detect.spectral.spectral_basis`):
+        None for a smooth quadratic in wavelength, a rank, ``'blackbody'``, a
+        file of template spectra or an array (q, r).
     n_draws, seed : int
         Monte-Carlo draws calibrating the grid search, and their seed.
     fit : bool
@@ -192,11 +201,12 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
         grid = default_grid(kpd, frame=frame)
     window = kpd.window
     model = DetectionModel(kpd.kernel_model, kpd.wavelengths, w, grid, pixscale=kpd.pixscale,
-                           window=window, dof=rank, detpa=search_poses)
+                           window=window, dof=rank, detpa=search_poses, basis=basis)
     form = "B" if test == "E" else test
     rows = None
     if kpd.covariance_rows is not None:
         rows = whiten(kpd.covariance_rows, w)
+        model.correlate(rows)
     else:
         log.info("no covariance rows: channels taken as independent in the null model")
     blocks, block_energy = None, None
@@ -219,6 +229,7 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
         log.info("null of the grid maximum at P_FA %.1e: Gaussian %.2f, empirical (sign flips "
                  "of %d time blocks) %.2f", pfa, null_info["threshold_gaussian"], len(blocks),
                  null_info["threshold_empirical"])
+    spread = energy_spread(rows, int(rank.sum()))
     characterise = None
     if fit and kpd.covariance_rows is not None and kpd.fit_covariance_rows is not None:
         # positions and contrasts from the error model with more modes (calibrate's
@@ -227,10 +238,16 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
         fcov = np.matmul(fr.transpose(1, 2, 0), fr.transpose(1, 0, 2))       # (q, p, p)
         fw, frank = whitening_matrix(fcov, return_rank=True, source="characterisation covariance")
         characterise = (fw, whiten(fr, fw), int(np.sum(frank)))
-    cands, kappa = _sequential_search(model, kp, w, kpd, threshold=threshold, null=null,
-                                      spectrum=spectrum, fit=fit, max_candidates=max_candidates,
-                                      dof=int(rank.sum()), poses=poses,
-                                      characterise=characterise)
+    map_low = float(np.quantile(null.noise_draws(), NOISE_CONFIDENCE))
+    last = {}
+
+    def scaler(res, n_par):
+        kappa = _chi2_red(res, w, int(rank.sum()), n_par)
+        last["map"] = map_noise(model, whiten(res, w))
+        return kappa, combined_scale(kappa, spread, last["map"], map_low)
+    cands, kappa, scale = _sequential_search(
+        model, kp, w, kpd, threshold=threshold, null=null, spectrum=spectrum, fit=fit,
+        max_candidates=max_candidates, scaler=scaler, poses=poses, characterise=characterise)
     if frame == "sky":
         sky_search_columns(cands, poses)
     else:
@@ -243,9 +260,11 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
         k = np.sqrt(np.maximum(1.0, np.asarray(chi2, float)))
         for col in ("fit_dra_err", "fit_ddec_err", "fit_pa_sky_err"):
             cands[col] = cands[col] * k
-    # the noise level the data show beyond the model (reduced chi-square of the residual
-    # after the candidates): statistics, errors and limits are scaled by it, never down
-    scale = max(1.0, kappa)
+    flag_candidates(cands, grid, resolution=resolution_mas(kpd.kernel_model, kpd.wavelengths),
+                    noise_scale=scale)
+    add_spectrum_model(cands, model.basis)
+    # the noise level the data show against the model (the residual after the candidates,
+    # in all its modes and on the map): statistics, errors and limits are scaled by it
     t, c, cerr = model.maps(y, form, spectrum)
     t = t / scale ** _POWER[form]
     cerr = cerr * np.sqrt(scale)
@@ -255,8 +274,12 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
 
     dof = int(rank.sum())
     t_e = float(np.sum(y ** 2))
-    energy = {"statistic": t_e, "dof": dof, "pfa": float(chi2_sf(t_e, dof)),
-              "threshold": float(energy_threshold(pfa, dof)), "pd": pd}
+    # the raw energy is the error model's diagnostic (dof when it is calibrated); its P_FA,
+    # like every test's, is judged with the noise scale the search applies
+    t_es = t_e / scale
+    energy = {"statistic": t_es, "raw": t_e, "dof": dof, "pfa": float(chi2_sf(t_es, dof)),
+              "threshold": float(energy_threshold(pfa, dof)), "pd": pd,
+              "noise_scale": scale, "map_noise": last["map"]}
     te = None
     if not limits:
         return _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, {}, cands, threshold,
@@ -266,7 +289,7 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
     if rows is not None:   # correlated channels: the energy's law from the same null model
         # a one-number statistic: its draws are cheap, and its threshold is read directly
         te = energy_null(rows, max(n_draws, ENERGY_DRAWS), seed)
-        energy["pfa"] = float((np.sum(te["energy"] >= t_e) + 1) / (len(te["energy"]) + 1))
+        energy["pfa"] = float((np.sum(te["energy"] >= t_es) + 1) / (len(te["energy"]) + 1))
         if pfa * len(te["energy"]) >= 10:
             energy["threshold"] = float(np.quantile(te["energy"], 1 - pfa))
     limits = {"NP": limit_np(model.norm2, pfa, pd, a)}
@@ -274,26 +297,32 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None,
     if rows is None:
         limits["E"] = limit_energy(model.norm2, pfa, pd, dof, a)
     else:
-        corr, limits["E"] = _correlated_inputs(model, rows, a, energy, te, seed)
+        corr, limits["E"] = correlated_inputs(model, rows, a, energy, te, seed)
     thr = {f: threshold if f == form else make_null(f)[0].threshold(pfa)
-           for f in ("B", "B-paper")}
+           for f in ("B", "B-paper", "S")}
     if corr is None:
-        for f in thr:
+        for f in ("B", "B-paper"):
             limits[f] = limit_binary(model.norm2, thr[f], pd, form=f, spectrum=a, seed=seed)
     else:       # the correlated draws of each position serve both forms
-        limits.update(limit_binary_correlated_forms(model.norm2, thr, pd, spectrum=a,
-                                                    seed=seed, correlation=corr))
+        limits.update(limit_binary_correlated_forms(
+            model.norm2, {f: thr[f] for f in ("B", "B-paper")}, pd, spectrum=a, seed=seed,
+            correlation=corr))
+    limits["S"] = limit_subspace(model.subspace, model.norm2, thr["S"], pd, spectrum=a,
+                                 correlation=corr, seed=seed)
+    if corr is not None:    # the known-spectrum reference with the same correlation
+        limits["NP"] = np_correlated(model.norm2, corr, a, pfa, pd)
     # the NP reference uses the local threshold; with the grid search its own global one
     if form == "NP":
         limits["NP"] = (threshold - norm_isf(pd)) / np.sqrt(
             np.tensordot(a ** 2, model.norm2, axes=(0, 0)))
     if corr is not None and model.half_positions()[1]:
-        for f in ("E", "B", "B-paper"):
+        for f in ("E", "B", "B-paper", "S"):
             limits[f] = mirror_half_map(limits[f])
     limits = {k: np.where(valid, v * np.sqrt(scale), np.nan) for k, v in limits.items()}
     curves = radial_curves(limits, grid)
     meta = {"test": test, "pfa": pfa, "pd": pd, "n_draws": n_draws, "seed": seed,
             "chi2_red": kappa, "noise_scale": scale, "error_model": kpd.meta.get("error_model"),
+            "energy_spread": spread, "map_noise_low": map_low,
             "calibrators": kpd.meta.get("calibrators", []),
             "source": kpd.meta.get("source", ""), "spectrum": a.tolist(),
             "lambda_energy": energy_lambda(pfa, pd, dof),
@@ -322,29 +351,11 @@ def _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands, th
                            header=kpd.header.copy())
 
 
-def _correlated_inputs(model, rows, a, energy, te, seed):
-    """Per-position z covariance (for the binary limit) and the energy limit, both
-    with the channel correlations carried by the covariance rows; on a symmetric grid
-    for half the positions (NaN elsewhere: see `~kpifs.detect.limits.mirror_half_map`)."""
-    shape = model.grid.shape
-    q = len(model.wavelengths)
-    idx, z = model.row_projections(rows)                              # (npos, nrow, q)
-    corr = np.full((shape[0] * shape[1], q, q), np.nan)
-    corr[idx] = np.matmul(z.transpose(0, 2, 1), z)
-    amp = a[None, :] * np.sqrt(model.norm2.reshape(q, -1)[:, idx].T)     # (npos, q)
-    n = min(4096, len(te["energy"]))      # enough draws for P_D, far from the tail
-    proj = te["coef"][:n] @ np.einsum("kri,ki->rk", z, amp)             # (N, npos)
-    lim = np.full(shape[0] * shape[1], np.nan)
-    lim[idx] = limit_energy_correlated(proj, np.sum(amp ** 2, axis=1), te["energy"][:n],
-                                       energy["threshold"], energy["pd"])
-    return corr.reshape(shape + (q, q)), lim.reshape(shape)
-
-
 #: Draws of the energy detector's correlated null (its threshold read from them).
 ENERGY_DRAWS = 30000
 
 #: How each statistic scales with the noise variance (B: a sum of squares).
-_POWER = {"B": 1.0, "B-paper": 0.5, "NP": 0.5}
+_POWER = {"B": 1.0, "B-paper": 0.5, "NP": 0.5, "S": 1.0}
 
 
 def _chi2_red(residual, w, dof, n_par):
@@ -353,14 +364,15 @@ def _chi2_red(residual, w, dof, n_par):
 
 
 def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max_candidates,
-                       dof, poses=None, characterise=None):
+                       scaler, poses=None, characterise=None):
     """Strongest peak above threshold, fitted and subtracted, until none is left.
 
     Each peak is judged on its statistic scaled by the reduced chi-square of
     the whitened residual once its model is subtracted (never scaled down), and
     its errors are scaled likewise: a calibration residual the error model
     missed inflates the chi-square instead of passing as companions. Returns
-    the candidates and the reduced chi-square of the final residual.
+    the candidates, the reduced chi-square of the final residual and the noise
+    scale (*scaler*: residual, fitted parameters -> reduced chi-square, scale).
     """
     rows = []
     residual = kp.copy()
@@ -374,27 +386,28 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
             break
         row = tab[:1]
         if fit:
-            _refine(row, residual, w, kpd, null.noise_rows, poses)
+            model_kp = _refine(row, residual, w, kpd, null.noise_rows, poses)[0]
             if characterise is not None:
                 # from the search model's optimum (the robust start), the characterisation
-                _refine(row, residual, characterise[0], kpd, characterise[1], poses,
-                        dof=characterise[2], from_fit=True)
+                model_kp = _refine(row, residual, characterise[0], kpd, characterise[1], poses,
+                                   dof=characterise[2], from_fit=True)[0]
             r = row[0]
-            x, y, c = r["fit_x"], r["fit_y"], np.asarray(r["fit_contrast"])
+            x, y = r["fit_x"].to_value(u.mas), r["fit_y"].to_value(u.mas)
         else:
+            # the subtracted model is the fitted one, window gain included (a bright
+            # companion's approximate model would leave side lobes to be found next)
             r = row[0]
-            x, y, c = r["x"], r["y"], np.asarray(r["contrast"])
-        x, y = x.to_value(u.mas), y.to_value(u.mas)
-        att = 1.0 if kpd.window is None else float(kpd.window.at(np.hypot(x, y), kpd.pixscale))
-        if poses is None:
-            model_kp = kpd.kernel_model.binary_kernel_phases([x, y] * u.mas, c * att,
-                                                             kpd.wavelengths)
-        else:
-            model_kp = rotated_binary_kernel_phases(kpd.kernel_model, [x, y] * u.mas, c * att,
-                                                    kpd.wavelengths, *poses)
+            x, y, c = r["x"].to_value(u.mas), r["y"].to_value(u.mas), np.asarray(r["contrast"])
+            att = 1.0 if kpd.window is None else \
+                float(kpd.window.at(np.hypot(x, y), kpd.pixscale))
+            if poses is None:
+                model_kp = kpd.kernel_model.binary_kernel_phases([x, y] * u.mas, c * att,
+                                                                 kpd.wavelengths)
+            else:
+                model_kp = rotated_binary_kernel_phases(kpd.kernel_model, [x, y] * u.mas,
+                                                        c * att, kpd.wavelengths, *poses)
         after = residual - model_kp
-        kappa = _chi2_red(after, w, dof, n_par * (len(rows) + 1))
-        scale = max(1.0, kappa)
+        kappa, scale = scaler(after, n_par * (len(rows) + 1))
         stat = float(row["statistic"][0]) / scale ** _POWER[form]
         if stat < threshold:
             log.info("peak at (%.1f, %.1f) mas: statistic %.2f / chi2_red %.2f is below the "
@@ -414,7 +427,7 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
     if len(rows) == max_candidates:
         warnings.warn(f"{kpd.name}: the search stopped at max_candidates = {max_candidates}; "
                       f"more peaks may lie above the threshold", KpifsWarning, stacklevel=3)
-    kappa = _chi2_red(residual, w, dof, n_par * len(rows))
+    kappa, scale = scaler(residual, n_par * len(rows))
     if not rows:
         empty = model.candidates(whiten(kp, w), threshold=np.inf, form=form, null=null,
                                  spectrum=spectrum)
@@ -425,21 +438,22 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
             empty["fit_contrast_err"] = np.zeros((0, q))
             empty["fit_chi2"] = np.zeros(0)
         empty["chi2_red"] = np.zeros(0)
-        return empty, kappa
+        return empty, kappa, scale
     out = vstack(rows)
     out.meta = rows[0].meta
     out.meta["chi2_red"] = kappa
-    return out, kappa
+    return out, kappa, scale
 
 
 def _refine(cands, kp, w, kpd, noise_rows=None, poses=None, dof=None, from_fit=False):
     """Fit each candidate (from its grid peak, or *from_fit* its earlier fit); with
     *dof* (the whitened dimension of *w*, a characterisation model) the errors are
     scaled by the fit's own reduced chi-square (never down) and ``fit_chi2_red`` is
-    added."""
+    added. Returns the fitted models' kernel phases, one (q, p) array per candidate."""
     q = kp.shape[0]
     cols = {k: [] for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err", "fit_contrast",
                             "fit_contrast_err", "fit_chi2")}
+    models = []
     step = 20.0
     for row in cands:
         kw = {} if poses is None else dict(detpa=poses[0], detpa_weights=poses[1])
@@ -460,6 +474,7 @@ def _refine(cands, kp, w, kpd, noise_rows=None, poses=None, dof=None, from_fit=F
         cols["fit_contrast"].append(r["contrast"])
         cols["fit_contrast_err"].append(np.asarray(r["contrast_err"]) * k)
         cols["fit_chi2"].append(r["chi2"])
+        models.append(r["model"])
     for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err"):
         cands[k] = np.array(cols[k]) * u.mas
     cands["fit_contrast"] = np.array(cols["fit_contrast"]).reshape(len(cands), q)
@@ -467,6 +482,7 @@ def _refine(cands, kp, w, kpd, noise_rows=None, poses=None, dof=None, from_fit=F
     cands["fit_chi2"] = np.array(cols["fit_chi2"])
     if "fit_chi2_red" in cols:
         cands["fit_chi2_red"] = np.array(cols["fit_chi2_red"])
+    return models
 
 
 _EXAMPLE = {}

@@ -117,7 +117,7 @@ def paper_experiment(*, preset="paper", n_frames=1000, n_draws=30000, seed=0, pf
     ...     table, curves = paper_experiment(n_frames=20, n_draws=2000, seed=1, npup=32,
     ...                                      shape=(24, 24))
     >>> sorted(set(str(t) for t in table["test"]))
-    ['B', 'B-paper', 'E', 'NP']
+    ['B', 'B-paper', 'E', 'NP', 'S']
     """
     obs = simulate_scene(preset, n_frames=n_frames, seed=seed, progress=progress, **scene)
     p = obs.params

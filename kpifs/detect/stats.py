@@ -23,13 +23,15 @@ from ._laws import chi2_isf, chi2_sf, ncx2_sf, norm_isf, norm_sf
 optimize = lazy_module("scipy.optimize")
 special = lazy_module("scipy.special")
 stats = lazy_module("scipy.stats")
+spectral = lazy_module("kpifs.detect.spectral")
 
 __all__ = ["TESTS", "check_probability", "np_threshold", "np_pd", "energy_threshold",
            "energy_pd", "binary_pfa", "binary_threshold", "binary_statistic", "np_statistic",
            "energy_statistic", "auc", "roc_curve", "monte_carlo_roc"]
 
-#: Test names: Neyman-Pearson, energy detector, GLR binary test, the paper's binary form.
-TESTS = ("NP", "E", "B", "B-paper")
+#: Test names: Neyman-Pearson, energy detector, GLR binary test, the paper's binary form,
+#: the spectral-model (subspace) test.
+TESTS = ("NP", "E", "B", "B-paper", "S")
 
 
 def check_probability(value, name):
@@ -276,6 +278,8 @@ def monte_carlo_roc(x, *, n_draws=30000, seed=None, dof=None, tests=TESTS, basis
     dof : sequence of int, optional
         Noise dimension kept per channel (rank of the whitening); default p.
     tests : sequence of str
+        Among `TESTS`; ``'S'`` is the subspace test with a quadratic spectrum
+        over the channels (`kpifs.detect.spectral`).
     basis : list of ndarray (p, r_i), optional
         Orthonormal bases of the whitened subspaces (noise is drawn in them);
         default the full space.
@@ -325,4 +329,11 @@ def monte_carlo_roc(x, *, n_draws=30000, seed=None, dof=None, tests=TESTS, basis
     for form in ("B", "B-paper"):
         if form in out:
             out[form] = (binary_statistic(z0, form), binary_statistic(z1, form))
+    if "S" in out:      # the subspace test: a smooth spectrum over the channels' order
+        norms = np.linalg.norm(x, axis=1)
+        basis = spectral.smooth_basis(np.arange(1.0, q + 1), min(3, q))
+        w = spectral.subspace_weights(norms[:, None] ** 2, basis)[:, :, 0]          # (r, q)
+        # a spectrum of positive mean only: h . gamma > 0 (`DetectionModel.subspace_sign`)
+        h = np.linalg.solve((w @ (norms[:, None] * basis)).T, basis.sum(axis=0))
+        out["S"] = tuple(np.sum((z @ w.T) ** 2, axis=1) * ((z @ w.T) @ h > 0) for z in (z0, z1))
     return out

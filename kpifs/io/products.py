@@ -53,7 +53,13 @@ def detection_hdulist(result, *, header=None, inputs=()):
     hdr["PFAFLOOR"] = (10 / (result.meta.get("n_draws", 0) + 1),
                        "smaller P_FA: from the null's fitted tail")
     hdr["NCAND"] = (len(result.candidates), "candidates above the threshold")
-    hdr["ESTAT"] = (result.energy.get("statistic", np.nan), "energy-detector statistic")
+    hdr["ESTAT"] = (result.energy.get("statistic", np.nan),
+                    "energy statistic / NOISESC (as tested)")
+    if result.energy.get("raw") is not None:
+        hdr["ERAW"] = (result.energy["raw"], "whitened energy, frames' model alone")
+    if result.energy.get("map_noise") is not None:
+        hdr["MAPNOISE"] = (round(float(result.energy["map_noise"]), 6),
+                           "mean square of the residual map")
     hdr["EDOF"] = (result.energy.get("dof", 0), "energy-detector degrees of freedom")
     hdr["EPFA"] = (result.energy.get("pfa", np.nan), "energy-detector P_FA of the data")
     hdr["ETHRESH"] = (result.energy.get("threshold", np.nan),
@@ -80,7 +86,7 @@ def detection_hdulist(result, *, header=None, inputs=()):
         hdr["CHI2RED"] = (round(float(result.meta["chi2_red"]), 6),
                           "reduced chi2 of the whitened residual")
         hdr["NOISESC"] = (round(float(result.meta.get("noise_scale", 1.0)), 6),
-                          "max(1, CHI2RED): variance scale of maps, limits")
+                          "variance scale of every test (energy and map)")
     cals = result.meta.get("calibrators", [])
     hdr["CALIB"] = (len(cals) > 0, "calibrated with a calibrator star")
     for i, c in enumerate(cals, 1):
@@ -133,6 +139,7 @@ NULL_CARDS = {"threshold_gaussian": ("THRGAUS", "Gaussian Monte-Carlo"),
 # products' own cards come in one order however often a result is written
 _PRODUCT_CARDS = {"KPIFSVER", "CONTENT", "TEST", "MAPTEST", "PFA", "PD", "THRESH", "NDRAWS",
                   "PFAFLOOR", "MCSEED", "NCAND", "ESTAT", "EDOF", "EPFA", "ETHRESH", "GRIDFRM",
+                  "ERAW", "MAPNOISE",
                   "GRIDMIN", "GRIDMAX",
                   "NULLCHAN", "CALIB", "CHI2RED", "NOISESC", "DETPA", "NULLMETH",
                   *(name for name, _ in NULL_CARDS.values())}

@@ -1,0 +1,251 @@
+"""The channels together: their correlation in the search, the limits and the noise scale.
+
+Real IFS channels share their noise (one optical-path error is seen at every
+wavelength). The error model's covariance rows carry that correlation: at
+each grid position the ``z_i`` of the channels have covariance ``C = Z^T Z``
+(`~kpifs.detect.maps.DetectionModel.correlate`). Here: the subspace test's
+weights under ``C`` shrunk towards independence by cross-validation
+(`channel_shrinkage`, `whiten_weights`), the known-spectrum reference limit
+with ``C`` (`np_correlated`), and the variance scale the data show against
+the model (`energy_spread`, `noise_scale`), applied to every test.
+"""
+import numpy as np
+
+from ._laws import norm_isf
+from .limits import limit_energy_correlated
+
+__all__ = ["whiten_weights", "channel_shrinkage", "SHRINKAGE_GRID", "np_correlated",
+           "energy_spread", "noise_scale", "map_noise", "combined_scale", "NOISE_CONFIDENCE",
+           "energy_null", "correlated_inputs"]
+
+#: One-sided confidence of the upper bound a conservative error model is scaled down to.
+NOISE_CONFIDENCE = 0.023
+
+
+def whiten_weights(w, corr, alpha):
+    """The subspace statistic's weights with the channels' correlation, per position.
+
+    ``W = C^-1 U (U^T C^-1 U)^{-1/2}`` with ``C = (1 - alpha) C_rows + alpha I``:
+    the GLR for a spectrum in ``span(U)`` when the ``z_i`` have covariance ``C``
+    (``W^T C W = I``), which uses every channel, signal or not, to cancel the
+    noise they share. *w* (r, q, ny, nx), *corr* (ny, nx, q, q).
+    """
+    r, q = w.shape[:2]
+    shape = w.shape[2:]
+    ww = w.reshape(r, q, -1).transpose(2, 1, 0)                     # (npos, q, r)
+    c = corr.reshape(-1, q, q)
+    ok = np.all(np.isfinite(c), axis=(1, 2))
+    out = np.zeros_like(ww)
+    cs = (1 - alpha) * c[ok] + alpha * np.eye(q)
+    ci_u = np.linalg.solve(cs, ww[ok])                              # C^-1 U
+    g = np.matmul(ww[ok].transpose(0, 2, 1), ci_u)                  # U^T C^-1 U
+    val, vec = np.linalg.eigh(g)
+    good = val > 1e-9 * np.maximum(val[:, -1:], 1e-300)
+    inv = np.where(good, 1 / np.sqrt(np.where(good, val, 1.0)), 0.0)
+    out[ok] = np.matmul(ci_u, np.matmul(vec * inv[:, None, :], vec.transpose(0, 2, 1)))
+    return out.transpose(2, 1, 0).reshape((r, q) + shape)
+
+
+#: Shrinkage weights of the channels' correlation towards independence, tried by
+#: `channel_shrinkage` (cross-validated on the error model's rows).
+SHRINKAGE_GRID = (0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0)
+
+
+def channel_shrinkage(z, *, n_positions=48, folds=5, seed=0):
+    """Weight ``alpha`` of the shrinkage ``(1 - alpha) C + alpha I`` of the channels'
+    correlation, by cross-validated Gaussian likelihood of the rows' projections.
+
+    *z* (npos, nrow, q): each row (scaled to one frame's worth) is a sample of
+    the ``z_i`` at a position; folds of rows are held out in turn and the
+    likelihood of the held-out rows under the shrunk correlation of the others
+    is summed over *n_positions* positions. The frames rarely support the raw
+    correlation (it has the rank of the frames), nor independence.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.channels import channel_shrinkage
+    >>> rng = np.random.default_rng(0)
+    >>> common = rng.standard_normal((10, 200, 1))       # one noise shared by 4 channels
+    >>> z = (0.9 * common + 0.44 * rng.standard_normal((10, 200, 4))) / 200 ** 0.5
+    >>> channel_shrinkage(z) <= 0.1
+    True
+    """
+    z = np.asarray(z, float)
+    npos, m, q = z.shape
+    if m < 2 * folds or q < 2:
+        return 1.0
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(npos, min(npos, n_positions), replace=False)
+    parts = np.array_split(rng.permutation(m), folds)
+    score = np.zeros(len(SHRINKAGE_GRID))
+    for k in pick:
+        x = z[k] * np.sqrt(m)
+        if not np.all(np.isfinite(x)):
+            continue
+        for f in parts:
+            train = np.delete(x, f, axis=0)
+            c = train.T @ train / len(train)
+            d = np.sqrt(np.clip(np.diag(c), 1e-300, None))
+            c = c / np.outer(d, d)
+            held = x[f] / d
+            for j, a in enumerate(SHRINKAGE_GRID):
+                cs = (1 - a) * c + a * np.eye(q)
+                sign, logdet = np.linalg.slogdet(cs)
+                if sign <= 0:
+                    score[j] -= np.inf
+                    continue
+                score[j] -= 0.5 * (len(f) * logdet + np.sum(held * np.linalg.solve(cs, held.T).T))
+    return float(SHRINKAGE_GRID[int(np.argmax(score))])
+
+
+def np_correlated(norm2, corr, a, pfa, pd):
+    """Neyman-Pearson limit map with the channels' correlation ``C`` (ny, nx, q, q) of the
+    ``z_i``: ``(Q^-1(P_FA) - Q^-1(P_D)) / sqrt(m^T C^+ m)``, ``m_i = a_i ||s_i||``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.channels import np_correlated
+    >>> corr = np.eye(2)[None, None]
+    >>> round(float(np_correlated(np.full((2, 1, 1), 1e6), corr, np.ones(2), 1e-3, 0.5)[0, 0]
+    ...             * 1e3 * 2 ** 0.5), 4)
+    3.0902
+    """
+    q = len(norm2)
+    m = (a[:, None] * np.sqrt(norm2.reshape(q, -1))).T                 # (npos, q)
+    c = corr.reshape(-1, q, q)
+    out = np.full(len(m), np.nan)
+    ok = np.all(np.isfinite(c), axis=(1, 2)) & np.all(np.isfinite(m), axis=1)
+    inv = np.linalg.pinv(c[ok], rcond=1e-9, hermitian=True)
+    power = np.einsum("ni,nij,nj->n", m[ok], inv, m[ok])
+    with np.errstate(divide="ignore"):
+        out[ok] = (norm_isf(pfa) - norm_isf(pd)) / np.sqrt(power)
+    return out.reshape(norm2.shape[1:])
+
+
+def energy_spread(rows, dof):
+    """Relative standard deviation of the whitened energy under the error model.
+
+    ``sqrt(2 tr G^2) / tr G`` with ``G`` the Gram matrix of the whitened
+    covariance rows (channels correlated: fewer effective degrees of freedom),
+    ``sqrt(2 / dof)`` without rows.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.channels import energy_spread
+    >>> rows = np.eye(50).reshape(50, 1, 50)
+    >>> round(energy_spread(rows, 50), 4), round(energy_spread(None, 50), 4)
+    (0.2, 0.2)
+    """
+    if rows is None:
+        return float(np.sqrt(2.0 / max(dof, 1)))
+    flat = rows.reshape(len(rows), -1)
+    g = flat @ flat.T
+    return float(np.sqrt(2 * np.sum(g * g)) / max(np.trace(g), 1e-300))
+
+
+def noise_scale(kappa, spread):
+    """Variance scale applied to the error model, from the reduced chi-square *kappa*.
+
+    Up (the data scatter more than the model says: a calibration residual)
+    by *kappa* itself; down (a conservative model wastes depth) only to the
+    97.7 % upper confidence bound of the true scale, ``kappa / (1 - 2 spread)``
+    with *spread* the energy's relative standard deviation under the model
+    (`energy_spread`), never below *kappa* nor above 1.
+
+    Examples
+    --------
+    >>> from kpifs.detect.channels import noise_scale
+    >>> noise_scale(1.6, 0.07), round(noise_scale(0.4, 0.07), 3), noise_scale(0.9, 0.2)
+    (1.6, 0.465, 1.0)
+    """
+    if kappa >= 1:
+        return float(kappa)
+    low = 1 - 2 * spread
+    if low <= 0:
+        return 1.0
+    return float(min(1.0, kappa / low))
+
+
+def map_noise(model, y):
+    """Mean square of the normalised projections ``z_i`` of whitened data *y* over the
+    grid and channels: 1 on average when the error model describes the data, more
+    when a residual the model misses projects on companions' signatures (the
+    map's own noise, as imaging pipelines judge a detection by).
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.data import DetectionGrid
+    >>> from kpifs.detect import DetectionModel
+    >>> from kpifs.detect.channels import map_noise
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    >>> dm = DetectionModel(km, [1.6] * u.um, np.eye(km.n_kp)[None], grid)
+    >>> y = np.random.default_rng(0).standard_normal((200, 1, km.n_kp))
+    >>> bool(abs(np.mean([map_noise(dm, yy) for yy in y]) - 1) < 0.05)
+    True
+    """
+    z = model.z_maps(y)
+    return float(np.mean(z[..., model.grid.valid] ** 2))
+
+
+def combined_scale(kappa, spread, kappa_map, map_low):
+    """Noise scale from both the residual's energy and its map (the larger).
+
+    Each is scaled up by its own measure when above 1, down only to its
+    upper confidence bound (`noise_scale`): *spread* for the energy, *map_low*
+    (the `NOISE_CONFIDENCE` quantile of `~kpifs.detect.null.NullCalibration.noise_draws`)
+    for the map's mean square *kappa_map*.
+
+    Examples
+    --------
+    >>> from kpifs.detect.channels import combined_scale
+    >>> combined_scale(1.2, 0.1, 1.5, 0.8), combined_scale(0.5, 0.1, 0.6, 0.8)
+    (1.5, 0.75)
+    """
+    s_map = kappa_map if kappa_map >= 1 else min(1.0, kappa_map / max(map_low, 1e-12))
+    return float(max(noise_scale(kappa, spread), s_map))
+
+
+def correlated_inputs(model, rows, a, energy, te, seed):
+    """Per-position z covariance (for the binary limit) and the energy limit, both
+    with the channel correlations carried by the covariance rows; on a symmetric grid
+    for half the positions (NaN elsewhere: see `~kpifs.detect.limits.mirror_half_map`)."""
+    shape = model.grid.shape
+    q = len(model.wavelengths)
+    idx, z = model.row_projections(rows)                              # (npos, nrow, q)
+    corr = np.full((shape[0] * shape[1], q, q), np.nan)
+    corr[idx] = np.matmul(z.transpose(0, 2, 1), z)
+    amp = a[None, :] * np.sqrt(model.norm2.reshape(q, -1)[:, idx].T)     # (npos, q)
+    n = min(4096, len(te["energy"]))      # enough draws for P_D, far from the tail
+    proj = te["coef"][:n] @ np.einsum("kri,ki->rk", z, amp)             # (N, npos)
+    lim = np.full(shape[0] * shape[1], np.nan)
+    lim[idx] = limit_energy_correlated(proj, np.sum(amp ** 2, axis=1), te["energy"][:n],
+                                       energy["threshold"], energy["pd"])
+    return corr.reshape(shape + (q, q)), lim.reshape(shape)
+
+
+def energy_null(rows, n_draws, seed):
+    """Noise draws ``n = a R_w`` from whitened covariance rows: coefficients and energies.
+
+    Returns a dict with ``coef`` (n_draws, nrow) and ``energy`` (n_draws,) =
+    ``||a R_w||^2``, the energy detector's law with the channels' correlations.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.channels import energy_null
+    >>> rows = np.eye(50).reshape(50, 1, 50)        # white noise, 50 dimensions
+    >>> e = energy_null(rows, 20000, 0)["energy"]
+    >>> bool(abs(e.mean() - 50) < 0.5)
+    True
+    """
+    rng = np.random.default_rng(seed)
+    coef = rng.standard_normal((n_draws, len(rows)))
+    flat = rows.reshape(len(rows), -1)
+    energy = np.sum((coef @ (flat @ flat.T)) * coef, axis=1)
+    return {"coef": coef, "energy": energy}
