@@ -296,7 +296,8 @@ def build_parser():
     _output(p, "output directory")
 
     p = command("detect", "search kernel phases for companions", EPILOG_DETECT)
-    p.add_argument("kp", metavar="KP.fits", help="kernel-phase data (KPFITS)")
+    p.add_argument("kp", metavar="KP.fits", help="kernel-phase data (KPFITS) or closure "
+                   "phases (OIFITS)")
     p.add_argument("--calibrator", nargs="+", metavar="CAL_KP.fits",
                    help="kernel phases of calibrator(s), if KP.fits is not calibrated")
     _search_options(p, grid_step_aliases=("--grid-step", "--step"))
