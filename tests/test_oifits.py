@@ -373,5 +373,10 @@ def test_oifits_package_reads_corr(tmp_path):
         warnings.simplefilter("ignore")
         data = oifits.open(str(p))
     assert len(data.t3) == 35
-    corr = getattr(data, "corr", None)
-    assert corr is not None and "KPIFS" in corr
+    c = data.corr["KPIFS"]
+    with fits.open(p) as h:
+        ref = h["OI_CORR"].data
+        assert len(ref) == 5460 and np.array_equal(np.asarray(c.iindx), ref["IINDX"])
+        assert np.array_equal(np.asarray(c.jindx), ref["JINDX"])
+        assert np.allclose(np.asarray(c.corr), ref["CORR"], rtol=0, atol=1e-15)
+    assert data.t3[0].corrindx_t3phi == 1 and data.t3[1].corrindx_t3phi == 4

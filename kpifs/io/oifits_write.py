@@ -156,7 +156,7 @@ def oifits_hdulist(kpd, *, target=None, insname=None, arrname=None, history=()):
     km = kpd.kernel_model
     sta, cmat, legs = _triangles(km, kpd.name)
     kp, joint, how = _mean_and_covariance(kpd)
-    nw, nk, ntri = kpd.n_wave, kpd.n_kp, len(sta)
+    nw, ntri = kpd.n_wave, len(sta)
     m = cmat @ np.linalg.pinv(km.kernel)                            # kernel -> closure
     t3 = (m @ kp.T).T                                                # (nw, ntri)
     big = np.kron(np.eye(nw), m)
