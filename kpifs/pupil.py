@@ -349,7 +349,9 @@ def make_pupil(pupil="subaru", *, step=None, offset=None, min_transmission=None,
 
 def _mask_pupil(mask, rotation=None):
     """One sub-aperture per hole of a non-redundant mask (its kernel phases: closure
-    phases); the grid options do not apply."""
+    phases); the grid options do not apply. The step is half the hole diameter, so that
+    the default search and the aliasing guard (``lambda / (2 step)``) reach ``lambda /
+    D_hole``, about the holes' primary-beam FWHM."""
     xy = np.asarray(mask.holes, float)
     rot = 0.0 if rotation is None else to_quantity(rotation, u.deg, name="rotation").value
     if rot:
@@ -357,7 +359,7 @@ def _mask_pupil(mask, rotation=None):
         xy = xy @ np.array([[c, -s], [s, c]]).T
     meta = {"hole_diameter_m": mask.hole_diameter, "mask": mask.name, "rotation_deg": rot,
             "diameter_m": mask.diameter, "source": mask.source}
-    return PupilModel(xy, step=mask.hole_diameter * u.m, name=mask.name, meta=meta)
+    return PupilModel(xy, step=mask.hole_diameter / 2 * u.m, name=mask.name, meta=meta)
 
 
 def pupil_image(pupil="subaru", *, npix=256, pixel_size=None, rotation=0 * u.deg,

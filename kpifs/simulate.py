@@ -438,10 +438,11 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
                                 else -1)
 
 
-# issue 28: SPHERE's 7-hole SAM mask behind the IFS (39 YJ channels of 7.46 mas), a
-# companion of 1 % brighter in the blue at (60, -40) mas
+# issue 28: SPHERE's 7-hole SAM mask behind the IFS (39 YJ channels of 7.46 mas, 50 nm
+# of residual wavefront), a companion of 2 % brighter in the blue at (60, -40) mas
 PRESETS["sphere-sam"] = dict(telescope="sphere-sam7",
                              wavelengths=np.linspace(0.957, 1.329, 39) * u.um,
                              pixscale=7.46 * u.mas, shape=(64, 64), n_frames=20,
-                             contrasts=1e-2 * np.linspace(1.3, 0.7, 39),
+                             wavefront_rms=50 * u.nm,
+                             contrasts=2e-2 * np.linspace(1.3, 0.7, 39),
                              companion_offset=[60.0, -40.0] * u.mas)

@@ -188,7 +188,7 @@ def test_v1_several_tables_epochs_corr_and_flags(tmp_path):
     assert kpd.meta["closure_phases"]["n_triangles"] == 69
     assert kpd.n_kp == 30                             # 15 per epoch: one triangle less
     assert "OI_CORR" in kpd.meta["covariance_source"]
-    assert kpd.kernel_model.pupil.step.to_value(u.m) == pytest.approx(1.8)
+    assert kpd.kernel_model.pupil.step.to_value(u.m) == pytest.approx(0.9)   # D / 2
 
 
 def test_cpcov_file_extract_refuses_detect_reads(tmp_path, capsys):
@@ -380,3 +380,50 @@ def test_oifits_package_reads_corr(tmp_path):
         assert np.array_equal(np.asarray(c.jindx), ref["JINDX"])
         assert np.allclose(np.asarray(c.corr), ref["CORR"], rtol=0, atol=1e-15)
     assert data.t3[0].corrindx_t3phi == 1 and data.t3[1].corrindx_t3phi == 4
+
+
+# --- SPHERE SAM behind the IFS: simulator -> extract -> OIFITS2 -> detect -------------
+@pytest.mark.slow
+def test_sphere_sam_ifs_sequence(tmp_path, capsys):
+    """A simulated 39-channel SAM sequence with a companion goes through `kpifs extract`
+    to closure phases and OIFITS2; `kpifs detect` finds the companion and its spectrum,
+    and the 39-channel search goes deeper than the best single channels."""
+    from kpifs.data import DetectionGrid
+    from kpifs.io import write_observation
+    from kpifs.simulate import simulate_scene
+    obs = simulate_scene("sphere-sam", n_frames=12, npup=48, seed=1)
+    files = write_observation(obs, tmp_path / "sim")
+    out = tmp_path / "cal.oifits"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", KpifsWarning)     # detector angle unknown: 0
+        rc = main(["extract", str(files["target"][0]), "--pupil", "sphere-sam7",
+                   "--calibrator", str(files["calibrator"][0]), "-o", str(out), "--quiet"])
+    assert rc == 0
+    kpd = KernelPhaseData.read(out)
+    assert kpd.shape == (1, 39, 15)
+    grid = DetectionGrid.from_separation(100 * u.mas, 6 * u.mas, min_sep=20 * u.mas,
+                                         frame="sky")
+    res = detect(kpd, grid=grid, n_draws=1000, seed=0)
+    assert len(res.candidates) == 1
+    c = res.candidates[0]
+    truth = (-60.0, -40.0)          # detector (60, -40) at angle 0: dRA = -x
+    assert np.hypot(c["fit_dra"].to_value(u.mas) - truth[0],
+                    c["fit_ddec"].to_value(u.mas) - truth[1]) < 3
+    spec = np.ravel(c["fit_contrast"])
+    true = obs.params.contrasts
+    assert abs(spec.mean() / true.mean() - 1) < 0.2
+    slope = np.polyfit(obs.params.wavelengths.value, spec, 1)[0]
+    true_slope = np.polyfit(obs.params.wavelengths.value, true, 1)[0]
+    assert slope < 0 and abs(slope / true_slope - 1) < 0.6
+    # deeper: the B limit of all channels against the best single channels', at the truth
+    iy, ix = np.unravel_index(np.argmin((grid.X - truth[0]) ** 2 + (grid.Y - truth[1]) ** 2),
+                              grid.shape)
+    multi = res.limits["B"][iy, ix]
+    kp, cov = kpd.kp, kpd.covariance
+    single = []
+    for i in np.argsort(np.diagonal(cov, axis1=1, axis2=2).mean(axis=1))[:3]:
+        one = KernelPhaseData(kp[:, [i]], kpd.wavelengths[[i]], kpd.pixscale, kpd.kernel_model,
+                              covariance=cov[[i]], detpa=[0.0],
+                              meta={"calibrated": True, "detpa_source": "given"})
+        single.append(detect(one, grid=grid, n_draws=1000, seed=0).limits["B"][iy, ix])
+    assert multi < 0.7 * min(single)

@@ -199,7 +199,8 @@ def oifits_hdulist(kpd, *, target=None, insname=None, arrname=None, history=()):
     for h in history:
         ph.add_history(str(h))
     n = len(xy)
-    diam = float(km.pupil.meta.get("hole_diameter_m") or (km.pupil.step.to_value("m")
+    # the hole size (a mask's meta; a read OIFITS model's step is half its aperture)
+    diam = float(km.pupil.meta.get("hole_diameter_m") or (2 * km.pupil.step.to_value("m")
                  if km.pupil.step is not None else 0.0))
     fov = 1.22 * wl.max() / diam / _ARCSEC if diam > 0 else 0.0
     tab_target = _table("OI_TARGET", [
