@@ -29,6 +29,8 @@ from .exceptions import KpifsError
 __all__ = ["PupilModel", "ApertureGeometry", "TELESCOPES", "ModelDefaults", "MODEL_DEFAULTS",
            "model_defaults", "make_pupil", "pupil_image", "read_pupil_fits"]
 
+__all__ += ["MASKS", "MaskGeometry"]   # issue 28: non-redundant masks
+
 log = logging.getLogger(__name__)
 
 
