@@ -191,6 +191,7 @@ def test_v1_several_tables_epochs_corr_and_flags(tmp_path):
     assert kpd.kernel_model.pupil.step.to_value(u.m) == pytest.approx(0.9)   # D / 2
 
 
+@pytest.mark.slow
 def test_cpcov_file_extract_refuses_detect_reads(tmp_path, capsys):
     p = tmp_path / "pionier_like.fits"
     xy = [(0.0, 0.0), (40.0, 10.0), (15.0, 60.0), (-30.0, 45.0)]
