@@ -7,6 +7,8 @@ and `~astropy.nddata.CCDData` do. Each class gets its own reader and writer
 classes, because the registry writes the list of formats into their
 docstrings.
 """
+import os
+
 from astropy.io import registry
 
 __all__ = []
@@ -17,7 +19,8 @@ class _Reader(registry.UnifiedReadWrite):
         super().__init__(instance, cls, "read", registry=None)
 
     def __call__(self, *args, format=None, **kwargs):
-        return self.registry.read(self._cls, *args, format=format or self._cls._io_format,
+        return self.registry.read(self._cls, *args,
+                                  format=format or _identified(self, "read", args, kwargs),
                                   **kwargs)
 
 
@@ -27,7 +30,19 @@ class _Writer(registry.UnifiedReadWrite):
 
     def __call__(self, *args, format=None, **kwargs):
         return self.registry.write(self._instance, *args,
-                                   format=format or self._cls._io_format, **kwargs)
+                                   format=format or _identified(self, "write", args, kwargs),
+                                   **kwargs)
+
+
+def _identified(rw, origin, args, kwargs):
+    """The one format whose identifier claims the file (an OIFITS name or content), else
+    the class's own."""
+    if args and isinstance(args[0], (str, os.PathLike)):
+        found = rw.registry.identify_format(origin, rw._cls, str(args[0]), None, args[1:],
+                                            kwargs)
+        if len(found) == 1:
+            return found[0]
+    return rw._cls._io_format
 
 
 def io_methods(name):

@@ -168,3 +168,80 @@ def model_defaults(pupil):
     if isinstance(pupil, ApertureGeometry):
         return MODEL_DEFAULTS["generic"]
     return MODEL_DEFAULTS.get(str(pupil).lower(), MODEL_DEFAULTS["generic"])
+
+
+# --- non-redundant masks (issue 28) --------------------------------------------------
+@dataclass(frozen=True)
+class MaskGeometry:
+    """A non-redundant aperture mask: circular holes projected on the primary mirror.
+
+    Parameters
+    ----------
+    holes : tuple of (x, y)
+        Hole centres (m, on the primary).
+    hole_diameter : float
+        Hole diameter (m).
+    name, source : str
+
+    Examples
+    --------
+    >>> from kpifs.apertures import MASKS
+    >>> m = MASKS["niriss-nrm"]
+    >>> len(m.holes), m.transmission([0.0, 0.0], [-2.64, 0.0]).tolist()
+    (7, [1.0, 0.0])
+    """
+
+    holes: tuple
+    hole_diameter: float
+    name: str = "mask"
+    source: str = ""
+
+    @property
+    def diameter(self):
+        """Diameter (m) of the smallest centred circle holding every hole."""
+        c = np.asarray(self.holes, float)
+        return float(2 * np.hypot(c[:, 0], c[:, 1]).max() + self.hole_diameter)
+
+    @property
+    def obstruction(self):
+        return 0.0
+
+    @property
+    def area(self):
+        """Collecting area (m^2) of the holes."""
+        return float(len(self.holes) * np.pi / 4 * self.hole_diameter ** 2)
+
+    def transmission(self, x, y):
+        """Return 1 inside a hole and 0 elsewhere, at points ``(x, y)`` in metres."""
+        x = np.asarray(x, float)
+        y = np.asarray(y, float)
+        inside = np.zeros(np.broadcast(x, y).shape, bool)
+        r2 = (self.hole_diameter / 2) ** 2
+        for hx, hy in self.holes:
+            inside |= (x - hx) ** 2 + (y - hy) ** 2 <= r2
+        return inside.astype(float)
+
+
+#: Built-in non-redundant masks, hole centres in m on the primary. NIRISS: the
+#: as-designed centres of the JWST g7s6 mask (M. Beaulieu, as in ImPlaneIA and
+#: AMICAL), hexagonal holes of 0.82 m flat to flat taken as circles. SPHERE:
+#: the 7-hole SAM mask as the IFS sees it (AMICAL's SPHERE-IFS g7 centres), holes
+#: of about 1.2 m. GPI: the g10s40 mask projected on the primary (Greenbaum et
+#: al. 2015, the G10S40 table of ImPlaneIA's mask definitions), holes of 0.596 m.
+MASKS = {
+    "niriss-nrm": MaskGeometry(
+        ((0.0, -2.64), (-2.28631, 0.0), (2.28631, -1.32), (-2.28631, 1.32),
+         (-1.14315, 1.98), (2.28631, 1.32), (1.14315, 1.98)), 0.82, "niriss-nrm",
+        "JWST NIRISS AMI g7s6 mask, as designed (Beaulieu; ImPlaneIA, AMICAL)"),
+    "sphere-sam7": MaskGeometry(
+        ((-2.07, 2.71), (0.98, 3.27), (-3.11, -0.2), (-1.43, -0.81), (-2.79, -1.96),
+         (3.3, -0.85), (0.58, -3.17)), 1.2, "sphere-sam7",
+        "VLT SPHERE 7-hole SAM mask as seen by the IFS (AMICAL 'SPHERE-IFS' g7); "
+        "hole diameter approximate"),
+    "gpi-nrm": MaskGeometry(
+        ((-0.687, 2.514), (-0.252, 3.362), (1.822, 0.157), (2.342, -0.644),
+         (-2.862, -1.733), (-0.869, -3.288), (-3.026, 1.568), (2.692, 1.855),
+         (3.297, -0.596), (1.036, -3.192)), 0.596, "gpi-nrm",
+        "Gemini GPI g10s40 10-hole mask on the primary (Greenbaum et al. 2015; ImPlaneIA)"),
+}
+__all__ += ["MaskGeometry", "MASKS"]

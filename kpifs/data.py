@@ -22,9 +22,12 @@ from ._registry import io_methods, register
 from ._utils import to_quantity
 from .exceptions import KpifsError
 from .io.kpfits import is_kpfits, read_kpfits_parts, write_kpfits
+from .io.oifits import is_oifits, read_oifits_parts
+from .io.oifits_write import write_oifits
 from .io.products import NULL_CARDS, is_detection, read_detection_parts, write_detection
 from .io.wavelengths import check_wavelengths
 from .kernel import KernelModel
+from .pupil import PupilModel
 from .window import ExtractionWindow
 
 __all__ = ["KernelPhaseData", "DetectionGrid", "DetectionResult"]
@@ -218,6 +221,23 @@ def _read_kpd(path, *, detpa=None):
 
 register(KernelPhaseData, "kpfits", reader=_read_kpd, writer=write_kpfits,
          identifier=is_kpfits)
+
+
+def _read_oifits(path, *, insname=None):
+    """Closure phases of an OIFITS file (`kpifs.io.oifits`): one frame, the sky frame."""
+    parts = read_oifits_parts(path, insname=insname)
+    m = parts.pop("model")
+    pupil = PupilModel(m["xy"], step=m["step"], name=m["name"],
+                       meta={"closure_phases": True})
+    km = KernelModel(pupil, m["uv"], np.ones(len(m["uv"])), m["blm"], m["kernel"],
+                     rank=m["rank"], meta={"source": str(path), "closure_phases": True})
+    return KernelPhaseData(parts.pop("kp"), parts.pop("wavelengths") * u.m,
+                           parts.pop("pixscale") * u.mas, km,
+                           bandwidth=parts.pop("bandwidth") * u.m, **parts)
+
+
+register(KernelPhaseData, "oifits", reader=_read_oifits, writer=write_oifits,
+         identifier=is_oifits)
 
 
 class DetectionGrid:

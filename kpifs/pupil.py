@@ -23,10 +23,13 @@ from astropy.io import fits
 from ._utils import to_quantity
 from .apertures import (BINARY_MIN_TRANSMISSION, MODEL_DEFAULTS, TELESCOPES,  # noqa: F401
                         ApertureGeometry, ModelDefaults, model_defaults)
+from .apertures import MASKS, MaskGeometry  # noqa: F401  (issue 28: masks)
 from .exceptions import KpifsError
 
 __all__ = ["PupilModel", "ApertureGeometry", "TELESCOPES", "ModelDefaults", "MODEL_DEFAULTS",
            "model_defaults", "make_pupil", "pupil_image", "read_pupil_fits"]
+
+__all__ += ["MASKS", "MaskGeometry"]   # issue 28: non-redundant masks
 
 log = logging.getLogger(__name__)
 
@@ -228,9 +231,11 @@ def _rotated(fn, rotation_deg):
 
 def _resolve_aperture(pupil, *, diameter=None, obstruction=None, pupil_scale=None):
     """Return ``(transmission function, radius in m, name)`` for any pupil spec."""
-    if isinstance(pupil, ApertureGeometry):
+    if isinstance(pupil, (ApertureGeometry, MaskGeometry)):
         return pupil.transmission, pupil.diameter / 2, pupil.name
     key = str(pupil).lower()
+    if key in MASKS:
+        return MASKS[key].transmission, MASKS[key].diameter / 2, key
     if key in TELESCOPES:
         geo = TELESCOPES[key]
         return geo.transmission, geo.diameter / 2, key
@@ -307,6 +312,9 @@ def make_pupil(pupil="subaru", *, step=None, offset=None, min_transmission=None,
     ...            grey=False)
     <PupilModel 'annular': 38 binary sub-apertures, step=1.000 m>
     """
+    mask = pupil if isinstance(pupil, MaskGeometry) else MASKS.get(str(pupil).lower())
+    if mask is not None:
+        return _mask_pupil(mask, rotation)
     defaults = model_defaults(pupil)
     grey = defaults.grey if grey is None else bool(grey)
     if min_transmission is None:
@@ -339,6 +347,21 @@ def make_pupil(pupil="subaru", *, step=None, offset=None, min_transmission=None,
             "rotation_deg": rot, "diameter_m": 2 * radius}
     log.debug("pupil %s: %d sub-apertures (step %.3f m)", name, len(xy), step_m)
     return PupilModel(xy, trans, step=step_m * u.m, name=name, meta=meta)
+
+
+def _mask_pupil(mask, rotation=None):
+    """One sub-aperture per hole of a non-redundant mask (its kernel phases: closure
+    phases); the grid options do not apply. The step is half the hole diameter, so that
+    the default search and the aliasing guard (``lambda / (2 step)``) reach ``lambda /
+    D_hole``, about the holes' primary-beam FWHM."""
+    xy = np.asarray(mask.holes, float)
+    rot = 0.0 if rotation is None else to_quantity(rotation, u.deg, name="rotation").value
+    if rot:
+        c, s = np.cos(np.deg2rad(rot)), np.sin(np.deg2rad(rot))
+        xy = xy @ np.array([[c, -s], [s, c]]).T
+    meta = {"hole_diameter_m": mask.hole_diameter, "mask": mask.name, "rotation_deg": rot,
+            "diameter_m": mask.diameter, "source": mask.source}
+    return PupilModel(xy, step=mask.hole_diameter / 2 * u.m, name=mask.name, meta=meta)
 
 
 def pupil_image(pupil="subaru", *, npix=256, pixel_size=None, rotation=0 * u.deg,

@@ -24,7 +24,7 @@ from ._utils import as_rng, to_quantity
 from ._utils import progress as progress_bar
 from .exceptions import KpifsError
 from .kernel import MAS
-from .pupil import TELESCOPES, pupil_image
+from .pupil import MASKS, TELESCOPES, pupil_image
 
 __all__ = ["simulate_psf", "phase_screens", "SceneParameters", "PRESETS", "simulate_scene",
            "SimulatedObservation", "charis_field"]
@@ -199,8 +199,9 @@ class SceneParameters:
 
     def star_photons(self):
         """Photo-electrons from the star per frame and channel."""
-        geo = TELESCOPES[self.telescope]
-        area = np.pi / 4 * (geo.diameter ** 2 - geo.obstruction ** 2)
+        geo = TELESCOPES.get(self.telescope) or MASKS[self.telescope]
+        area = getattr(geo, "area", None) or np.pi / 4 * (geo.diameter ** 2
+                                                          - geo.obstruction ** 2)
         return (H_ZERO_POINT * 10 ** (-0.4 * self.star_mag) * area * self.throughput
                 * self.bandwidths().to_value(u.um) * self.exptime.to_value(u.s))
 
@@ -435,3 +436,13 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
     return SimulatedObservation(out["target"], out["calibrator"], out["var_target"],
                                 out["var_calibrator"], params, seed if isinstance(seed, int)
                                 else -1)
+
+
+# issue 28: SPHERE's 7-hole SAM mask behind the IFS (39 YJ channels of 7.46 mas, 50 nm
+# of residual wavefront), a companion of 2 % brighter in the blue at (60, -40) mas
+PRESETS["sphere-sam"] = dict(telescope="sphere-sam7",
+                             wavelengths=np.linspace(0.957, 1.329, 39) * u.um,
+                             pixscale=7.46 * u.mas, shape=(64, 64), n_frames=20,
+                             wavefront_rms=50 * u.nm,
+                             contrasts=2e-2 * np.linspace(1.3, 0.7, 39),
+                             companion_offset=[60.0, -40.0] * u.mas)

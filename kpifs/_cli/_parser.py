@@ -275,7 +275,8 @@ def build_parser():
     _pupil_options(p)
 
     p = command("simulate", "simulate a target and a calibrator", EPILOG_SIMULATE)
-    p.add_argument("--preset", default="paper", choices=("paper", "charis", "sphere"))
+    p.add_argument("--preset", default="paper",
+                   choices=("paper", "charis", "sphere", "sphere-sam"))
     p.add_argument("--layout", default="plain", choices=("plain", "charis", "sphere"),
                    help="file layout (default plain 4-D cube)")
     p.add_argument("--frames", type=int, help="number of frames (preset default)")
@@ -296,7 +297,8 @@ def build_parser():
     _output(p, "output directory")
 
     p = command("detect", "search kernel phases for companions", EPILOG_DETECT)
-    p.add_argument("kp", metavar="KP.fits", help="kernel-phase data (KPFITS)")
+    p.add_argument("kp", metavar="KP.fits", help="kernel-phase data (KPFITS) or closure "
+                   "phases (OIFITS)")
     p.add_argument("--calibrator", nargs="+", metavar="CAL_KP.fits",
                    help="kernel phases of calibrator(s), if KP.fits is not calibrated")
     _search_options(p, grid_step_aliases=("--grid-step", "--step"))
@@ -310,7 +312,8 @@ def build_parser():
 
     p = command("roc", "the seed paper's ROC experiment",
                 "example:\n  kpifs roc --preset paper --frames 300 -o roc")
-    p.add_argument("--preset", default="paper", choices=("paper", "charis", "sphere"))
+    p.add_argument("--preset", default="paper",
+                   choices=("paper", "charis", "sphere", "sphere-sam"))
     p.add_argument("--frames", type=int, default=1000, help="calibrator frames (default 1000)")
     p.add_argument("--draws", type=int, default=30000, help="Monte-Carlo draws (default 30000)")
     p.add_argument("--seed", type=int, default=0)

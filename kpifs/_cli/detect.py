@@ -24,6 +24,10 @@ def run(args):
               overwrite=args.overwrite)
     print(f"{args.test} search, global P_FA {args.pfa:g}: {len(res.candidates)} candidate(s) "
           f"-> {args.output}")
+    e = res.energy
+    if e.get("dof"):
+        print(f"  energy T_E = {e['statistic']:.1f} for {e['dof']} degrees of freedom "
+              f"({e['statistic'] / e['dof']:.2f} per dof), P_FA {e['pfa']:.2e}")
     nul = res.meta.get("null") or {}
     if "threshold_empirical" in nul and "threshold_gaussian" in nul:
         print(f"  threshold {res.threshold:.2f}, the larger of the Gaussian null's "

@@ -23,7 +23,10 @@ def run(args):
             is_kp = "KP-DATA" in hdul
             is_model = "KER-MAT" in hdul
             is_det = hdul[0].header.get("CONTENT") == "KPIFS-DETECTION"
-        if is_det:
+            is_oi = "OI_T3" in hdul
+        if is_oi:
+            _oifits(path)
+        elif is_det:
             _detection(path)
         elif is_kp:
             _kpfits(path)
@@ -96,6 +99,23 @@ def _kpfits(path):
         print(f"  detector position angle: {text} ({meta.get('detpa_source') or 'file'})")
     for note in meta.get("notes", []):
         print(f"  note: {note}")
+
+
+def _oifits(path):
+    kpd = KernelPhaseData.read(path, format="oifits")
+    wl = kpd.wavelengths.to_value(u.um)
+    cp = kpd.meta["closure_phases"]
+    print(f"{path}: OIFITS closure phases ({kpd.meta.get('instrument') or '?'} on "
+          f"{kpd.meta.get('telescope') or '?'})")
+    print(f"  {cp['n_triangles']} triangles in {cp['n_tables']} OI_T3 table(s), "
+          f"{cp['n_epochs']} epoch(s): {kpd.n_kp} independent closure phases x "
+          f"{kpd.n_wave} channel(s), {wl.min():.4f}-{wl.max():.4f} um")
+    print(f"  covariance: {kpd.meta['covariance_source']}"
+          f"{'; channels correlated' if kpd.joint_covariance is not None else ''}")
+    print("  (u, v) East/North: maps and candidates on the sky")
+    for note in kpd.meta.get("notes", []):
+        print(f"  note: {note}")
+    print(f"  next: kpifs detect {path} -o detection.fits")
 
 
 def _raw(path, why):

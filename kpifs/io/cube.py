@@ -255,7 +255,26 @@ def read_generic(path, *, wavelengths=None, pixscale=None):
     return cube
 
 
+def _not_a_cube(hdul, path):
+    """Refuse OIFITS, KPFITS and table-only files: their images (CPCOV covariances,
+    KP-DATA) are no cube, and taking them for one gives a silent wrong answer."""
+    names = [h.name for h in hdul]
+    oi = [n for n in dict.fromkeys(names) if n.startswith("OI_")]
+    if oi:
+        raise KpifsError(f"{path}: an OIFITS file ({', '.join(oi)}): closure phases, not an "
+                         f"image cube; `kpifs detect` and `kpifs info` read it")
+    if "KP-DATA" in names:
+        raise KpifsError(f"{path}: kernel-phase data (KPFITS), not an image cube; `kpifs "
+                         f"detect` and `kpifs info` read it")
+    tables = [h.name or f"HDU {i}" for i, h in enumerate(hdul) if not h.is_image]
+    if tables and not any(h.is_image and h.data is not None and h.data.ndim >= 2
+                          for h in hdul):
+        raise KpifsError(f"{path}: only tables ({', '.join(tables)}), no image cube: `kpifs "
+                         f"extract` reads image cubes")
+
+
 def _generic_from_hdul(hdul, path, wavelengths, pixscale):
+    _not_a_cube(hdul, path)
     hdu = next((h for h in hdul if h.data is not None and h.is_image and h.data.ndim >= 2),
                None)
     if hdu is None:
