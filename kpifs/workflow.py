@@ -118,7 +118,9 @@ class DetectOptions:
     """How calibrated kernel phases are searched (see `~kpifs.detect.detect`).
 
     ``max_sep``, ``min_sep`` and ``grid_step`` (mas) override the default grid;
-    ``spectrum`` is 'flat' (None), a list of per-channel values or a text file.
+    ``spectrum`` is 'flat' (None), a list of per-channel values or a text file;
+    ``basis`` the spectral model of test S (`~kpifs.detect.spectral.spectral_basis`:
+    None, ``'smooth:R'``, ``'blackbody'`` or a file of spectra).
 
     Examples
     --------
@@ -134,6 +136,7 @@ class DetectOptions:
     min_sep: object = None
     grid_step: object = None
     spectrum: object = None
+    basis: object = None
     draws: int = 5000
     seed: int = 0
     shrinkage: str = "auto"
@@ -385,8 +388,9 @@ def detect_observation(kpd, options=None, *, calibrators=(), progress=False):
                             frame=_sky.search_frame(kpd, options.frame))
     result = detect(kpd, test=options.test, pfa=options.pfa, pd=options.pd, grid=grid,
                     spectrum=parse_spectrum(options.spectrum, kpd.n_wave),
-                    n_draws=options.draws, seed=options.seed, shrinkage=options.shrinkage,
-                    fit=options.fit, max_candidates=options.max_candidates,
+                    basis=options.basis, n_draws=options.draws, seed=options.seed,
+                    shrinkage=options.shrinkage, fit=options.fit,
+                    max_candidates=options.max_candidates,
                     allow_uncalibrated=options.allow_uncalibrated, frame=options.frame,
                     null=options.null, progress=progress)
     record = options_record(options)

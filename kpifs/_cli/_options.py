@@ -24,7 +24,7 @@ def extract_options(args):
 def detect_options(args):
     """`~kpifs.workflow.DetectOptions` from the search options of the command."""
     get = {k: getattr(args, k) for k in ("test", "pfa", "pd", "max_sep", "min_sep",
-                                         "grid_step", "spectrum", "draws", "seed", "shrinkage",
-                                         "allow_uncalibrated", "frame", "null")
+                                         "grid_step", "spectrum", "basis", "draws", "seed",
+                                         "shrinkage", "allow_uncalibrated", "frame", "null")
            if hasattr(args, k)}
     return DetectOptions(**get)

@@ -148,8 +148,9 @@ def _extraction_options(p):
 def _search_options(p, *, grid_step_aliases=("--grid-step",), draws=5000):
     g = p.add_argument_group("search")
     g.add_argument("--test", default="B", choices=TESTS,
-                   help="B: GLR sum max(z,0)^2 (default); B-paper: sum max(z,0); NP: matched "
-                        "filter for --spectrum; E: energy detector")
+                   help="B: GLR sum max(z,0)^2 (default); B-paper: sum max(z,0); S: spectral "
+                        "model (GLR for a spectrum in --basis, the channels' correlation "
+                        "weighed); NP: matched filter for --spectrum; E: energy detector")
     g.add_argument("--pfa", type=float, default=1e-3, help="global false-alarm probability")
     g.add_argument("--pd", type=float, default=0.5, help="detection probability of the limits")
     g.add_argument("--frame", default="auto", choices=("auto", "sky", "detector"),
@@ -166,6 +167,9 @@ def _search_options(p, *, grid_step_aliases=("--grid-step",), draws=5000):
     g.add_argument(*grid_step_aliases, dest="grid_step",
                    help="search grid step, e.g. 5mas (default lambda/4D)")
     g.add_argument("--spectrum", help="companion spectrum shape: flat, comma list or file")
+    g.add_argument("--basis", help="spectral model of --test S: smooth:R (polynomial of rank "
+                                   "R in wavelength; default smooth:3), blackbody, or a file "
+                                   "of template spectra (ECSV with a wavelength column, FITS)")
     g.add_argument("--draws", type=int, default=draws,
                    help=f"Monte-Carlo draws calibrating the grid search (default {draws})")
     g.add_argument("--seed", type=int, default=0, help="seed of those draws (default 0)")
