@@ -322,7 +322,8 @@ class DetectionModel:
                  "(cross-validated)", self.channel_alpha)
         self.__dict__.pop("_subspace", None)
         self.__dict__.pop("_digest", None)
-        self._corr_key = hashlib.sha1(np.ascontiguousarray(noise_rows).tobytes()).hexdigest()
+        self._corr_key = hashlib.sha1(np.ascontiguousarray(noise_rows).tobytes()).hexdigest() \
+            + f"|{self.channel_alpha!r}"
         return self._channel_corr
 
     def local_statistic(self, y, form="B", spectrum=None):
