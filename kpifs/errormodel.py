@@ -99,7 +99,7 @@ class ErrorModel:
     >>> rng = np.random.default_rng(1)
     >>> em = fit_error_model(rng.standard_normal((30, 1, 50)), [rng.standard_normal((30, 1, 50))])
     >>> em.covariance().shape, em.n_modes, em.dof, em.meta()["residual_method"]
-    ((1, 50, 50), 29, 58, 'split-halves')
+    ((1, 50, 50), 29, 58, 'chi2')
     """
 
     rows: np.ndarray
@@ -334,7 +334,7 @@ def fit_error_model(target, calibrators, *, n_modes=0.5, residual="auto", n_grou
     ...     return (drift @ mix + rng.standard_normal((n, 80))).reshape(n, 2, 40)
     >>> em = fit_error_model(frames(40), [frames(40)])
     >>> em.rows.shape, em.n_modes, em.residual_method, bool(em.tau.max() > 1.5)
-    ((80, 2, 40), 39, 'split-halves', True)
+    ((80, 2, 40), 39, 'chi2', True)
     """
     if residual not in RESIDUAL_METHODS:
         raise KpifsError(f"unknown residual estimator {residual!r}: use one of "
