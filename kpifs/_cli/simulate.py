@@ -2,13 +2,19 @@
 import numpy as np
 from astropy import units as u
 
-from .._utils import to_quantity
+from .._utils import check_output_dir, to_quantity
 from ..exceptions import KpifsError
 from ..io.layouts import write_observation
 from ..simulate import PRESETS, SceneParameters, simulate_scene
 
 
 def run(args):
+    out = check_output_dir(args.output)          # refused now, not after the simulation
+    earlier = [n for n in ("target.fits", "calibrator.fits", "target", "calibrator")
+               if (out / n).exists()]
+    if earlier and not args.overwrite:
+        raise KpifsError(f"{out}: holds an earlier simulation ({', '.join(earlier)}); pass "
+                         f"--overwrite to replace it")
     over = {}
     if args.frames is not None:
         over["n_frames"] = args.frames
