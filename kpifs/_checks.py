@@ -8,7 +8,9 @@ from pathlib import Path
 
 import numpy as np
 from astropy import units as u
+from astropy.io import fits
 
+from .data import KernelPhaseData
 from .exceptions import KpifsError, KpifsWarning
 
 __all__ = []
@@ -170,7 +172,6 @@ def check_covariance(kpd):
 def peek_kpfits(path):
     """``(calibrated, has_angles)`` from the headers of a KPFITS file kpifs wrote (nothing
     else read), or None for other files (the full reader checks those and says why)."""
-    from astropy.io import fits
     try:
         with fits.open(path, memmap=True, lazy_load_hdus=True) as hdul:
             hdr = hdul[0].header
@@ -241,7 +242,6 @@ def match_dead_channels(target, calibrators):
     """When a star's extraction dropped dead channels (``meta['dropped_channels']``), the
     other stars' same channels are left out too (with a warning), so that calibration
     compares like with like; anything else is left to `~kpifs.calibrate.check_compatible`."""
-    from .data import KernelPhaseData
     stars = [target] + list(calibrators)
     if not any(k.meta.get("dropped_channels") for k in stars):
         return target, list(calibrators)

@@ -17,9 +17,12 @@ recorded for its entry and does not stop the others.
 Dask is an optional dependency (``pip install kpifs[batch]``), imported only
 when a batch runs.
 """
+import contextlib
 import dataclasses
 import glob
 import logging
+import signal
+import threading
 import time
 import traceback
 import warnings
@@ -363,9 +366,10 @@ def _run_locked(entries, outdir, xo, do, *, overwrite, scheduler, n_workers, pro
     try:
         if scheduler is None:
             # a free port for the dashboard: never the default 8787 another cluster may hold
-            cluster = LocalCluster(n_workers=n_workers if processes else 1,
-                                   threads_per_worker=1, processes=processes,
-                                   dashboard_address=":0")
+            with _sigint_ignored():
+                cluster = LocalCluster(n_workers=n_workers if processes else 1,
+                                       threads_per_worker=1, processes=processes,
+                                       dashboard_address=":0")
             client = Client(cluster)
         else:
             client = Client(scheduler)
@@ -382,10 +386,13 @@ def _run_locked(entries, outdir, xo, do, *, overwrite, scheduler, n_workers, pro
             client.cancel(futures)
             _quiet_shutdown(client)
     finally:
-        if client is not None:
-            client.close()
-        if cluster is not None:
-            cluster.close()
+        try:
+            if client is not None:
+                client.close()
+            if cluster is not None:
+                cluster.close()
+        except KeyboardInterrupt:     # a second Ctrl-C while the cluster closes
+            interrupted = True
     done = {r["name"] for r in rows}
     for e in entries:
         if e.name in done:
@@ -409,6 +416,23 @@ def _run_locked(entries, outdir, xo, do, *, overwrite, scheduler, n_workers, pro
         raise BatchInterrupted(f"{len(table) - n} entries finished, {n} interrupted; "
                                f"{outdir / 'summary.ecsv'} records them; rerun to resume")
     return table
+
+
+@contextlib.contextmanager
+def _sigint_ignored():
+    """SIGINT ignored while the cluster starts its processes, which inherit that (it
+    survives exec, and Python leaves an ignored SIGINT ignored): a Ctrl-C that a terminal
+    sends to the whole process group then reaches this process only, which stops the
+    cluster in order, instead of killing workers mid-task with their tracebacks. A Ctrl-C
+    during the few seconds of the start itself is not seen: press it again."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def _silence_distributed():

@@ -574,7 +574,7 @@ CASES = [
      "refusing to overwrite an input"),
     ("simulate: earlier simulation", lambda f: ["simulate", "--frames", "2", "-o",
                                                 f["earlier_sim"].parent], 2,
-     "holds an earlier simulation (target.fits); pass --overwrite"),
+     "an earlier simulation exists there (target.fits); pass --overwrite"),
     ("detect: --frame sky without angles", lambda f: ["detect", f["no_pa"], "--frame", "sky"],
      2, "no_pa.fits: --frame sky needs the detector position angle"),
     ("extract: a dead channel dropped", lambda f: ["extract", f["dead"], "--step", "0.8m"], 0,
@@ -651,3 +651,27 @@ def test_never_overwrite_an_input(corpus, tmp_path, capsys):
     assert main(["extract", str(src), "-o", str(src), "--overwrite"]) == 2
     assert "refusing to overwrite an input" in capsys.readouterr().err
     assert src.read_bytes() == before
+
+
+def test_disk_full_names_the_output(corpus, tmp_path, capsys, monkeypatch):
+    """A write that fails (disk full) names the output, and leaves no temporary behind."""
+    import errno
+
+    def full(self, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(fits.HDUList, "writeto", full)
+    out = tmp_path / "kp.fits"
+    assert main(["extract", str(corpus["target"]), "--step", "0.8m", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"{out}: cannot write it (No space left on device)" in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_non_ascii_paths_are_escaped_in_headers(corpus, tmp_path, capsys):
+    """A path with accents is written into the header cards escaped, and read back."""
+    out = tmp_path / "kp.fits"
+    assert main(["extract", str(corpus["accent"]), "--step", "0.8m", "-o", str(out)]) == 0
+    with fits.open(out) as h:
+        card = h[0].header["KPIN1"]
+        assert card.endswith("donn\\xe9es/cible.fits") and card.isascii()
+        assert any("donn\\xe9es" in str(line) for line in h[0].header["HISTORY"])

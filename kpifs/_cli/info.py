@@ -1,10 +1,12 @@
 """``kpifs info``: describe a cube, a KPFITS file, a kernel model or detection products."""
 import numpy as np
 from astropy import units as u
+from astropy.table import QTable
 
 from ..data import DetectionResult, KernelPhaseData
 from ..exceptions import KpifsError, MissingInformation
 from ..io.cube import open_fits
+from ..io.kpfits_read import _layout, _read_pixscale, _read_wavelengths
 from ..io.readers import detect_instrument, read_cube
 from ..io.wavelengths import parse_wavelengths
 from ..kernel import KernelModel, nyquist_usable
@@ -106,7 +108,6 @@ def _kpfits(path):
 
 
 def _injection(path):
-    from astropy.table import QTable
     with open_fits(path, verify=True) as hdul:
         hdr = hdul[0].header
         lim = QTable.read(hdul["LIMITS"]) if "LIMITS" in hdul else None
@@ -135,7 +136,6 @@ def _verify_small(path, hdul, limit=16 * 2 ** 20):
 def _kpfits_headers(path, hdul):
     """Describe a KPFITS file kpifs wrote from its headers; False for other tools' files
     (the full reader checks and describes those)."""
-    from ..io.kpfits_read import _layout, _read_pixscale, _read_wavelengths
     hdr = hdul[0].header
     names = [h.name for h in hdul]
     need = ("APERTURE", "UV-PLANE", "KER-MAT", "KP-DATA")

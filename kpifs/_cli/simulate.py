@@ -13,8 +13,8 @@ def run(args):
     earlier = [n for n in ("target.fits", "calibrator.fits", "target", "calibrator")
                if (out / n).exists()]
     if earlier and not args.overwrite:
-        raise KpifsError(f"{out}: holds an earlier simulation ({', '.join(earlier)}); pass "
-                         f"--overwrite to replace it")
+        raise KpifsError(f"{out}: an earlier simulation exists there ({', '.join(earlier)}); "
+                         f"pass --overwrite to replace it")
     over = {}
     if args.frames is not None:
         over["n_frames"] = args.frames
