@@ -160,7 +160,8 @@ class DetectOptions:
         seps = {k: _mas(getattr(self, k), f"--{k.replace('_', '-')}")
                 for k in ("max_sep", "min_sep", "grid_step")}
         for k, v in seps.items():
-            if v is not None and not (np.isfinite(v.value) and v.value > 0):
+            if v is not None and not (np.isfinite(v.value) and (
+                    v.value > 0 or (k == "min_sep" and v.value == 0))):
                 raise KpifsError(f"--{k.replace('_', '-')} must be > 0, got {v}")
         if seps["max_sep"] is not None and seps["min_sep"] is not None \
                 and seps["max_sep"] <= seps["min_sep"]:
