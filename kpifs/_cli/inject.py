@@ -47,6 +47,7 @@ def _check_args(args):
     check_seed(args.seed, "--seed")
     check_inputs(args.cubes, args.calibrator or [], outputs=[args.output])
     if args.curve:
+        DetectOptions(pfa=args.pfa, draws=args.draws, seed=args.seed).validate()
         if args.angles < 1:
             raise KpifsError(f"--angles must be at least 1, got {args.angles}")
         _contrasts(args.contrasts, "--contrasts")

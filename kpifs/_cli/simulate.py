@@ -2,6 +2,7 @@
 import numpy as np
 from astropy import units as u
 
+from .._checks import check_seed
 from .._utils import check_output_dir, to_quantity
 from ..exceptions import KpifsError
 from ..io.layouts import write_observation
@@ -9,6 +10,7 @@ from ..simulate import PRESETS, SceneParameters, simulate_scene
 
 
 def run(args):
+    check_seed(args.seed)
     out = check_output_dir(args.output)          # refused now, not after the simulation
     earlier = [n for n in ("target.fits", "calibrator.fits", "target", "calibrator")
                if (out / n).exists()]
