@@ -113,6 +113,9 @@ def _check_writable(folder, what):
 def check_output_path(path, *, overwrite=False):
     """Refuse an existing output (unless *overwrite*), a directory, a missing or unwritable
     folder: before any work is done."""
+    if str(path).endswith(("/", os.sep)) and not Path(path).is_dir():
+        raise KpifsError(f"{path}: ends with '{os.sep}', a folder name; expected an output file "
+                         f"name (e.g. {Path(path) / 'out.fits'})")
     path = Path(path)
     if path.is_dir():
         raise KpifsError(f"{path}: is a directory, expected an output file name")
@@ -163,9 +166,12 @@ def atomic_write(path, write, *, overwrite=False, inputs=()):
         write(tmp)
         os.chmod(tmp, _new_file_mode())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         if os.path.exists(tmp):
             os.remove(tmp)
+        if isinstance(exc, OSError) and not isinstance(exc, KpifsError):
+            # disk full, quota, a vanished folder: say which output could not be written
+            raise KpifsError(f"{path}: cannot write it ({exc.strerror or exc})") from None
         raise
     return path
 

@@ -17,9 +17,12 @@ recorded for its entry and does not stop the others.
 Dask is an optional dependency (``pip install kpifs[batch]``), imported only
 when a batch runs.
 """
+import contextlib
 import dataclasses
 import glob
 import logging
+import signal
+import threading
 import time
 import traceback
 import warnings
@@ -33,11 +36,13 @@ from astropy.table import Table
 from ._utils import progress as progress_bar
 from ._utils import check_output_dir, write_table
 from .data import DetectionResult
+from ._lock import FolderLock
 from .exceptions import KpifsError
 from .workflow import (DetectOptions, ExtractOptions, observation_digest, options_record,
                        process_observation)
 
-__all__ = ["BatchEntry", "read_manifest", "entries_from_glob", "process_entry", "run_batch"]
+__all__ = ["BatchEntry", "read_manifest", "entries_from_glob", "check_entry_name",
+           "process_entry", "run_batch"]
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +100,15 @@ def read_manifest(path):
         raise KpifsError(f"{path}: manifest not found")
     fmt = "ascii.ecsv" if path.suffix == ".ecsv" else "ascii.csv"
     try:
-        tab = Table.read(path, format=fmt)
+        # utf-8-sig: spreadsheets save "CSV UTF-8" with a byte-order mark before `name`
+        lines = path.read_text(encoding="utf-8-sig").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise KpifsError(f"{path}: cannot read the manifest: {exc}") from None
+    if len([ln for ln in lines if ln.strip() and not ln.lstrip().startswith("#")]) < 2:
+        raise KpifsError(f"{path}: the manifest has no entries (a header line and at least "
+                         f"one row: name,target,calibrator)")
+    try:
+        tab = Table.read(lines, format=fmt)
     except Exception as exc:  # astropy raises many types on malformed tables
         raise KpifsError(f"{path}: cannot read the manifest: {exc}") from None
     missing = {"name", "target", "calibrator"} - set(tab.colnames)
@@ -103,6 +116,8 @@ def read_manifest(path):
         raise KpifsError(f"{path}: manifest lacks column(s) {sorted(missing)}; needs name, "
                          f"target, calibrator")
     names = [str(n) for n in tab["name"]]
+    for n in names:
+        check_entry_name(n, source=path)
     dup = {n for n in names if names.count(n) > 1}
     if dup:
         raise KpifsError(f"{path}: entry names must be unique; repeated: {sorted(dup)}")
@@ -119,6 +134,34 @@ def read_manifest(path):
                                   wavelengths=opt.get("wavelengths"),
                                   pixscale=opt.get("pixscale")))
     return entries
+
+
+def check_entry_name(name, *, source="entry", outdir=None):
+    """Refuse an entry name that is not one folder name inside the output folder
+    (``../x``, ``/abs/path``, ``a/b``, ``.``, empty), or that leads out of *outdir*
+    through a symbolic link.
+
+    Examples
+    --------
+    >>> from kpifs.batch import check_entry_name
+    >>> from kpifs.exceptions import KpifsError
+    >>> check_entry_name("hd1234")
+    >>> try:
+    ...     check_entry_name("../x", source="m.csv")
+    ... except KpifsError as err:
+    ...     print(err)                                     # doctest: +ELLIPSIS
+    m.csv: entry name '../x' is not a plain folder name (it would be written outside ...)
+    """
+    text = str(name)
+    if (not text.strip() or text in (".", "..") or "/" in text or "\\" in text
+            or "\0" in text or Path(text).is_absolute()):
+        raise KpifsError(f"{source}: entry name {text!r} is not a plain folder name (it "
+                         f"would be written outside the output folder)")
+    if outdir is not None:
+        root = Path(outdir).resolve()
+        if (root / text).resolve().parent != root:
+            raise KpifsError(f"{source}: entry name {text!r} leads outside the output folder "
+                             f"{outdir} (a symbolic link?)")
 
 
 def entries_from_glob(pattern, calibrator):
@@ -276,6 +319,11 @@ def run_batch(entries, outdir, *, extract_options=None, detect_options=None, ove
     `~astropy.table.Table`
         One row per entry (also written to ``OUTDIR/summary.ecsv``).
 
+    The output folder is locked while the batch runs (``OUTDIR/.kpifs-batch.lock``):
+    a second run on it is refused, naming the holder (pid, host, start time); the
+    lock of a run that was killed is taken over with a warning. Entry names are
+    plain folder names inside *outdir*.
+
     Examples
     --------
     >>> import tempfile
@@ -293,34 +341,58 @@ def run_batch(entries, outdir, *, extract_options=None, detect_options=None, ove
     xo = extract_options or ExtractOptions()
     do = (detect_options or DetectOptions()).validate()
     outdir = check_output_dir(outdir)
-    outdir.mkdir(parents=True, exist_ok=True)
     names = [e.name for e in entries]
     if len(set(names)) != len(names):
         raise KpifsError("entry names must be unique")
-    cluster = None
-    if scheduler is None:
-        # a free port for the dashboard: never the default 8787 another cluster may hold
-        cluster = LocalCluster(n_workers=n_workers if processes else 1, threads_per_worker=1,
-                               processes=processes, dashboard_address=":0")
-        client = Client(cluster)
-    else:
-        client = Client(scheduler)
+    if not entries:
+        raise KpifsError("no entries to process")
+    outdir.mkdir(parents=True, exist_ok=True)
+    for e in entries:
+        check_entry_name(e.name, outdir=outdir)
+    with FolderLock(outdir):
+        return _run_locked(entries, outdir, xo, do, overwrite=overwrite, scheduler=scheduler,
+                           n_workers=n_workers, processes=processes, progress=progress,
+                           dask=(Client, LocalCluster, as_completed))
+
+
+def _run_locked(entries, outdir, xo, do, *, overwrite, scheduler, n_workers, processes,
+                progress, dask):
+    """`run_batch` once the output folder's lock is held."""
+    Client, LocalCluster, as_completed = dask
+    names = [e.name for e in entries]
+    cluster = client = None
     rows, futures = [], []
     interrupted = False
     try:
+        if scheduler is None:
+            # a free port for the dashboard: never the default 8787 another cluster may hold
+            with _sigint_ignored():
+                cluster = LocalCluster(n_workers=n_workers if processes else 1,
+                                       threads_per_worker=1, processes=processes,
+                                       dashboard_address=":0")
+            client = Client(cluster)
+        else:
+            client = Client(scheduler)
         futures = [client.submit(process_entry, e, xo, do, str(outdir), overwrite=overwrite,
                                  key=f"kpifs-{e.name}", pure=False) for e in entries]
         for fut in progress_bar(as_completed(futures), total=len(futures), desc="batch",
                                 unit="entry", enabled=progress):
             rows.append(fut.result())
     except KeyboardInterrupt:
+        # also while the cluster starts: every entry is then recorded as interrupted
         interrupted = True
-        client.cancel(futures)
-        _quiet_shutdown(client)
+        _silence_distributed()
+        if client is not None:
+            client.cancel(futures)
+            _quiet_shutdown(client)
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        try:
+            if client is not None:
+                client.close()
+            if cluster is not None:
+                cluster.close()
+        except KeyboardInterrupt:     # a second Ctrl-C while the cluster closes
+            interrupted = True
     done = {r["name"] for r in rows}
     for e in entries:
         if e.name in done:
@@ -344,6 +416,23 @@ def run_batch(entries, outdir, *, extract_options=None, detect_options=None, ove
         raise BatchInterrupted(f"{len(table) - n} entries finished, {n} interrupted; "
                                f"{outdir / 'summary.ecsv'} records them; rerun to resume")
     return table
+
+
+@contextlib.contextmanager
+def _sigint_ignored():
+    """SIGINT ignored while the cluster starts its processes, which inherit that (it
+    survives exec, and Python leaves an ignored SIGINT ignored): a Ctrl-C that a terminal
+    sends to the whole process group then reaches this process only, which stops the
+    cluster in order, instead of killing workers mid-task with their tracebacks. A Ctrl-C
+    during the few seconds of the start itself is not seen: press it again."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def _silence_distributed():

@@ -22,7 +22,8 @@ from .data import KernelPhaseData
 from .errormodel import fit_error_model
 from .exceptions import KpifsError, KpifsWarning
 
-__all__ = ["calibrate", "check_compatible", "mean_detpa", "block_rows", "MAX_DETPA_SPAN"]
+__all__ = ["calibrate", "check_compatible", "check_calibration", "mean_detpa", "block_rows",
+           "MAX_DETPA_SPAN"]
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +53,7 @@ def check_compatible(target, other):
     if other.n_wave != target.n_wave or not np.allclose(
             other.wavelengths.to_value(u.um), target.wavelengths.to_value(u.um), rtol=1e-4):
         raise KpifsError(f"calibrator {o} has channels {_fmt(other.wavelengths)}, the target "
-                         f"{t} has {_fmt(target.wavelengths)}")
+                         f"{t} has channels {_fmt(target.wavelengths)}")
     if abs(other.pixscale / target.pixscale - 1) > 1e-3:
         raise KpifsError(f"calibrator {o} has pixel scale {other.pixscale:.3f}, the target "
                          f"{t} has {target.pixscale:.3f}")
@@ -64,7 +65,45 @@ def check_compatible(target, other):
 
 def _fmt(wl):
     wl = wl.to_value(u.um)
-    return f"{len(wl)} channels {wl.min():.4f}-{wl.max():.4f} um"
+    if len(wl) == 1:
+        return f"{wl[0]:.4f} um (1 channel)"
+    return f"{wl.min():.4f}-{wl.max():.4f} um ({len(wl)} channels)"
+
+
+def check_calibration(target, calibrators):
+    """Refuse a calibration that would be wrong: twice, or of a star by itself.
+
+    Already-calibrated data (CALFLAG true) are not calibrated again, nor used
+    as a calibrator (the calibrator's own calibrator would be subtracted back),
+    and a calibrator whose kernel phases are those of the target (the same
+    frames: calibrated kernel phases of exactly 0) is refused.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, KpifsError, make_pupil
+    >>> from kpifs.calibrate import check_calibration
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> a = KernelPhaseData(np.ones((4, 1, km.n_kp)), [1.6] * u.um, 10 * u.mas, km)
+    >>> try:
+    ...     check_calibration(a, [a])
+    ... except KpifsError as err:
+    ...     print("its own calibrator" in str(err))
+    True
+    """
+    t = _name(target)
+    if target.meta.get("calibrated"):
+        raise KpifsError(f"{t}: already calibrated (CALFLAG true): calibrating it again "
+                         f"subtracts a star twice; give it without a calibrator")
+    for cal in calibrators:
+        if cal.meta.get("calibrated"):
+            raise KpifsError(f"calibrator {_name(cal)}: already calibrated (CALFLAG true): "
+                             f"a calibrator must be a star's own kernel phases")
+        if cal is target or (cal.kp.shape == target.kp.shape
+                             and np.array_equal(cal.kp, target.kp)):
+            raise KpifsError(f"calibrator {_name(cal)}: its kernel phases are the target "
+                             f"{t}'s own: a star cannot be its own calibrator (calibrated "
+                             f"kernel phases would be exactly 0)")
 
 
 #: Fewest frames of a star from which its frame-to-frame scatter is estimated.

@@ -23,13 +23,11 @@ from threading import Lock
 import numpy as np
 from astropy import units as u
 
-from ._utils import progress as progress_bar
-from ._utils import thread_map
-from ._utils import to_quantity
+from ._checks import drop_dead_channels
+from ._utils import progress as progress_bar, thread_map, to_quantity
 from .data import KernelPhaseData
 from .exceptions import KpifsError, KpifsWarning
-from .fourier import METHODS as FOURIER_METHODS
-from .fourier import fourier_operator
+from .fourier import METHODS as FOURIER_METHODS, fourier_operator
 from .io.pages import release_pages
 from .io.wavelengths import check_wavelengths
 from .kernel import MAS, KernelModel, load_kernel_model
@@ -465,9 +463,11 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
         plan.centres is None and plan.centroid in ("quadratic", "2dg")), wrap=(
         lambda it: progress_bar(it, desc=f"extracting {source}"[:40], unit="channel",
                                 total=nwave, enabled=progress))), axis=0).tolist()))
+    bad, kp, used_centres, wl, phases, amps, dead = drop_dead_channels(
+        bad, kp, used_centres, wl, phases, amps, source=source)
     drop = _bad_frames(bad, wl, bad_frames, source)
     keep = np.setdiff1d(np.arange(nframe), drop)
-    n_slices = len(keep) * nwave
+    n_slices = len(keep) * len(wl)
     if count["n_clipped"]:
         warnings.warn(f"{source}: the star is closer to the image edge than the window radius "
                       f"({win.radius:.1f} pixels) in {count['n_clipped']} of {n_slices} "
@@ -494,7 +494,7 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
         detpa = None if detpa is None else detpa[keep]
     ctab = functools.partial(_centre_table, keep, wl, used_centres)
     meta = {"source": str(source), "centroid": centroid if centres is None else "given",
-            "n_bad_pixels": count["n_bad_pixels"], "bad_pixels": bad_pixels,
-            "bad_frames": bad_frames, "dropped_frames": [int(f) for f in drop]}
+            "n_bad_pixels": count["n_bad_pixels"], "bad_pixels": bad_pixels, "bad_frames":
+            bad_frames, "dropped_frames": list(map(int, drop)), "dropped_channels": dead}
     return KernelPhaseData(kp, wl, plan.pixscale, km, window=win, phases=phases,
                            amplitudes=amps, centres=ctab, header=header, detpa=detpa, meta=meta)

@@ -16,6 +16,7 @@ probability counted; the contrast where half are found is the empirical 50 %
 limit, to set beside the analytic one.
 """
 import logging
+import warnings
 
 import numpy as np
 from astropy import units as u
@@ -26,7 +27,7 @@ from ._utils import to_quantity
 from .calibrate import calibrate
 from .detect import detect
 from .detect.sky import sky_to_detector   # noqa: F401  (kpifs.inject.sky_to_detector)
-from .exceptions import KpifsError
+from .exceptions import KpifsError, KpifsWarning
 from .extract import extract_kernel_phases
 
 __all__ = ["shift_images", "inject_companion", "injection_limits"]
@@ -100,9 +101,14 @@ def inject_companion(cube, *, position, contrast, pixscale, frame="detector", de
     if np.shape(pos) != (2,) or not np.all(np.isfinite(pos)):
         raise KpifsError(f"inject: a position is two finite offsets, got {position!r}")
     ps = to_quantity(pixscale, u.mas, name="pixel scale").value
-    c = np.broadcast_to(np.asarray(contrast, float), (nwave,))
-    if not np.all(np.isfinite(c)) or np.any(c < 0):
-        raise KpifsError(f"inject: contrasts must be finite and >= 0, got {contrast!r}")
+    c = np.atleast_1d(np.asarray(contrast, float))
+    if c.ndim != 1 or c.size not in (1, nwave):
+        raise KpifsError(f"inject: {c.size} contrasts for {nwave} channel(s): give one, or "
+                         f"one per channel")
+    c = np.broadcast_to(c, (nwave,))
+    if not np.all(np.isfinite(c)) or np.any(c < 0) or np.any(c >= 1):
+        raise KpifsError(f"inject: contrasts must be finite and in [0, 1) (companion/star "
+                         f"flux), got {contrast!r}")
     if frame == "sky":
         if detpa is None or not np.all(np.isfinite(np.asarray(detpa, float))):
             raise KpifsError("inject: a sky position needs the detector position angle of "
@@ -114,9 +120,35 @@ def inject_companion(cube, *, position, contrast, pixscale, frame="detector", de
         raise KpifsError(f"inject: frame must be 'detector' or 'sky', got {frame!r}")
     out = cube.copy()
     finite = np.nan_to_num(cube)
+    kept = np.ones(nframe)
     for f in range(nframe):
-        out[f] += c[:, None, None] * shift_images(finite[f], x[f] / ps, y[f] / ps)
+        shifted = shift_images(finite[f], x[f] / ps, y[f] / ps)
+        total = finite[f].sum()
+        if total > 0:
+            kept[f] = shifted.sum() / total
+        out[f] += c[:, None, None] * shifted
+    _check_flux_kept(kept, pos, frame, cube.shape[-2:], ps)
     return out
+
+
+#: Largest share of an injected companion's flux that may fall off the image without a
+#: warning; beyond `LOST_REFUSED` the injection is refused.
+LOST_WARNED, LOST_REFUSED = 0.05, 0.5
+
+
+def _check_flux_kept(kept, pos, frame, shape, ps):
+    """Refuse a companion mostly off the image; warn, with the loss, when some of it is."""
+    lost = 1.0 - float(np.median(np.clip(kept, 0.0, 1.0)))
+    where = f"({pos[0]:g}, {pos[1]:g}) mas ({frame})"
+    half = 0.5 * min(shape) * ps
+    if lost > LOST_REFUSED:
+        raise KpifsError(f"inject: a companion at {where} falls off the image: "
+                         f"{100 * lost:.0f}% of its flux would be lost (the image reaches "
+                         f"about {half:.0f} mas from its centre)")
+    if lost > LOST_WARNED:
+        warnings.warn(f"inject: {100 * lost:.0f}% of the flux of the companion at {where} "
+                      f"falls off the image: the contrast on the image is that much lower than "
+                      f"asked", KpifsWarning, stacklevel=3)
 
 
 def _detected(result, x, y, radius):

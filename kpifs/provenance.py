@@ -35,10 +35,25 @@ def options_record(options):
             v = "sha1:" + hashlib.sha1(np.ascontiguousarray(v).tobytes()).hexdigest()[:12]
         elif isinstance(v, Path):
             v = str(v)
+        if isinstance(v, str) and v and os.path.isfile(v):
+            # an option given as a file (wavelengths, pupil, spectrum, angles): its content
+            # counts, so that a rerun after the file changed redoes the work
+            v = f"{v} (sha256:{_file_sha256(v)})"
         elif not isinstance(v, (int, float, str, bool, list, tuple, type(None))):
             v = repr(v)
         out[f.name] = v
     return out
+
+
+def _file_sha256(path):
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+    except OSError:
+        return "unreadable"
+    return h.hexdigest()[:16]
 
 
 def combined_digest(payload):

@@ -24,9 +24,10 @@ from pathlib import Path
 import numpy as np
 from astropy import units as u
 
+from . import _checks
 from ._lazy import lazy_module
 from ._utils import check_output_dir, check_output_path, to_quantity
-from .calibrate import calibrate
+from .calibrate import calibrate, check_calibration
 from .covariance import empirical_covariance
 from .data import KernelPhaseData
 from .exceptions import KpifsError, KpifsWarning
@@ -158,6 +159,18 @@ class DetectOptions:
             raise KpifsError(f"unknown frame {self.frame!r}: use auto, sky or detector")
         if self.null not in _null.NULL_METHODS:
             raise KpifsError(f"unknown null {self.null!r}: use one of {_null.NULL_METHODS}")
+        _checks.check_seed(self.seed, "--seed")
+        _checks.check_draws_memory(self.draws)
+        seps = {k: _mas(getattr(self, k), f"--{k.replace('_', '-')}")
+                for k in ("max_sep", "min_sep", "grid_step")}
+        for k, v in seps.items():
+            if v is not None and not (np.isfinite(v.value) and (
+                    v.value > 0 or (k == "min_sep" and v.value == 0))):
+                raise KpifsError(f"--{k.replace('_', '-')} must be > 0, got {v}")
+        if seps["max_sep"] is not None and seps["min_sep"] is not None \
+                and seps["max_sep"] <= seps["min_sep"]:
+            raise KpifsError(f"--max-sep {seps['max_sep']} must be larger than --min-sep "
+                             f"{seps['min_sep']}")
         return self
 
 
@@ -239,6 +252,7 @@ def extract_observation(files, options=None, *, model=None, progress=False):
     """
     options = options or ExtractOptions()
     files = [str(files)] if isinstance(files, (str, Path)) else [str(f) for f in files]
+    _checks.check_inputs(files)
     pa = parse_angles(options.pa, source="--pa")
     with read_cube(files, instrument=options.instrument,
                    wavelengths=parse_wavelengths(options.wavelengths,
@@ -308,6 +322,8 @@ def calibrate_observation(target, calibrators=(), options=None):
     options = options or ExtractOptions()
     calibrators = list(calibrators)
     if calibrators:
+        check_calibration(target, calibrators)
+        target, calibrators = _checks.match_dead_channels(target, calibrators)
         result = calibrate(target, calibrators, shrinkage=options.shrinkage,
                            joint=options.joint_covariance)
         em = result.meta.get("error_model") or {}
@@ -376,23 +392,34 @@ def detect_observation(kpd, options=None, *, calibrators=(), progress=False):
     'B'
     """
     detect, default_grid = _pipeline.detect, _pipeline.default_grid
-    options = options or DetectOptions()
+    options = (options or DetectOptions()).validate()
     if calibrators:
         kpd = calibrate_observation(kpd, calibrators, ExtractOptions(shrinkage=options.shrinkage))
+    _checks.check_kernel_phase_data(kpd)
+    _checks.check_covariance(kpd)
+    if options.frame == "sky":
+        _sky.search_frame(kpd, "sky")        # refused now, not after the search's set-up
     grid = None
     if options.max_sep is not None or options.grid_step is not None or \
             options.min_sep is not None:
+        _checks.check_grid_memory(kpd, step=_mas(options.grid_step, "grid step"),
+                                  max_sep=_mas(options.max_sep, "maximum separation"))
         grid = default_grid(kpd, step=_mas(options.grid_step, "grid step"),
                             max_sep=_mas(options.max_sep, "maximum separation"),
                             min_sep=_mas(options.min_sep, "minimum separation"),
                             frame=_sky.search_frame(kpd, options.frame))
-    result = detect(kpd, test=options.test, pfa=options.pfa, pd=options.pd, grid=grid,
-                    spectrum=parse_spectrum(options.spectrum, kpd.n_wave),
-                    basis=options.basis, n_draws=options.draws, seed=options.seed,
-                    shrinkage=options.shrinkage, fit=options.fit,
-                    max_candidates=options.max_candidates,
-                    allow_uncalibrated=options.allow_uncalibrated, frame=options.frame,
-                    null=options.null, progress=progress)
+    try:
+        result = detect(kpd, test=options.test, pfa=options.pfa, pd=options.pd, grid=grid,
+                        spectrum=parse_spectrum(options.spectrum, kpd.n_wave),
+                        basis=options.basis, n_draws=options.draws, seed=options.seed,
+                        shrinkage=options.shrinkage, fit=options.fit,
+                        max_candidates=options.max_candidates,
+                        allow_uncalibrated=options.allow_uncalibrated, frame=options.frame,
+                        null=options.null, progress=progress)
+    except KpifsError as exc:             # every message names the file searched
+        if kpd.name in str(exc):
+            raise
+        raise KpifsError(f"{kpd.name}: {exc}") from None
     record = options_record(options)
     result.header["KPDOPTS"] = (json.dumps(record, sort_keys=True), "kpifs detection options")
     result.header["KPHASH"] = (products_digest(json.loads(kpd.header.get("KPXOPTS", "null")),
@@ -449,6 +476,7 @@ def process_observation(target, calibrators, outdir, *, extract_options=None,
     outdir.mkdir(parents=True, exist_ok=True)
     target = [str(f) for f in target]
     calibrators = [[str(f) for f in files] for files in calibrators]
+    _checks.check_inputs(target, calibrators)
     if not calibrators:
         raise KpifsError(f"{target[0] if target else outdir}: no calibrator")
     paths = {"calibrated": outdir / "calibrated_kp.fits", "detection": outdir / "detection.fits"}

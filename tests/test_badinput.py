@@ -133,7 +133,107 @@ def corpus(tmp_path_factory):
     f["one"] = d / "one.csv"
     f["unwritable"] = _unwritable(d)
     f.update(_other_tools_files(d, f["target_kp"]))
+    f.update(_issue25_files(d, f, data, hdr))
     return f
+
+
+def _rewrite(src, dst, edit):
+    """A copy of FITS file *src* at *dst*, changed by ``edit(hdulist)``, checksums renewed."""
+    with fits.open(src) as h:
+        hl = fits.HDUList([x.copy() for x in h])
+    edit(hl)
+    hl.writeto(dst, checksum=True)
+    return dst
+
+
+def _issue25_files(d, f, data, hdr):
+    """Inputs of the sweep of issue 25: calibrations twice, scaled integers, manifests..."""
+    import os
+    out = {}
+    kp = d / "kp"
+    raw = bytearray(f["target_kp"].read_bytes())
+    with fits.open(f["target_kp"]) as h:
+        where = h.fileinfo(h.index_of("KP-DATA"))["datLoc"]
+    raw[where + 11] ^= 0x40
+    out["tkp_corrupt"] = kp / "tkp_corrupt.fits"
+    out["tkp_corrupt"].write_bytes(bytes(raw))
+    out["tkp_copy"] = kp / "target_kp_copy.fits"             # the same star under a new name
+    out["tkp_copy"].write_bytes(f["target_kp"].read_bytes())
+    out["target_link"] = d / "target_link.fits"
+    os.symlink(f["target"], out["target_link"])
+    out["nan_rows"] = _rewrite(f["calibrated"], kp / "nan_rows.fits", lambda h: h[
+        "KP-COVROWS"].data.__setitem__((0, 1, 2), np.nan))
+
+    def not_a_covariance(h):
+        cov = h["KP-COV"].data
+        cov[..., 0, 0] = -10 * np.abs(cov).max()
+        for name in ("KP-COVROWS", "KP-FITROWS", "KP-BLKROWS"):
+            del h[name]
+    out["bad_cov"] = _rewrite(f["calibrated"], kp / "bad_cov.fits", not_a_covariance)
+
+    def no_angles(h):
+        for name in ("DETPA", "DETPA-FR"):
+            if name in h:
+                h[name].data = np.full_like(h[name].data, np.nan)
+    out["no_pa"] = _rewrite(f["calibrated"], kp / "no_pa.fits", no_angles)
+    scaled = fits.PrimaryHDU(data.astype(np.float32), hdr)
+    scaled.scale("int16", bscale=float(data.max() / 30000), bzero=0.0)
+    out["int16"] = d / "int16.fits"
+    scaled.writeto(out["int16"])
+    out["uint16"] = d / "uint16.fits"
+    fits.PrimaryHDU(np.round(data / data.max() * 60000).astype(np.uint16),
+                    hdr).writeto(out["uint16"])
+    dead = data.copy()
+    dead[:, 1] = np.nan
+    out["dead"] = d / "deadchannel.fits"
+    fits.writeto(out["dead"], dead, hdr)
+    out["accent"] = d / "données" / "cible.fits"
+    out["accent"].parent.mkdir()
+    out["accent"].write_bytes(f["target"].read_bytes())
+    wl22 = d / "charis_wl.txt"
+    np.savetxt(wl22, 1.1596 * np.exp(np.arange(22) * 0.0344), header="um")
+    out["charis_wl"] = wl22
+    out["model"] = d / "model.fits"
+    assert main(["kernel", "--step", "0.8m", "-q", "-o", str(out["model"])]) == 0
+    target, cal = f["target"], f["cal"]
+    manifests = {"escape": f"../x,{target},{cal}\n", "absolute": f"/tmp/abs,{target},{cal}\n",
+                 "slash": f"a/b,{target},{cal}\n", "dot": f".,{target},{cal}\n",
+                 "twice": f"twice,{target};{out['target_link']},{cal}\n",
+                 "selfcal": f"self,{target},{target}\n", "header_only": ""}
+    for name, rows in manifests.items():
+        out[f"m_{name}"] = d / f"m_{name}.csv"
+        out[f"m_{name}"].write_text("name,target,calibrator\n" + rows)
+    out["m_bom"] = d / "m_bom.csv"
+    out["m_bom"].write_bytes("name,target,calibrator\nbom,missing_t.fits,missing_c.fits\n"
+                             .encode("utf-8-sig"))
+    locked = d / "locked"
+    locked.mkdir()
+    (locked / ".kpifs-batch.lock").write_text(
+        '{"pid": %d, "host": "%s", "time": 1.0e9}' % (os.getpid(), __import__(
+            "socket").gethostname()))
+    out["locked"] = locked / ".kpifs-batch.lock"
+    sim = d / "earlier_sim"
+    sim.mkdir()
+    (sim / "target.fits").write_bytes(b"an earlier simulation")
+    out["earlier_sim"] = sim / "target.fits"
+    out["curve"] = _injection_product(d / "curve.fits")
+    return out
+
+
+def _injection_product(path):
+    """A file as ``kpifs inject --curve`` writes it (two separations)."""
+    from astropy import units as u
+    from astropy.table import QTable
+    hdr = fits.Header({"CONTENT": "KPIFS-INJECTION", "PFA": 1e-3, "PD": 0.5, "NANGLES": 4})
+    inj = QTable({"separation": [100.0, 100.0, 200.0, 200.0] * u.mas,
+                  "contrast": [1e-3, 2e-3, 1e-3, 2e-3], "n_injected": [4] * 4,
+                  "n_detected": [1, 3, 2, 4], "pd": [0.25, 0.75, 0.5, 1.0]})
+    lim = QTable({"separation": [100.0, 200.0] * u.mas, "limit_injection": [1.41e-3, 1e-3],
+                  "limit_analytic": [1.3e-3, 0.9e-3]})
+    t1, t2 = fits.table_to_hdu(inj), fits.table_to_hdu(lim)
+    t1.name, t2.name = "INJECTIONS", "LIMITS"
+    fits.HDUList([fits.PrimaryHDU(header=hdr), t1, t2]).writeto(path, checksum=True)
+    return path
 
 
 def _other_tools_files(d, target_kp):
@@ -213,7 +313,8 @@ CASES = [
     ("negative flux", lambda f: ["extract", f["negative"]], 0,
      "negative.fits: negative pixels hold more than 10% of the positive flux"),
     ("calibrator channels", lambda f: ["extract", f["target"], "--calibrator",
-                                       f["twochan"]], 2, "twochannels.fits has channels"),
+                                       f["twochan"]], 2,
+     "twochannels.fits has channels 1.5200-1.6000 um (2 channels), the target"),
     ("calibrator pixel scale", lambda f: ["extract", f["target"], "--calibrator",
                                           f["otherscale"]], 2, "otherscale.fits has pixel"),
     ("single target frame", lambda f: ["extract", f["single"], "--calibrator", f["cal"]], 2,
@@ -253,8 +354,8 @@ CASES = [
     ("detect: truncated KPFITS", lambda f: ["detect", f["kp_trunc"]], 2,
      "kp_trunc.fits: truncated FITS file"),
     ("detect: corrupted target, healthy calibrator",
-     lambda f: ["detect", f["kp_corrupt"], "--calibrator", f["cal_kp"]], 2,
-     "kp_corrupt.fits: checksum mismatch"),
+     lambda f: ["detect", f["tkp_corrupt"], "--calibrator", f["cal_kp"]], 2,
+     "tkp_corrupt.fits: checksum mismatch"),
     ("detect: healthy target, corrupted calibrator",
      lambda f: ["detect", f["target_kp"], "--calibrator", f["calkp_corrupt"]], 2,
      "calkp_corrupt.fits: checksum mismatch"),
@@ -343,6 +444,154 @@ CASES = [
     ("batch: one bad calibrator", lambda f: ["batch", f["one"], "--step", "0.8m", "--draws",
                                              "1000", "--workers", "1"], 1,
      "truncated.fits: truncated FITS file"),
+    # issue 25: nothing lost, nothing false
+    ("inject: -o is the input", lambda f: ["inject", f["target"], "--position", "50,0mas",
+                                           "--contrast", "0.01", "-o", f["target"],
+                                           "--overwrite"], 2, "refusing to overwrite an input"),
+    ("inject: -o is the input through a link",
+     lambda f: ["inject", f["target_link"], "--position", "50,0mas", "--contrast", "0.01",
+                "-o", f["target"], "--overwrite"], 2, "refusing to overwrite an input"),
+    ("batch: name ../x", lambda f: ["batch", f["m_escape"]], 2,
+     "m_escape.csv: entry name '../x' is not a plain folder name"),
+    ("batch: absolute name", lambda f: ["batch", f["m_absolute"]], 2,
+     "entry name '/tmp/abs' is not a plain folder name"),
+    ("batch: name a/b", lambda f: ["batch", f["m_slash"]], 2, "entry name 'a/b'"),
+    ("batch: name .", lambda f: ["batch", f["m_dot"]], 2, "entry name '.'"),
+    ("detect: calibrated data given a calibrator",
+     lambda f: ["detect", f["calibrated"], "--calibrator", f["cal_kp"]], 2,
+     "calibrated.fits: already calibrated (CALFLAG true)"),
+    ("detect: a calibrated file as the calibrator",
+     lambda f: ["detect", f["target_kp"], "--calibrator", f["calibrated"]], 2,
+     "calibrator " + "{calibrated}: already calibrated (CALFLAG true)"),
+    ("extract: a KPFITS as the calibrator",
+     lambda f: ["extract", f["target"], "--calibrator", f["calibrated"]], 2,
+     "calibrated.fits: kernel-phase data (KPFITS"),
+    ("extract: target file twice", lambda f: ["extract", f["target"], f["target"]], 2,
+     "given twice as a target file"),
+    ("extract: target file and a link to it", lambda f: ["extract", f["target"],
+                                                         f["target_link"]], 2,
+     "target_link.fits: given twice as a target file (the same file as"),
+    ("extract: a star as its own calibrator",
+     lambda f: ["extract", f["target"], "--calibrator", f["target_link"]], 2,
+     "a star cannot be its own calibrator"),
+    ("extract: one calibrator twice",
+     lambda f: ["extract", f["target"], "--calibrator", f["cal"], "--calibrator", f["cal"]], 2,
+     "given twice as a calibrator file"),
+    ("detect: a star as its own calibrator",
+     lambda f: ["detect", f["target_kp"], "--calibrator", f["target_kp"]], 2,
+     "a star cannot be its own calibrator"),
+    ("detect: identical kernel phases as calibrator",
+     lambda f: ["detect", f["target_kp"], "--calibrator", f["tkp_copy"]], 2,
+     "its kernel phases are the target"),
+    ("batch: target twice (a link)",
+     lambda f: ["batch", f["m_twice"], "--workers", "1", "--step", "0.8m"], 1,
+     "given twice as a target file"),
+    ("batch: a star as its own calibrator",
+     lambda f: ["batch", f["m_selfcal"], "--workers", "1", "--step", "0.8m"], 1,
+     "a star cannot be its own calibrator"),
+    ("inject: position off the image", lambda f: ["inject", f["target"], "--position",
+                                                  "5000,0mas", "--contrast", "0.01"], 2,
+     "falls off the image: 100% of its flux would be lost"),
+    ("inject: position near the edge", lambda f: ["inject", f["target"], "--position",
+                                                  "180,0mas", "--contrast", "0.01"], 0,
+     "of the flux of the companion at (180, 0) mas (detector) falls off the image"),
+    ("inject: contrast 2", lambda f: ["inject", f["target"], "--position", "50,0mas",
+                                      "--contrast", "2"], 2, "--contrast 2: contrasts are"),
+    ("inject: contrast 0", lambda f: ["inject", f["target"], "--position", "50,0mas",
+                                      "--contrast", "0"], 2, "each in (0, 1)"),
+    ("inject: contrasts per channel", lambda f: ["inject", f["target"], "--position",
+                                                 "50,0mas", "--contrast", "0.01,0.02"], 2,
+     "--contrast 0.01,0.02: 2 contrasts for 3 channel(s)"),
+    ("inject: --seed -1", lambda f: ["inject", f["target"], "--position", "50,0mas",
+                                     "--contrast", "0.01", "--seed=-1"], 2,
+     "--seed must be a whole number >= 0"),
+    ("inject: no position", lambda f: ["inject", f["target"], "--contrast", "0.01"], 2,
+     "give --position and --contrast"),
+    ("inject --curve: nothing computable",
+     lambda f: ["inject", f["target"], "--curve", "--calibrator", f["cal"], "--separations",
+                "5000mas", "--step", "0.8m"], 2,
+     "--separations: 5000 mas beyond the search's reach"),
+    ("inject --curve: contrast ladder", lambda f: ["inject", f["target"], "--curve",
+                                                   "--calibrator", f["cal"], "--contrasts",
+                                                   "0,0.01"], 2, "--contrasts 0,0.01"),
+    ("inject --curve: --draws 0", lambda f: ["inject", f["target"], "--curve", "--calibrator",
+                                             f["cal"], "--draws", "0"], 2,
+     "0 Monte-Carlo draws"),
+    ("simulate: --seed -1", lambda f: ["simulate", "--seed=-1", "-o",
+                                       f["adir"].parent / "sim_seed"], 2,
+     "--seed must be a whole number >= 0"),
+    ("inject --curve: --angles 0", lambda f: ["inject", f["target"], "--curve",
+                                              "--calibrator", f["cal"], "--angles", "0"], 2,
+     "--angles must be at least 1"),
+    ("inject: -o names a folder", lambda f: ["inject", f["target"], "--position", "50,0mas",
+                                             "--contrast", "0.01", "-o", _folder(f)], 2,
+     "newdir/: ends with '/'"),
+    ("extract: non-ASCII path", lambda f: ["extract", f["accent"], "--step", "0.8m"], 0,
+     "kernel phases ->"),
+    ("inject: non-ASCII path", lambda f: ["inject", f["accent"], "--position", "50,0mas",
+                                          "--contrast", "0.01"], 0, "injected a companion"),
+    ("detect: NaN in KP-COVROWS", lambda f: ["detect", f["nan_rows"]], 2,
+     "nan_rows.fits: KP-COVROWS has 1 NaN or infinite value(s)"),
+    ("detect: --grid-step too fine", lambda f: ["detect", f["calibrated"], "--grid-step",
+                                                "0.001mas"], 2,
+     "--grid-step 0.001 mas: a search grid of"),
+    ("detect: --draws too many", lambda f: ["detect", f["calibrated"], "--draws",
+                                            "1000000000000"], 2, "--draws 1e+12 needs about"),
+    ("detect: --seed -1", lambda f: ["detect", f["calibrated"], "--seed=-1"], 2,
+     "--seed must be a whole number >= 0"),
+    ("detect: --grid-step 0", lambda f: ["detect", f["calibrated"], "--grid-step", "0mas"], 2,
+     "--grid-step must be > 0"),
+    ("extract: int16 cube with BSCALE", lambda f: ["extract", f["int16"], "--step", "0.8m"], 0,
+     "kernel phases ->"),
+    ("extract: uint16 cube with BZERO 32768", lambda f: ["extract", f["uint16"], "--step",
+                                                         "0.8m"], 0, "kernel phases ->"),
+    ("batch: manifest with a byte-order mark",
+     lambda f: ["batch", f["m_bom"], "--workers", "1"], 1,
+     "missing_t.fits: file not found"),
+    ("batch: header-only manifest", lambda f: ["batch", f["m_header_only"]], 2,
+     "m_header_only.csv: the manifest has no entries"),
+    ("batch: folder locked by a running batch",
+     lambda f: ["batch", f["m_bom"], "-o", f["locked"].parent], 2,
+     "another kpifs batch writes in this folder (pid"),
+    ("detect: --max-sep below --min-sep", lambda f: ["detect", f["calibrated"], "--max-sep",
+                                                     "20mas", "--min-sep", "40mas"], 2,
+     "--max-sep 20.0 mas must be larger than --min-sep 40.0 mas"),
+    ("detect: KP-COV not a covariance", lambda f: ["detect", f["bad_cov"]], 2,
+     "bad_cov.fits: KP-COV is not a covariance at channel 1"),
+    ("model-check: too few frames", lambda f: ["model-check", f["two_frames"]], 2,
+     "two_frames.fits: 2 frame(s): kpifs model-check needs at least 4 frames"),
+    ("model-check: a star against itself",
+     lambda f: ["model-check", f["target"], "--calibrator", f["target_link"]], 2,
+     "a star cannot be its own calibrator"),
+    ("extract: a KPFITS given as a cube", lambda f: ["extract", f["target_kp"]], 2,
+     "target_kp.fits: kernel-phase data (KPFITS, a KP-DATA extension), not an image cube"),
+    ("extract: a kernel model given as a cube", lambda f: ["extract", f["model"]], 2,
+     "model.fits: a kernel model, not an image cube"),
+    ("extract: -o names a folder", lambda f: ["extract", f["target"], "-o", _folder(f)], 2,
+     "newdir/: ends with '/', a folder name"),
+    ("detect: -o names a folder", lambda f: ["detect", f["calibrated"], "-o", _folder(f)], 2,
+     "newdir/: ends with '/'"),
+    ("info: injection curve", lambda f: ["info", f["curve"]], 0,
+     "200 mas: injections 1.00e-03, analytic 9.00e-04"),
+    ("info: KPFITS from its headers", lambda f: ["info", f["calibrated"]], 0,
+     "1 frame(s) x 3 channel(s) x 65 kernel phases; 1.5200-1.6800 um; 10.42 mas"),
+    ("detect: output is the input", lambda f: ["detect", f["calibrated"], "-o", f["calibrated"],
+                                               "--overwrite"], 2,
+     "refusing to overwrite an input"),
+    ("simulate: earlier simulation", lambda f: ["simulate", "--frames", "2", "-o",
+                                                f["earlier_sim"].parent], 2,
+     "an earlier simulation exists there (target.fits); pass --overwrite"),
+    ("detect: --frame sky without angles", lambda f: ["detect", f["no_pa"], "--frame", "sky"],
+     2, "no_pa.fits: --frame sky needs the detector position angle"),
+    ("extract: a dead channel dropped", lambda f: ["extract", f["dead"], "--step", "0.8m"], 0,
+     "deadchannel.fits: 1 dead channel(s) of 3 dropped (unusable in every frame): channel(s) 1 "
+     "(1.600 um"),
+    ("extract: a dead channel, calibrator matched",
+     lambda f: ["extract", f["dead"], "--calibrator", f["cal"], "--step", "0.8m"], 0,
+     "channel(s) 1.600 um left out: dead in another star"),
+    ("extract: CHARIS NLAM contradicted by the cube",
+     lambda f: ["extract", f["nlam"], "--wavelengths", f["charis_wl"], "--step", "0.8m"], 0,
+     "NLAM = 20 in the header but the cube has 22 channels"),
     # warnings: the job runs, the message says what happened
     ("star at the edge", lambda f: ["extract", f["edge"]], 0, "closer to the image edge"),
     ("fewer frames than kernels", lambda f: ["extract", f["target"], "--calibrator",
@@ -351,6 +600,11 @@ CASES = [
     ("Nyquist-limited channel", lambda f: ["extract", *f["charis_tgt"], "--calibrator",
                                            *f["charis_cal"]], 0, "beyond the Nyquist limit"),
 ]
+
+
+def _folder(files):
+    """An output named as a folder that does not exist (``-o newdir/``)."""
+    return str(files["adir"].parent / "newdir") + "/"
 
 
 def _in(files, key, name):
@@ -368,7 +622,8 @@ def test_bad_input(corpus, tmp_path, capsys, name, argv, code, text):
               for p in (v if isinstance(v, list) else [v])]
     before = _hashes(inputs)
     args = [str(a) for a in argv(corpus)]
-    if args[0] in ("extract", "detect", "batch") and "-o" not in args:
+    text = text.format(**{k: v for k, v in corpus.items() if v is not None})
+    if args[0] in ("extract", "detect", "batch", "inject") and "-o" not in args:
         args += ["-o", str(out)]
     assert main(args) == code
     captured = capsys.readouterr()
@@ -402,3 +657,27 @@ def test_never_overwrite_an_input(corpus, tmp_path, capsys):
     assert main(["extract", str(src), "-o", str(src), "--overwrite"]) == 2
     assert "refusing to overwrite an input" in capsys.readouterr().err
     assert src.read_bytes() == before
+
+
+def test_disk_full_names_the_output(corpus, tmp_path, capsys, monkeypatch):
+    """A write that fails (disk full) names the output, and leaves no temporary behind."""
+    import errno
+
+    def full(self, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(fits.HDUList, "writeto", full)
+    out = tmp_path / "kp.fits"
+    assert main(["extract", str(corpus["target"]), "--step", "0.8m", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"{out}: cannot write it (No space left on device)" in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_non_ascii_paths_are_escaped_in_headers(corpus, tmp_path, capsys):
+    """A path with accents is written into the header cards escaped, and read back."""
+    out = tmp_path / "kp.fits"
+    assert main(["extract", str(corpus["accent"]), "--step", "0.8m", "-o", str(out)]) == 0
+    with fits.open(out) as h:
+        card = h[0].header["KPIN1"]
+        assert card.endswith("donn\\xe9es/cible.fits") and card.isascii()
+        assert any("donn\\xe9es" in str(line) for line in h[0].header["HISTORY"])

@@ -166,3 +166,126 @@ def test_batch_interrupt_keeps_a_record(small_archive, tmp_path):
     assert again["s0"] == "skipped"
     assert all(again[n] in ("ok", "skipped") for n in again)
     assert sum(s == "ok" for s in again.values()) == sum(s != "ok" for s in status.values())
+
+
+def _entries(tmp_path, n=1):
+    from kpifs.batch import BatchEntry
+    return [BatchEntry(f"e{i}", [str(tmp_path / "missing.fits")], [[str(tmp_path / "c.fits")]])
+            for i in range(n)]
+
+
+def test_lock_refuses_a_second_run_and_takes_over_a_stale_one(tmp_path):
+    """The folder's lock names its holder; a killed run's lock is detected and taken over."""
+    import json
+    import os
+    import socket
+    from kpifs._lock import FolderLock
+    from kpifs.exceptions import KpifsError, KpifsWarning
+    out = tmp_path / "out"
+    out.mkdir()
+    with FolderLock(out):
+        info = json.loads((out / ".kpifs-batch.lock").read_text())
+        assert info["pid"] == os.getpid() and info["host"] == socket.gethostname()
+        with pytest.raises(KpifsError, match=rf"another kpifs batch writes in this folder "
+                                             rf"\(pid {os.getpid()} on {socket.gethostname()}, "
+                                             rf"since 20\d\d-"):
+            run_batch(_entries(tmp_path), out, processes=False, progress=False)
+    assert not (out / ".kpifs-batch.lock").exists()           # released
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()                                               # a pid that no longer runs
+    (out / ".kpifs-batch.lock").write_text(json.dumps(
+        {"pid": dead.pid, "host": socket.gethostname(), "time": 1.7e9}))
+    with pytest.warns(KpifsWarning, match=f"stale batch lock \\(pid {dead.pid} on "):
+        table = run_batch(_entries(tmp_path, 2), out, processes=False, progress=False)
+    assert list(table["status"]) == ["failed", "failed"]
+    assert not (out / ".kpifs-batch.lock").exists()
+    # another host's lock cannot be checked: refused, with the file to remove if it is dead
+    (out / ".kpifs-batch.lock").write_text(json.dumps(
+        {"pid": 1, "host": "elsewhere.example", "time": 1.7e9}))
+    with pytest.raises(KpifsError, match="pid 1 on elsewhere.example, since 2023-11-14"):
+        run_batch(_entries(tmp_path), out, processes=False, progress=False)
+
+
+def test_entry_names_stay_in_the_output_folder(tmp_path):
+    """Names are plain folder names, and a name that is a link out of the folder is refused."""
+    import os
+    from kpifs.batch import BatchEntry, check_entry_name
+    from kpifs.exceptions import KpifsError
+    out = tmp_path / "out"
+    out.mkdir()
+    elsewhere = tmp_path / "earlier_run"
+    elsewhere.mkdir()
+    (elsewhere / "detection.fits").write_bytes(b"keep me")
+    os.symlink(elsewhere, out / "link")
+    for bad in ("../earlier_run", str(elsewhere), "a/b", "..", ""):
+        with pytest.raises(KpifsError, match="not a plain folder name"):
+            check_entry_name(bad)
+    with pytest.raises(KpifsError, match="leads outside the output folder"):
+        run_batch([BatchEntry("link", ["t.fits"], [["c.fits"]])], out, processes=False,
+                  progress=False)
+    assert (elsewhere / "detection.fits").read_bytes() == b"keep me"
+    assert not (out / "summary.ecsv").exists()
+
+
+def test_resume_digest_has_the_content_of_option_files(tmp_path):
+    """An option file changed in place (same path) changes the digest that resume keys on."""
+    from kpifs.workflow import observation_digest, options_record
+    files = {k: tmp_path / f"{k}.txt" for k in ("wavelengths", "pa", "spectrum", "pupil")}
+    for path in files.values():
+        path.write_text("1.0\n")
+    xo = ExtractOptions(wavelengths=str(files["wavelengths"]), pa=str(files["pa"]),
+                        pupil=str(files["pupil"]))
+    do = DetectOptions(spectrum=str(files["spectrum"]))
+    rec = {**options_record(xo), **options_record(do)}
+    import hashlib
+    digest = hashlib.sha256(b"1.0\n").hexdigest()[:16]
+    for k, path in files.items():
+        assert rec[k] == f"{path} (sha256:{digest})"
+    before = observation_digest(["t.fits"], [["c.fits"]], xo, do)
+    for path in files.values():
+        old = path.read_bytes()
+        path.write_text("1.1\n")
+        assert observation_digest(["t.fits"], [["c.fits"]], xo, do) != before, path
+        path.write_bytes(old)
+        assert observation_digest(["t.fits"], [["c.fits"]], xo, do) == before
+
+
+def test_batch_redoes_an_entry_whose_wavelength_file_changed(small_archive, tmp_path):
+    """The issue's case: the file given to --wavelengths edited in place, then a rerun."""
+    from astropy.io import fits
+    from kpifs.batch import BatchEntry
+    wl = tmp_path / "wl.txt"
+    wl.write_text("1.52\n1.60\n1.68\n")
+    entry = [BatchEntry("s0", [str(small_archive / "s0" / "target.fits")],
+                        [[str(small_archive / "s0" / "calibrator.fits")]])]
+    opts = dict(extract_options=ExtractOptions(step=1.2 * u.m, wavelengths=str(wl)),
+                detect_options=DetectOptions(draws=1000, pfa=1e-2), processes=False,
+                progress=False)
+    assert list(run_batch(entry, tmp_path / "out", **opts)["status"]) == ["ok"]
+    assert list(run_batch(entry, tmp_path / "out", **opts)["status"]) == ["skipped"]
+    wl.write_text("1.62\n1.70\n1.78\n")
+    again = run_batch(entry, tmp_path / "out", **opts)
+    assert list(again["status"]) == ["ok"] and "redone" in again["message"][0]
+    with fits.open(tmp_path / "out" / "s0" / "calibrated_kp.fits") as h:
+        np.testing.assert_allclose(h["CWAVEL"].data["CWAVEL"] * 1e6, [1.62, 1.70, 1.78])
+
+
+def test_batch_ctrl_c_to_the_process_group(small_archive, tmp_path):
+    """Ctrl-C as a terminal sends it (to every process of the group): one line, no worker
+    tracebacks, a summary."""
+    import os
+    import signal
+    import time
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "kpifs", "batch", str(small_archive / "small.csv"), *SMALL,
+           "-o", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    t0 = time.time()
+    while not (out / "s0" / "detection.fits").exists() and time.time() - t0 < 120:
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert (out / "summary.ecsv").exists() and not (out / ".kpifs-batch.lock").exists()

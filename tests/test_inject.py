@@ -6,7 +6,7 @@ import pytest
 import astropy.units as u
 from astropy.io import fits
 
-from kpifs import KpifsError
+from kpifs import KpifsError, KpifsWarning
 from kpifs.cli import main
 from kpifs.inject import inject_companion, shift_images, sky_to_detector
 
@@ -100,3 +100,21 @@ def test_injection_curve_with_one_separation(tmp_path, capsys):
     tab = injection_limits(cubes["target"], [cal], km, window=cal.window, **args,
                            separations=80 * u.mas, contrasts=0.05, n_angles=1, n_draws=1000)
     assert len(tab) == 1 and len(tab.meta["limits"]) == 1
+
+
+def test_flux_falling_off_the_image_is_stated_or_refused():
+    """Three equal point sources; a 6-pixel shift moves one off the 32-pixel image: a third
+    of the companion's flux is lost (said), and a shift off the image is refused."""
+    cube = np.zeros((1, 1, 32, 32))
+    cube[0, 0, 16, [4, 16, 28]] = 1.0
+    with pytest.warns(KpifsWarning, match=r"33% of the flux of the companion at \(60, 0\) mas"):
+        out = inject_companion(cube, position=[60, 0] * u.mas, contrast=0.1,
+                               pixscale=10 * u.mas)
+    assert out.sum() - cube.sum() == pytest.approx(0.2, abs=1e-9)      # two of three land
+    with pytest.raises(KpifsError, match="falls off the image: 100% of its flux would be"):
+        inject_companion(cube, position=[0, 400] * u.mas, contrast=0.1, pixscale=10 * u.mas)
+    with pytest.raises(KpifsError, match="2 contrasts for 1 channel"):
+        inject_companion(cube, position=[10, 0] * u.mas, contrast=[0.1, 0.2],
+                         pixscale=10 * u.mas)
+    with pytest.raises(KpifsError, match=r"in \[0, 1\)"):
+        inject_companion(cube, position=[10, 0] * u.mas, contrast=1.5, pixscale=10 * u.mas)

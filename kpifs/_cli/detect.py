@@ -3,6 +3,7 @@ import sys
 
 from astropy import units as u
 
+from .._checks import preflight_detect
 from .._utils import check_output_dir, check_output_path
 from ..data import KernelPhaseData
 from ..detect.sky import detector_to_sky, mean_angle
@@ -14,6 +15,7 @@ from ._options import detect_options
 def run(args):
     options = detect_options(args).validate()
     check_output_path(args.output, overwrite=args.overwrite)
+    preflight_detect(args.kp, args.calibrator, args.output, options)
     if args.plots:
         check_output_dir(args.plots)
     kpd = KernelPhaseData.read(args.kp)

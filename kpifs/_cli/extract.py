@@ -1,4 +1,5 @@
 """``kpifs extract``: kernel phases of cubes, calibrated when calibrators are given."""
+from .._checks import check_inputs
 from .._utils import check_output_path
 from ..workflow import calibrate_observation, calibrator_options, extract_observation
 from ._options import extract_options
@@ -6,6 +7,7 @@ from ._options import extract_options
 
 def run(args):
     check_output_path(args.output, overwrite=args.overwrite)
+    check_inputs(args.cubes, args.calibrator or [], outputs=[args.output])
     opts = extract_options(args)
     progress = not args.quiet
     kpd = extract_observation(args.cubes, opts, progress=progress)

@@ -1,10 +1,12 @@
 """``kpifs info``: describe a cube, a KPFITS file, a kernel model or detection products."""
 import numpy as np
 from astropy import units as u
+from astropy.table import QTable
 
 from ..data import DetectionResult, KernelPhaseData
-from ..exceptions import MissingInformation
+from ..exceptions import KpifsError, MissingInformation
 from ..io.cube import open_fits
+from ..io.kpfits_read import _layout, _read_pixscale, _read_wavelengths
 from ..io.readers import detect_instrument, read_cube
 from ..io.wavelengths import parse_wavelengths
 from ..kernel import KernelModel, nyquist_usable
@@ -22,12 +24,19 @@ def run(args):
         with open_fits(path) as hdul:
             is_kp = "KP-DATA" in hdul
             is_model = "KER-MAT" in hdul
-            is_det = hdul[0].header.get("CONTENT") == "KPIFS-DETECTION"
+            content = hdul[0].header.get("CONTENT")
             is_oi = "OI_T3" in hdul
+            # kpifs's own KPFITS described from its headers (and small tables): no model
+            # is rebuilt, no array read beyond what the checksums cover
+            done = is_kp and _kpfits_headers(path, hdul)
+        if done:
+            continue
         if is_oi:
             _oifits(path)
-        elif is_det:
+        elif content == "KPIFS-DETECTION":
             _detection(path)
+        elif content == "KPIFS-INJECTION":
+            _injection(path)
         elif is_kp:
             _kpfits(path)
         elif is_model:
@@ -116,6 +125,89 @@ def _oifits(path):
     for note in kpd.meta.get("notes", []):
         print(f"  note: {note}")
     print(f"  next: kpifs detect {path} -o detection.fits")
+
+
+def _injection(path):
+    with open_fits(path, verify=True) as hdul:
+        hdr = hdul[0].header
+        lim = QTable.read(hdul["LIMITS"]) if "LIMITS" in hdul else None
+        n_rows = len(hdul["INJECTIONS"].data) if "INJECTIONS" in hdul else 0
+    print(f"{path}: kpifs injection-recovery contrast curve")
+    print(f"  global P_FA {hdr.get('PFA', float('nan')):g}, P_D {hdr.get('PD', 0.5):g}; "
+          f"{hdr.get('NANGLES', '?')} position angle(s) per step, {n_rows} step(s)")
+    if lim is not None:
+        for row in lim:
+            print(f"  {row['separation'].to_value(u.mas):.0f} mas: injections "
+                  f"{row['limit_injection']:.2e}, analytic {row['limit_analytic']:.2e}")
+
+
+def _verify_small(path, hdul, limit=16 * 2 ** 20):
+    """Check the DATASUM of every extension up to *limit* bytes (the large ones, such as
+    a long sequence's phases, are left to the readers that use them)."""
+    for h in hdul:
+        if "DATASUM" not in h.header:
+            continue
+        nbytes = abs(h.header.get("BITPIX", 8)) // 8 * int(np.prod(
+            [h.header.get(f"NAXIS{i}", 0) for i in range(1, h.header.get("NAXIS", 0) + 1)]))
+        if nbytes <= limit and h.verify_datasum() == 0:
+            raise KpifsError(f"{path}: checksum mismatch (corrupted?) in {h.name or 'HDU'}")
+
+
+def _kpfits_headers(path, hdul):
+    """Describe a KPFITS file kpifs wrote from its headers; False for other tools' files
+    (the full reader checks and describes those)."""
+    hdr = hdul[0].header
+    names = [h.name for h in hdul]
+    need = ("APERTURE", "UV-PLANE", "KER-MAT", "KP-DATA")
+    if _layout(hdr, names) != "kpifs" or not all(n in names for n in need):
+        return False
+    kd = hdul["KP-DATA"].header
+    if kd.get("NAXIS") != 3:
+        return False
+    _verify_small(path, hdul)
+    nkp, nwave, nframe = kd["NAXIS1"], kd["NAXIS2"], kd["NAXIS3"]
+    wl = _read_wavelengths(hdul, hdr, path)[0].to_value(u.um)
+    if len(wl) != nwave:
+        raise KpifsError(f"{path}: {len(wl)} wavelengths for {nwave} channels of KP-DATA")
+    ps = _read_pixscale(hdr, path)
+    inst = str(hdr.get("INSTRUME", "")).strip()
+    tel = str(hdr.get("TELESCOP", "")).strip()
+    print(f"{path}: kernel-phase data (KPFITS, written by kpifs)")
+    if inst or tel:
+        print(f"  {inst or '?'} on {tel or '?'}")
+    print(f"  {nframe} frame(s) x {nwave} channel(s) x {nkp} kernel phases; "
+          f"{wl.min():.4f}-{wl.max():.4f} um; {ps:.2f}")
+    ap, uv, km = hdul["APERTURE"].header, hdul["UV-PLANE"].header, hdul["KER-MAT"].header
+    n_uv = uv.get("NAXIS2", 0)
+    rank = km.get("RANK", n_uv - nkp)
+    print(f"  model: <KernelModel {str(ap.get('PUPNAME', 'pupil')).strip()!r}: "
+          f"{ap.get('NAXIS2', 0)} sub-apertures, {n_uv} uv points, rank {rank}, {nkp} kernel "
+          f"phases>")
+    cals = [str(hdr[k]) for k in hdr if k.startswith("KPCAL") and k[5:].isdigit()]
+    print(f"  calibrated: {'yes, with ' + ', '.join(cals) if hdr.get('CALFLAG') else 'no'}")
+    cov = "per channel" if "KP-COV" in names else "none"
+    if "KP-JCOV" in names:
+        cov += " and joint"
+    sig = hdul["KP-SIGM"].header if "KP-SIGM" in names else None
+    if (sig is not None and str(sig.get("SIGMFROM", "")).strip() != "KP-COV") or (
+            "KP-COV" in names and not hdul["KP-COV"].header.get("COVSHARE", False)
+            and nframe > 1):
+        cov += "; per-frame errors"
+    print(f"  covariance: {cov}")
+    pa = (np.ravel(np.asarray(hdul["DETPA"].data, float)) if "DETPA" in names
+          and hdul["DETPA"].is_image and hdul["DETPA"].data is not None else None)
+    if pa is None:
+        print("  detector position angle: unknown")
+    else:
+        known = pa[np.isfinite(pa)]
+        text = "unknown" if known.size == 0 else (
+            f"{known[0]:.2f} deg" if np.ptp(known) == 0 else
+            f"{known.min():.2f} to {known.max():.2f} deg")
+        if 0 < known.size < pa.size:
+            text += f" ({pa.size - known.size} frame(s) unknown)"
+        src = hdul["DETPA"].header.get("PASRC", "file")
+        print(f"  detector position angle: {text} ({src})")
+    return True
 
 
 def _raw(path, why):

@@ -6,11 +6,13 @@ from astropy import units as u
 from astropy.io import fits
 from astropy.table import QTable
 
+from .._checks import check_inputs, check_seed
 from .._meta import VERSION
 from .._utils import check_output_dir, check_output_path, to_quantity, write_hdulist
 from ..exceptions import KpifsError
 from ..inject import inject_companion, injection_limits
 from ..io import parse_wavelengths, read_cube
+from ..io._kpfits_common import ascii_text
 from ..io.angles import frame_detpa
 from ..io.layouts import write_plain_cube
 from ..plotting import _save, plot_injection_limits
@@ -28,12 +30,57 @@ def _floats(text, name, unit=None):
         raise KpifsError(f"{name}: cannot read {text!r} ({exc})") from None
 
 
+def _contrasts(text, option, n_channels=None):
+    """Contrasts of a comma list, each in (0, 1), one or *n_channels* of them."""
+    c = _floats(text, option)
+    if not np.all(np.isfinite(c)) or np.any(c <= 0) or np.any(c >= 1):
+        raise KpifsError(f"{option} {text}: contrasts are companion/star flux ratios, each in "
+                         f"(0, 1)")
+    if n_channels is not None and c.size not in (1, n_channels):
+        raise KpifsError(f"{option} {text}: {c.size} contrasts for {n_channels} channel(s): "
+                         f"give one, or one per channel")
+    return c
+
+
+def _check_args(args):
+    """Refusals that need no data: made before anything is read."""
+    check_seed(args.seed, "--seed")
+    check_inputs(args.cubes, args.calibrator or [], outputs=[args.output])
+    if args.curve:
+        DetectOptions(pfa=args.pfa, draws=args.draws, seed=args.seed).validate()
+        if args.angles < 1:
+            raise KpifsError(f"--angles must be at least 1, got {args.angles}")
+        _contrasts(args.contrasts, "--contrasts")
+        seps = np.atleast_1d(_floats(args.separations, "--separations", u.mas).value)
+        if not np.all(np.isfinite(seps)) or np.any(seps <= 0):
+            raise KpifsError(f"--separations {args.separations}: separations must be > 0")
+    elif args.contrast is not None:
+        _contrasts(args.contrast, "--contrast")
+
+
+def _check_reach(args, seps, window, pixscale, wavelengths, model):
+    """Refuse separations the search cannot reach (beyond the extraction window or the
+    pupil model's aliasing limit): their limits would be NaN after all the work."""
+    reach = window.radius * pixscale.to_value(u.mas)
+    if model.pupil is not None and model.pupil.step is not None:
+        alias = 0.95 * wavelengths.to_value(u.m).min() / (
+            2 * model.pupil.step.to_value(u.m)) / (np.pi / 180 / 3600e3)
+        reach = min(reach, alias)
+    far = seps.value[seps.value > reach]
+    if far.size:
+        raise KpifsError(f"--separations: {', '.join(f'{v:g}' for v in far)} mas beyond the "
+                         f"search's reach ({reach:.0f} mas: the extraction window and the "
+                         f"pupil model's aliasing limit): nothing could be measured there")
+
+
 def _read(args, options):
     wl = parse_wavelengths(options.wavelengths, source="--wavelengths")
     ps = (None if options.pixscale is None
           else to_quantity(options.pixscale, u.mas, name="pixel scale"))
     with read_cube(args.cubes, instrument=options.instrument, wavelengths=wl,
                    pixscale=ps) as cube:
+        if not args.curve and args.contrast is not None:
+            _contrasts(args.contrast, "--contrast", cube.shape[1])   # before the data are read
         detpa = None if cube.detpa is None else cube.detpa.to_value(u.deg)
         return (np.array(cube.data, float), cube.wavelengths, cube.pixscale, detpa,
                 cube.instrument, cube.name)
@@ -44,6 +91,7 @@ def run(args):
     check_output_path(args.output, overwrite=args.overwrite)
     if args.plots:
         check_output_dir(args.plots)
+    _check_args(args)
     data, wl, ps, detpa, instrument, name = _read(args, options)
     if args.pa is not None:
         detpa = frame_detpa(args.pa, data.shape[0], source="--pa")
@@ -58,22 +106,24 @@ def run(args):
         cards = {"INJFRAME": ("sky" if args.sky else "detector", "frame of INJPOS1/2"),
                  "INJPOS1": (float(pos.value[0]), "[mas] injected offset x or dRA"),
                  "INJPOS2": (float(pos.value[1]), "[mas] injected offset y or dDec"),
-                 "INJSRC": (str(name)[:60], "cube the companion was injected into")}
+                 "INJSRC": (ascii_text(name)[:60], "cube the companion was injected into")}
         for i, v in enumerate(np.broadcast_to(c, (len(wl),)), 1):
             cards[f"INJC{i}"] = (float(v), f"injected contrast, channel {i}")
         write_plain_cube(args.output, out, wl, ps, cards=cards, overwrite=args.overwrite)
         with fits.open(args.output, mode="update") as h:
-            h[0].header.add_history(f"kpifs {VERSION}: companion injected into {name}")
+            h[0].header.add_history(f"kpifs {VERSION}: companion injected into "
+                                    f"{ascii_text(name)}")
         print(f"injected a companion at {args.position} ({'sky' if args.sky else 'detector'}) "
               f"with contrast {args.contrast} into {name} -> {args.output}")
         return 0
     if not args.calibrator:
         raise KpifsError("inject --curve: give the calibrator's cubes (--calibrator)")
     model = kernel_model_for(options, instrument)
-    cals = [extract_observation(c, calibrator_options(options), model=model)
-            for c in args.calibrator]
     window = options.window_for(data.shape)
     seps = np.atleast_1d(_floats(args.separations, "--separations", u.mas))
+    _check_reach(args, seps, window, ps, wl, model)
+    cals = [extract_observation(c, calibrator_options(options), model=model)
+            for c in args.calibrator]
     ladder = _floats(args.contrasts, "--contrasts")
     tab = injection_limits(data, cals, cals[0].kernel_model, wavelengths=wl, pixscale=ps,
                            window=window, separations=seps, contrasts=ladder,
@@ -93,7 +143,7 @@ def run(args):
     hdr["PD"] = (0.5, "detection probability of the limits")
     hdr["NANGLES"] = (args.angles, "position angles per separation and contrast")
     hdr["SEED"] = (args.seed, "seed of the position angles")
-    hdr.add_history(f"kpifs {VERSION}: injections into {name}")
+    hdr.add_history(f"kpifs {VERSION}: injections into {ascii_text(name)}")
     hdr["COMMENT"] = tab.meta["method"]
     # the table's own meta holds lists (the limits: in LIMITS) and long names: plain cards
     inj = tab.copy(copy_data=False)

@@ -2,6 +2,7 @@
 import numpy as np
 from astropy import units as u
 
+from .._checks import check_inputs
 from .._utils import check_output_path, to_quantity, write_table
 from ..exceptions import KpifsError
 from ..io.readers import read_cube
@@ -23,12 +24,16 @@ def _read(files, args):
                    wavelengths=parse_wavelengths(args.wavelengths, source="--wavelengths"),
                    pixscale=None if args.pixscale is None
                    else to_quantity(args.pixscale, u.mas, name="pixel scale")) as cube:
+        if cube.shape[0] < 4:              # before the frames are read
+            raise KpifsError(f"{cube.name}: {cube.shape[0]} frame(s): kpifs model-check needs "
+                             f"at least 4 frames of the star")
         return np.array(cube.data, float), cube.wavelengths, cube.pixscale, cube.instrument
 
 
 def run(args):
     if args.output:
         check_output_path(args.output, overwrite=args.overwrite)
+    check_inputs(args.cubes, [args.calibrator] if args.calibrator else [])
     data, wl, ps, instrument = _read(args.cubes, args)
     cal = None
     if args.calibrator:

@@ -2,13 +2,21 @@
 import numpy as np
 from astropy import units as u
 
-from .._utils import to_quantity
+from .._checks import check_seed
+from .._utils import check_output_dir, to_quantity
 from ..exceptions import KpifsError
 from ..io.layouts import write_observation
 from ..simulate import PRESETS, SceneParameters, simulate_scene
 
 
 def run(args):
+    check_seed(args.seed)
+    out = check_output_dir(args.output)          # refused now, not after the simulation
+    earlier = [n for n in ("target.fits", "calibrator.fits", "target", "calibrator")
+               if (out / n).exists()]
+    if earlier and not args.overwrite:
+        raise KpifsError(f"{out}: an earlier simulation exists there ({', '.join(earlier)}); "
+                         f"pass --overwrite to replace it")
     over = {}
     if args.frames is not None:
         over["n_frames"] = args.frames

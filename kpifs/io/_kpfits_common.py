@@ -48,9 +48,19 @@ def _clean_header(header):
     return out
 
 
+def ascii_text(value):
+    """*value* as printable ASCII for a FITS card: other characters (a path's accents)
+    written as Python escapes (``dé`` -> ``d\\xe9``)."""
+    text = str(value)
+    if text.isascii() and text.isprintable():
+        return text
+    return "".join(ch if ch.isascii() and ch.isprintable() else
+                   ch.encode("unicode_escape").decode("ascii") for ch in text)
+
+
 def card(value, comment):
     """A (value, comment) pair that fits one 80-character card (long paths keep their end)."""
-    value = str(value)
+    value = ascii_text(value)
     if len(value) > 66:
         value = "..." + value[-63:]
     return (value, comment) if len(value) + len(comment) < 64 else (value, "")

@@ -15,12 +15,13 @@ angle of the detector +y axis there; pyKLIP uses 113.5 deg. An unavailable
 ``PARANG`` gives NaN (unknown).
 """
 import logging
+import warnings
 
 import numpy as np
 from astropy import units as u
 
 from .._utils import to_quantity
-from ..exceptions import KpifsError
+from ..exceptions import KpifsError, KpifsWarning
 from .cube import FrameStack, IFSCube, open_fits
 from .wavelengths import check_wavelengths, parse_wavelengths
 
@@ -145,6 +146,7 @@ def read_charis(paths, *, wavelengths=None, pixscale=None):
                 if len(given) != cube.shape[0]:
                     raise KpifsError(f"{path}: {len(given)} wavelength(s) given but the cube "
                                      f"has {cube.shape[0]} channel(s)")
+                _warn_nlam(hdul[0].header, cube.shape[0], path)
                 this_wl = given
             else:
                 this_wl = charis_wavelengths(hdul[0].header, cube.shape[0], source=path)
@@ -181,6 +183,19 @@ def read_charis(paths, *, wavelengths=None, pixscale=None):
     log.info("read %d CHARIS exposure(s): %d channels %.4f-%.4f um", len(paths), len(wl),
              wl[0].value, wl[-1].value)
     return cube
+
+
+def _warn_nlam(header, nlam_cube, path):
+    """Wavelengths given for a CHARIS cube whose NLAM contradicts it: the header is wrong
+    somewhere (a cube from another reduction?); the given wavelengths are used."""
+    try:
+        nlam = int(header["NLAM"])
+    except (KeyError, TypeError, ValueError):
+        return
+    if nlam != nlam_cube:
+        warnings.warn(f"{path}: NLAM = {nlam} in the header but the cube has {nlam_cube} "
+                      f"channels: the given wavelengths are used (check they are this "
+                      f"cube's)", KpifsWarning, stacklevel=4)
 
 
 class _OneFrame:

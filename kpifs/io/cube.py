@@ -187,6 +187,11 @@ def open_fits(path, *, verify=False):
         warnings.simplefilter("always")
         try:
             hdul = fits.open(path, memmap=not verify, checksum=verify)
+            if not verify and _scaled(hdul):
+                # integers with BZERO/BSCALE (int16 scaled, uint16 as BZERO 32768): astropy
+                # scales them on reading, which a memory map cannot do
+                hdul.close()
+                hdul = fits.open(path, memmap=False)
         except (OSError, ValueError, TypeError, IndexError) as exc:
             raise KpifsError(f"{path}: not a readable FITS file ({exc})") from None
         try:
@@ -213,6 +218,16 @@ def open_fits(path, *, verify=False):
     for m in messages:           # anything else astropy had to say is worth passing on
         log.info("%s: %s", path, m.strip())
     return hdul
+
+
+def _scaled(hdul):
+    """True when an image HDU stores scaled integers (BZERO, BSCALE or BLANK cards)."""
+    for h in hdul:
+        hdr = h.header
+        if hdr.get("NAXIS", 0) and (hdr.get("BSCALE", 1) != 1 or hdr.get("BZERO", 0) != 0
+                                    or "BLANK" in hdr):
+            return True
+    return False
 
 
 def _header_wavelengths(hdr, path):
@@ -255,6 +270,18 @@ def read_generic(path, *, wavelengths=None, pixscale=None):
     return cube
 
 
+def refuse_kpfits(hdul, path):
+    """Refuse a kernel-phase (KPFITS) or detection file given where a cube is expected."""
+    names = {h.name for h in hdul}
+    if "KP-DATA" in names or any(n.startswith("KP-DATA") and n[7:].isdigit() for n in names):
+        raise KpifsError(f"{path}: kernel-phase data (KPFITS, a KP-DATA extension), not an "
+                         f"image cube: search it with kpifs detect, describe it with kpifs info")
+    content = str(hdul[0].header.get("CONTENT", ""))
+    if content.startswith("KPIFS-") or "KER-MAT" in names:
+        what = "a kernel model" if "KER-MAT" in names else f"a kpifs product ({content})"
+        raise KpifsError(f"{path}: {what}, not an image cube (kpifs info describes it)")
+
+
 def _not_a_cube(hdul, path):
     """Refuse OIFITS, KPFITS and table-only files: their images (CPCOV covariances,
     KP-DATA) are no cube, and taking them for one gives a silent wrong answer."""
@@ -263,9 +290,7 @@ def _not_a_cube(hdul, path):
     if oi:
         raise KpifsError(f"{path}: an OIFITS file ({', '.join(oi)}): closure phases, not an "
                          f"image cube; `kpifs detect` and `kpifs info` read it")
-    if "KP-DATA" in names:
-        raise KpifsError(f"{path}: kernel-phase data (KPFITS), not an image cube; `kpifs "
-                         f"detect` and `kpifs info` read it")
+    refuse_kpfits(hdul, path)
     tables = [h.name or f"HDU {i}" for i, h in enumerate(hdul) if not h.is_image]
     if tables and not any(h.is_image and h.data is not None and h.data.ndim >= 2
                           for h in hdul):

@@ -45,7 +45,7 @@ from astropy.io import fits
 from .._meta import VERSION
 from .._utils import write_hdulist
 from ._kpfits_common import (_ERROR_MODEL_CARDS, _INSTRUMENT_CARDS, KPCOV_COPY_LIMIT, _clean_header,
-                             _label_columns, _number, _table_hdu, card)
+                             _label_columns, _number, _table_hdu, ascii_text, card)
 from .kpfits_model import (has_kernel_model, model_hdulist, model_hdus, read_model_file,
                            read_model_parts)
 from .kpfits_read import is_kpfits, read_kpfits_parts  # noqa: F401 (the registry's identifier)
@@ -158,7 +158,8 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
             hdr[name] = (round(value, 6) if isinstance(value, float) else value, comment)
     for line in history:
         hdr.add_history(line)
-    hdr.add_history(f"kpifs {VERSION}: kernel phases of {kpd.meta.get('source', '?')}")
+    hdr.add_history(f"kpifs {VERSION}: kernel phases of "
+                    f"{ascii_text(kpd.meta.get('source', '?'))}")
     hdus = [fits.PrimaryHDU(header=hdr), *model_hdus(km)]
     kd = fits.ImageHDU(np.asarray(kpd.kp, np.float64), name="KP-DATA")   # no copy
     kd.header["BUNIT"] = "rad"

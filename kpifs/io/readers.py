@@ -8,7 +8,7 @@ from astropy import units as u
 
 from ..exceptions import KpifsError, KpifsWarning
 from .charis import is_charis, read_charis
-from .cube import FrameStack, IFSCube, open_fits, read_generic
+from .cube import FrameStack, IFSCube, open_fits, read_generic, refuse_kpfits
 from .sphere import is_sphere, read_sphere
 from .wavelengths import parse_wavelengths
 
@@ -34,6 +34,7 @@ def detect_instrument(path):
     """
     hdul = open_fits(path)
     try:
+        refuse_kpfits(hdul, path)
         if is_charis(hdul):
             return "charis"
         if is_sphere(hdul):
