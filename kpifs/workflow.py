@@ -60,7 +60,6 @@ DEFAULT_PUPIL = {"charis": "subaru", "sphere": "vlt", "generic": "subaru", "jwst
                  "gpi": "gpi"}
 
 
-
 @dataclass
 class ExtractOptions:
     """How cubes are read, which kernel model is used and how phases are extracted.

@@ -85,16 +85,17 @@ def _card(hdr, key):
 
 
 def is_jwst(hdul):
-    """True for a JWST pipeline product (``TELESCOP = 'JWST'`` in the primary header).
+    """True for a JWST pipeline product (``TELESCOP = 'JWST'`` and a ``SCI`` extension).
 
     Examples
     --------
     >>> from astropy.io import fits
     >>> from kpifs.io.jwst import is_jwst
-    >>> is_jwst(fits.HDUList([fits.PrimaryHDU(header=fits.Header({"TELESCOP": "JWST"}))]))
+    >>> hdr = fits.Header({"TELESCOP": "JWST"})
+    >>> is_jwst(fits.HDUList([fits.PrimaryHDU(header=hdr), fits.ImageHDU(name="SCI")]))
     True
     """
-    return _card(hdul[0].header, "TELESCOP") == "JWST"
+    return _card(hdul[0].header, "TELESCOP") == "JWST" and "SCI" in hdul
 
 
 def jwst_mode(header, *, source="JWST file"):
