@@ -286,7 +286,7 @@ PRESETS = {
     # GPI H band: 37 channels (DRP grid), 8 exposures over 40 deg of parallactic angle
     "gpi": dict(telescope="gpi", wavelengths=(1.4904 + (np.arange(37) + 0.5) * 0.3112 / 37)
                 * u.um, pixscale=14.161 * u.mas, shape=(281, 281), n_frames=8,
-                instrument="gpi", contrasts=3e-2 * np.linspace(1.2, 0.8, 37),
+                instrument="gpi", contrasts=1e-2 * np.linspace(1.2, 0.8, 37),
                 wavefront_rms=20 * u.nm, exptime=60 * u.s,   # 60 s exposures: AO averaged
                 detpa=np.linspace(-86.5, -46.5, 8), sky_offset=[120.0, 160.0] * u.mas),
 }

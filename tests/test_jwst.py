@@ -82,6 +82,7 @@ def test_detpa_formula_and_filters():
     assert jwst_mode(fits.Header(hdr)) == ("NIRCAM", "F405N", "CLEAR")
 
 
+@pytest.mark.slow
 def test_info_and_detection_on_the_sky(niriss, tmp_path, capsys):
     assert main(["info", str(niriss["target"])]) == 0
     out = capsys.readouterr().out
