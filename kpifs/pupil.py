@@ -317,7 +317,8 @@ def make_pupil(pupil="subaru", *, step=None, offset=None, min_transmission=None,
         raise KpifsError(f"min_redundancy must be >= 0, got {min_redundancy}")
     holes = getattr(TELESCOPES.get(str(pupil).lower()) if isinstance(pupil, str) else pupil,
                     "holes", None)
-    if holes is not None and step is None:      # a hole mask: one sub-aperture per hole
+    if holes is not None and (step is None or to_quantity(step, u.m, name="step").value == 0):
+        # a hole mask: one sub-aperture per hole (step 0 m, its default, says the same)
         return _hole_model(pupil, holes, rotation if rotation is not None
                            else defaults.rotation * u.deg)
     step = defaults.step * u.m if step is None else step
