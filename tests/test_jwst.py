@@ -206,3 +206,75 @@ def test_read_cube_auto_and_errors(niriss, tmp_path):
                          phu={"FILTER": "F999X"})
     with pytest.raises(KpifsError, match="filter F999X"):
         read_cube(nofilter)
+
+
+@pytest.mark.parametrize("preset, over, inst, filt, channel, scale", [
+    ("niriss", dict(wavelengths=[3.8299] * u.um), "NIRISS", "F380M", None, 65.55),
+    ("niriss", dict(wavelengths=[4.2870] * u.um), "NIRISS", "F430M", None, 65.55),
+    ("niriss", dict(wavelengths=[1.494] * u.um), "NIRISS", "F150W", None, 65.55),
+    ("nircam", dict(), "NIRCAM", "F480M", "LONG", 63.0),
+    ("nircam", dict(wavelengths=[1.5106] * u.um, pixscale=31 * u.mas), "NIRCAM", "F150W",
+     "SHORT", 31.0)])
+def test_presets_write_and_read_each_filter(tmp_path, preset, over, inst, filt, channel,
+                                            scale):
+    obs = simulate_scene(preset, n_frames=2, npup=32, shape=(32, 32), **over)
+    path = write_observation(obs, tmp_path, layout="jwst")["target"][0]
+    hdr = fits.getheader(path)
+    assert hdr["INSTRUME"] == inst and hdr.get("CHANNEL") == channel
+    # NIRISS's short filters sit in the pupil wheel
+    assert (hdr["FILTER"], hdr["PUPIL"]) == (("CLEAR", filt) if filt == "F150W" and
+                                             inst == "NIRISS" else (filt, hdr["PUPIL"]))
+    with read_jwst(path) as cube:
+        assert cube.header["KPFILTER"] == filt
+        assert cube.pixscale.to_value(u.mas) == scale
+        assert cube.wavelengths[0].to_value(u.um) == pytest.approx(
+            obs.params.wavelengths[0].to_value(u.um), rel=1e-3)
+    from kpifs.workflow import default_pupil
+    assert default_pupil("jwst", hdr) == ("niriss_clearp" if inst == "NIRISS" and
+                                          filt != "F150W" else "jwst")
+
+
+def _datamodels_copy(src, dst, datamodels):
+    """Re-write one of kpifs's simulated calints with the JWST datamodels library."""
+    with fits.open(src, memmap=False) as h:
+        sci, dq, phu, shdr = (h["SCI"].data, h["DQ"].data, h[0].header, h["SCI"].header)
+        m = datamodels.CubeModel(sci.shape)
+        m.data[:] = sci
+        m.dq[:] = dq
+        m.err[:] = h["ERR"].data
+    m.meta.telescope = "JWST"
+    m.meta.instrument.name = phu["INSTRUME"]
+    m.meta.instrument.detector = phu["DETECTOR"]
+    m.meta.instrument.filter = phu["FILTER"]
+    m.meta.instrument.pupil = phu["PUPIL"]
+    m.meta.exposure.type = phu["EXP_TYPE"]
+    m.meta.wcsinfo.roll_ref = shdr["ROLL_REF"]
+    m.meta.wcsinfo.v3yangle = shdr["V3I_YANG"]
+    m.meta.wcsinfo.vparity = shdr["VPARITY"]
+    m.meta.photometry.pixelarea_arcsecsq = shdr["PIXAR_A2"]
+    m.save(str(dst))
+    m.close()
+    return dst
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::DeprecationWarning", "ignore::ResourceWarning")
+def test_files_written_by_the_jwst_datamodels(niriss, tmp_path, capsys):
+    """Optional (stdatamodels is no dependency): the same pair written by the JWST
+    datamodels library, read with no option beyond the output."""
+    datamodels = pytest.importorskip("stdatamodels.jwst.datamodels")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        tgt = _datamodels_copy(niriss["target"], tmp_path / "t_calints.fits", datamodels)
+        cal = _datamodels_copy(niriss["cal"], tmp_path / "c_calints.fits", datamodels)
+    with fits.open(tgt, memmap=False) as h:
+        assert h["DQ"].header["BZERO"] == 2147483648 and "ASDF" in h
+    kp, det = tmp_path / "kp.fits", tmp_path / "det.fits"
+    assert main(["extract", str(tgt), "--calibrator", str(cal), "-o", str(kp), "-q"]) == 0
+    assert np.asarray(KernelPhaseData.read(kp).detpa, float) == pytest.approx([249.44])
+    assert main(["detect", str(kp), "-o", str(det), "--draws", "1000", "-q"]) == 0
+    cand = DetectionResult.read(det).candidates
+    dra, ddec = niriss["obs"].params.sky_offset.to_value(u.mas)
+    assert len(cand) == 1
+    assert np.hypot(cand["fit_dra"][0].to_value(u.mas) - dra,
+                    cand["fit_ddec"][0].to_value(u.mas) - ddec) < 5
