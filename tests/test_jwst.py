@@ -124,6 +124,15 @@ def test_filters_of_one_target_refused(niriss, tmp_path, capsys):
     assert f"{niriss['target']} (F480M)" in line and f"{other} (F380M)" in line
 
 
+def test_files_of_different_targets_refused(niriss, tmp_path, capsys):
+    other = _modified(niriss["target"], tmp_path / "f380m_calints.fits",
+                      phu={"FILTER": "F380M", "TARGNAME": "HD 1234"})
+    assert main(["extract", str(niriss["target"]), str(other), "-o",
+                 str(tmp_path / "kp.fits")]) == 2
+    line = _one_error(capsys)
+    assert "files of different targets" in line and f"{other} (HD 1234)" in line
+
+
 def test_pixar_disagreement_warns(niriss, tmp_path):
     odd = _modified(niriss["target"], tmp_path / "odd_calints.fits",
                     sci={"PIXAR_A2": 0.0045 ** 2})

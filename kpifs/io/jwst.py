@@ -297,6 +297,11 @@ def read_jwst(paths, *, wavelengths=None, pixscale=None, dq_bits=DO_NOT_USE):
             cube, filt = _read_one(p, wavelengths, pixscale, dq_bits)
             cubes.append(cube)
             filters.append(filt)
+        targets = [_card(c.header, "TARGNAME") for c in cubes]
+        if len(set(targets)) > 1:
+            raise KpifsError("files of different targets: " + ", ".join(
+                f"{p} ({t or '?'})" for p, t in zip(paths, targets))
+                + ": give the calibrator with --calibrator")
         if len(set(filters)) > 1:
             raise KpifsError(
                 "files in different filters: " + ", ".join(f"{p} ({f})" for p, f in
