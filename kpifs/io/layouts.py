@@ -199,8 +199,9 @@ def _write_instrument(layout, obs, role, cube, var, outdir, common):
     p = obs.params
     if layout == "gpi":
         (outdir / role).mkdir(exist_ok=True)
+        mode = "NRM_H" if p.telescope == "gpi_nrm" else "H_direct"
         return write_gpi_exposures(outdir / role, cube, var, p.wavelengths, p.pixscale,
-                                   detpa=p.detpa, **common)
+                                   detpa=p.detpa, obsmode=mode, **common)
     if len(p.wavelengths) != 1:
         raise KpifsError("the JWST layout writes one filter per file: simulate one "
                          "wavelength")
