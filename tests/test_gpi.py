@@ -139,7 +139,8 @@ def test_rotating_sequence_detected_on_the_sky(tmp_path):
 
     The calibration uses the frames' own covariances (Ledoit-Wolf): with 8 exposures
     the default error model keeps 7 of the 60 modes of each channel and loses most of
-    the signal (no detection at this contrast; see the GPI page of the docs)."""
+    the signal (no detection at this contrast), while this one is not honest (false
+    candidates in 3 of 10 companion-free sequences): see the GPI page of the docs."""
     from kpifs.calibrate import calibrate
     from kpifs.workflow import DetectOptions, ExtractOptions, detect_observation, \
         extract_observation
