@@ -245,3 +245,34 @@ MASKS = {
         "Gemini GPI g10s40 10-hole mask on the primary (Greenbaum et al. 2015; ImPlaneIA)"),
 }
 __all__ += ["MaskGeometry", "MASKS"]
+
+
+# --- JWST and Gemini/GPI (issue 27) ---------------------------------------------------
+def _gpi_vanes():
+    """Gemini South's two V spiders as GPI sees them (gpipsfs: arms at 90 +- 43.1 deg
+    and 270 +- 43.1 deg from vertices 0.2179 m off centre, 0.01 m wide)."""
+    return tuple((0.0, sy * 0.2179, sy * 90.0 + da, 0.01) for sy in (1, -1)
+                 for da in (-43.1, 43.1))
+
+
+def _register_segmented():
+    from ._segmented import SEGMENTED_TELESCOPES
+    TELESCOPES.update(SEGMENTED_TELESCOPES)
+    TELESCOPES["gemini_south"] = ApertureGeometry(
+        diameter=7.7701, obstruction=1.2968, vanes=_gpi_vanes(), name="Gemini South/GPI")
+    TELESCOPES["gpi"] = TELESCOPES["gemini_south"]
+    jw = ("step 0.3 m: about 350 cells over the 18 segments, sub-aperture spacing below "
+          "half the 0.82 m NRM holes; " + _GREY_SOURCE)
+    MODEL_DEFAULTS["jwst"] = ModelDefaults(0.3, source=jw)
+    MODEL_DEFAULTS["niriss_clearp"] = ModelDefaults(0.3, source=jw)
+    MODEL_DEFAULTS["nircam_clear"] = MODEL_DEFAULTS["jwst"]
+    MODEL_DEFAULTS["gemini_south"] = ModelDefaults(
+        0.38, source="step: as Subaru (7.77 m, 14.16 mas); " + _GREY_SOURCE)
+    MODEL_DEFAULTS["gpi"] = MODEL_DEFAULTS["gemini_south"]
+    for key in ("niriss_nrm", "gpi_nrm"):
+        MODEL_DEFAULTS[key] = ModelDefaults(
+            0.0, grey=False, min_redundancy=0.0, offset=(0.0, 0.0),
+            source="one sub-aperture per hole (no grid): kernel phases = closure phases")
+
+
+_register_segmented()

@@ -301,9 +301,18 @@ class KernelModel:
         if on_nyquist == "raise":
             raise KpifsError(msg + "; use on_nyquist='drop' (--nyquist drop) to remove them")
         keep = usable.all(axis=0)
+        sub = self.subset(keep) if keep.sum() >= 2 else None
+        if sub is None or sub.n_kp == 0:
+            # refused here, before any work: a product without kernel phases is no product
+            worst = int(np.argmin(usable.sum(axis=1)))
+            raise KpifsError(
+                f"{where}no kernel phase left: at channel {worst + 1} ({wl[worst]:.3f}) "
+                f"{int((~usable[worst]).sum())} of {self.n_uv} uv points are beyond the "
+                f"sampling limit of {u.Quantity(pixscale, u.mas):.2f} pixels and the "
+                f"{int(keep.sum())} uv points usable at every channel give no kernel phase")
         warnings.warn(msg + f"; dropping {(~keep).sum()} uv points for all channels",
                       KpifsWarning, stacklevel=2)
-        return self.subset(keep)
+        return sub
 
     # --- Fourier matrices -------------------------------------------------
     def dft_matrix(self, wavelength, pixscale, shape):

@@ -323,6 +323,12 @@ def make_pupil(pupil="subaru", *, step=None, offset=None, min_transmission=None,
         min_redundancy = defaults.min_redundancy if grey else 0.0
     if not (np.isfinite(min_redundancy) and min_redundancy >= 0):
         raise KpifsError(f"min_redundancy must be >= 0, got {min_redundancy}")
+    holes = getattr(TELESCOPES.get(str(pupil).lower()) if isinstance(pupil, str) else pupil,
+                    "holes", None)
+    if holes is not None and (step is None or to_quantity(step, u.m, name="step").value == 0):
+        # a hole mask: one sub-aperture per hole (step 0 m, its default, says the same)
+        return _hole_model(pupil, holes, rotation if rotation is not None
+                           else defaults.rotation * u.deg)
     step = defaults.step * u.m if step is None else step
     offset = defaults.offset * u.m if offset is None else offset
     rotation = defaults.rotation * u.deg if rotation is None else rotation
@@ -395,3 +401,18 @@ def pupil_image(pupil="subaru", *, npix=256, pixel_size=None, rotation=0 * u.deg
     if ss > 1:
         img = img.reshape(npix, ss, npix, ss).mean(axis=(1, 3))
     return img, dx
+
+
+def _hole_model(pupil, holes, rotation):
+    """The model of a non-redundant mask: its hole centres, each of transmission 1."""
+    xy = np.array(holes, float)
+    rot = to_quantity(rotation, u.deg, name="rotation").value
+    if rot:
+        c, s = np.cos(np.deg2rad(rot)), np.sin(np.deg2rad(rot))
+        xy = xy @ np.array([[c, -s], [s, c]]).T
+    geo = TELESCOPES[str(pupil).lower()] if isinstance(pupil, str) else pupil
+    name = str(pupil).lower() if isinstance(pupil, str) else geo.name
+    meta = {"step_m": float(geo.hole_size), "offset_m": (0.0, 0.0), "min_transmission": 1.0,
+            "grey": False, "min_redundancy": 0.0, "hexagonal": False, "rotation_deg": rot,
+            "diameter_m": geo.diameter, "holes": True}
+    return PupilModel(xy, np.ones(len(xy)), step=geo.hole_size * u.m, name=name, meta=meta)

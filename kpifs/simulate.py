@@ -190,6 +190,11 @@ class SceneParameters:
     # the pupil as the detector sees it: turned by this angle (counter-clockwise from +x
     # to +y), as when a model is made for the textbook orientation
     pupil_rotation: u.Quantity = 0 * u.deg
+    # a sequence whose frames turn on the sky (deg, one detector position angle per frame,
+    # `kpifs.io.angles`): with *sky_offset* (dRA, dDec; mas) the companion of frame i sits
+    # at that sky offset seen at detpa[i], and *companion_offset* is ignored
+    detpa: object = None
+    sky_offset: u.Quantity = None
 
     def bandwidths(self):
         wl = self.wavelengths.to_value(u.um)
@@ -267,6 +272,23 @@ PRESETS = {
                    pixscale=7.46 * u.mas, shape=(64, 64), n_frames=20, instrument="sphere",
                    contrasts=10 ** (-8 / 2.5) * np.linspace(1.3, 0.7, 39),
                    companion_offset=[80.0, 60.0] * u.mas),
+    # JWST (issue 27): one filter per scene, one integration per frame, ROLL_REF 250 deg
+    # (DETPA 249.44 for NIRISS: FORMATS.md); the companion fixed on the sky
+    "niriss": dict(telescope="niriss_clearp", wavelengths=[4.8196] * u.um,
+                   pixscale=65.55 * u.mas, shape=(80, 80), n_frames=10, instrument="niriss",
+                   wavefront_rms=20 * u.nm, jitter=0.05, star_mag=6.0, exptime=1 * u.s,
+                   contrasts=[1e-2], detpa=[249.44], sky_offset=[-150.0, 200.0] * u.mas,
+                   n_dead=6),
+    "nircam": dict(telescope="jwst", wavelengths=[4.8213] * u.um, pixscale=63.0 * u.mas,
+                   shape=(64, 64), n_frames=10, instrument="nircam", wavefront_rms=20 * u.nm,
+                   jitter=0.05, star_mag=6.0, exptime=1 * u.s, contrasts=[0.19],
+                   detpa=[250.0], sky_offset=[-76.1, 35.5] * u.mas, n_dead=6),
+    # GPI H band: 37 channels (DRP grid), 8 exposures over 40 deg of parallactic angle
+    "gpi": dict(telescope="gpi", wavelengths=(1.4904 + (np.arange(37) + 0.5) * 0.3112 / 37)
+                * u.um, pixscale=14.161 * u.mas, shape=(281, 281), n_frames=8,
+                instrument="gpi", contrasts=1e-2 * np.linspace(1.2, 0.8, 37),
+                wavefront_rms=20 * u.nm, exptime=60 * u.s,   # 60 s exposures: AO averaged
+                detpa=np.linspace(-86.5, -46.5, 8), sky_offset=[120.0, 160.0] * u.mas),
 }
 
 
@@ -297,10 +319,9 @@ class SimulatedObservation:
     def truth(self):
         """Header cards describing the truth (companion offset, contrasts, seed)."""
         p = self.params
-        cards = {"KPSIMX": (float(p.companion_offset[0].to_value(u.mas)),
-                            "[mas] true companion offset along image x"),
-                 "KPSIMY": (float(p.companion_offset[1].to_value(u.mas)),
-                            "[mas] true companion offset along image y"),
+        x0, y0 = _frame_offsets(p)[0]                     # the first frame's
+        cards = {"KPSIMX": (float(x0), "[mas] true companion offset along image x"),
+                 "KPSIMY": (float(y0), "[mas] true companion offset along image y"),
                  "KPSIMSEE": (int(self.seed), "simulation seed")}
         for i, c in enumerate(np.broadcast_to(p.contrasts, p.wavelengths.shape), 1):
             cards[f"KPSIMC{i}"] = (float(c), f"true contrast, channel {i}")
@@ -313,6 +334,10 @@ class SimulatedObservation:
                 cards[key] = (float(u.Quantity(value, u.nm).value), comment)
         if u.Quantity(p.drift_rms, u.nm).value > 0:
             cards["KPSIMDRT"] = (float(p.drift_time), "[frames] correlation time of the drift")
+        if p.sky_offset is not None:
+            for key, v, what in zip(("KPSIMRA", "KPSIMDE"), p.sky_offset.to_value(u.mas),
+                                    ("dRA (East +)", "dDec")):
+                cards[key] = (float(v), f"[mas] true companion {what} on the sky")
         return cards
 
 
@@ -404,7 +429,7 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
     nphot = params.star_photons()
     wl_m = params.wavelengths.to_value(u.m)
     p_rad = params.pixscale.to_value(u.mas) * MAS
-    off = tuple(params.companion_offset.to_value(u.mas) * MAS)
+    offs = _frame_offsets(params) * MAS
     shape = tuple(params.shape)
     out = {}
     iterator = progress_bar(range(2 * nf), desc="simulating frames", unit="frame",
@@ -424,7 +449,7 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
             img = _propagate(fieldp, dx, shape, p_rad, lam, centre_rad=tuple(jit))
             if which == "target":
                 img = img + params.contrasts[iw] * _propagate(
-                    fieldp, dx, shape, p_rad, lam, offset_rad=off, centre_rad=tuple(jit))
+                    fieldp, dx, shape, p_rad, lam, offset_rad=tuple(offs[i]), centre_rad=tuple(jit))
             electrons = rng.poisson(img * nphot[iw]).astype(float)
             electrons += rng.normal(0, params.read_noise, shape)
             cubes[which][i, iw] = electrons
@@ -446,3 +471,18 @@ PRESETS["sphere-sam"] = dict(telescope="sphere-sam7",
                              wavefront_rms=50 * u.nm,
                              contrasts=2e-2 * np.linspace(1.3, 0.7, 39),
                              companion_offset=[60.0, -40.0] * u.mas)
+
+
+def _frame_offsets(params):
+    """The companion's detector offset (mas) in each frame: fixed, or fixed on the sky."""
+    nf = params.n_frames
+    if params.sky_offset is None or params.detpa is None:
+        return np.tile(params.companion_offset.to_value(u.mas), (nf, 1))
+    dra, ddec = to_quantity(params.sky_offset, u.mas, name="sky offset").value
+    pa = np.atleast_1d(np.asarray(params.detpa, float))
+    if pa.size not in (1, nf):            # a preset's span kept for another frame count
+        pa = np.linspace(pa.min(), pa.max(), nf)
+    params.detpa = np.broadcast_to(pa, (nf,)).copy()
+    t = np.deg2rad(params.detpa)
+    return np.column_stack([-dra * np.cos(t) + ddec * np.sin(t),
+                            dra * np.sin(t) + ddec * np.cos(t)])

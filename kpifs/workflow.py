@@ -33,7 +33,7 @@ from .data import KernelPhaseData
 from .exceptions import KpifsError, KpifsWarning
 from .extract import extract_kernel_phases
 from .io.angles import frame_detpa, parse_angles
-from .io.readers import read_cube
+from .io.readers import check_pupil_header, header_pupil, read_cube
 from .io.wavelengths import parse_wavelengths
 from .kernel import load_kernel_model
 from .provenance import (combined_digest, inputs_digest, observation_digest, options_record,
@@ -41,6 +41,7 @@ from .provenance import (combined_digest, inputs_digest, observation_digest, opt
 from .window import ExtractionWindow
 
 __all__ = ["ExtractOptions", "DetectOptions", "DEFAULT_PUPIL", "kernel_model_for",
+           "default_pupil",
            "calibrator_options",
            "extract_observation", "calibrate_observation", "detect_observation",
            "process_observation", "parse_spectrum", "options_record", "inputs_digest",
@@ -55,8 +56,10 @@ _stats = lazy_module("kpifs.detect.stats")
 
 log = logging.getLogger(__name__)
 
-#: The telescope pupil of each instrument's cubes (plain cubes: Subaru).
-DEFAULT_PUPIL = {"charis": "subaru", "sphere": "vlt", "generic": "subaru"}
+#: The telescope pupil of each instrument's cubes (plain cubes: Subaru; JWST and GPI
+#: headers name theirs, `kpifs.io.readers.header_pupil`).
+DEFAULT_PUPIL = {"charis": "subaru", "sphere": "vlt", "generic": "subaru", "jwst": "jwst",
+                 "gpi": "gpi"}
 
 
 @dataclass
@@ -189,8 +192,22 @@ def calibrator_options(options):
     return dataclasses.replace(options, pa=None)
 
 
-def kernel_model_for(options, instrument="generic"):
-    """The kernel model *options* ask for, for cubes of *instrument*.
+def default_pupil(instrument="generic", header=None):
+    """The pupil of cubes of *instrument* whose header is *header* (when --pupil is not given).
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.workflow import default_pupil
+    >>> default_pupil("generic", fits.Header({"INSTRUME": "NIRISS", "PUPIL": "CLEARP"}))
+    'niriss_clearp'
+    """
+    return (header_pupil(header) if header is not None else None) or \
+        DEFAULT_PUPIL.get(instrument, "subaru")
+
+
+def kernel_model_for(options, instrument="generic", header=None):
+    """The kernel model *options* ask for, for cubes of *instrument* (with *header*).
 
     Examples
     --------
@@ -198,8 +215,9 @@ def kernel_model_for(options, instrument="generic"):
     >>> kernel_model_for(ExtractOptions(step="0.8m"), "sphere")
     <KernelModel 'vlt': ... kernel phases>
     """
-    pupil = options.pupil if options.pupil is not None else DEFAULT_PUPIL.get(instrument,
-                                                                              "subaru")
+    pupil = options.pupil if options.pupil is not None else default_pupil(instrument, header)
+    if header is not None:
+        check_pupil_header(pupil, header, source=header.get("FILENAME", "cube"))
     offset = None
     if options.offset is not None:
         offset = to_quantity(options.offset, u.m, name="grid offset")
@@ -259,7 +277,8 @@ def extract_observation(files, options=None, *, model=None, progress=False):
                                                  source="--wavelengths"),
                    pixscale=_pixscale(options)) as cube:
         log.info("%s read as %s: %s", cube.name, cube.instrument, cube.shape)
-        km = model if model is not None else kernel_model_for(options, cube.instrument)
+        km = model if model is not None else kernel_model_for(options, cube.instrument,
+                                                              cube.header)
         try:
             window = options.window_for(cube.shape)
         except KpifsError as exc:

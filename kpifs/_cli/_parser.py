@@ -71,12 +71,14 @@ EPILOG_SIMULATE = """examples:
   kpifs simulate --preset paper --frames 100 -o sim
   kpifs simulate --preset charis --layout charis --frames 5 -o charis_sim
   kpifs simulate --preset sphere --layout sphere -o sphere_sim
+  kpifs simulate --preset niriss --layout jwst -o niriss_sim   # NIRISS _calints.fits
+  kpifs simulate --preset gpi --layout gpi -o gpi_sim          # GPI _spdc.fits
   kpifs simulate --preset charis --frames 40 --drift 40nm --drift-time 8 \
       --static-diff 15nm -o unkind     # drifting aberrations, target != calibrator
 """
 
 TESTS = ("B", "B-paper", "S", "NP", "E")
-INSTRUMENTS = ("auto", "charis", "sphere", "generic")
+INSTRUMENTS = ("auto", "charis", "sphere", "jwst", "gpi", "generic")
 
 
 def _cube_options(p):
@@ -280,13 +282,16 @@ def build_parser():
 
     p = command("simulate", "simulate a target and a calibrator", EPILOG_SIMULATE)
     p.add_argument("--preset", default="paper",
-                   choices=("paper", "charis", "sphere", "sphere-sam"))
-    p.add_argument("--layout", default="plain", choices=("plain", "charis", "sphere"),
+                   choices=("paper", "charis", "sphere", "sphere-sam", "niriss", "nircam",
+                            "gpi"))
+    p.add_argument("--layout", default="plain",
+                   choices=("plain", "charis", "sphere", "jwst", "gpi"),
                    help="file layout (default plain 4-D cube)")
     p.add_argument("--frames", type=int, help="number of frames (preset default)")
     p.add_argument("--contrasts", help="per-channel contrasts, comma separated")
     p.add_argument("--separation", help="companion separation, e.g. 100mas")
-    p.add_argument("--pa", help="companion angle from +x towards +y, e.g. 36.87deg")
+    p.add_argument("--pa", help="companion angle from +x towards +y, e.g. 36.87deg "
+                                "(niriss, nircam, gpi: East of North on the sky)")
     p.add_argument("--wavefront", help="rms wavefront error, e.g. 100nm")
     p.add_argument("--shape", type=int, help="image side in pixels (preset default)")
     p.add_argument("--exptime", help="exposure time per frame, e.g. 1s (default 0.1s)")

@@ -10,7 +10,7 @@ from ..io.kpfits_read import _layout, _read_pixscale, _read_wavelengths
 from ..io.readers import detect_instrument, read_cube
 from ..io.wavelengths import parse_wavelengths
 from ..kernel import KernelModel, nyquist_usable
-from ..workflow import DEFAULT_PUPIL, kernel_model_for
+from ..workflow import default_pupil, kernel_model_for
 from ._options import extract_options
 
 # model options the suggested next command repeats
@@ -248,8 +248,8 @@ def _cube(path, args):
         for key in ("OBJECT", "TELESCOP", "EXPTIME", "KPSIMX", "KPSIMY"):
             if key in cube.header:
                 print(f"  {key}: {cube.header[key]}")
-        km = kernel_model_for(opts, cube.instrument)
-        pupil = opts.pupil or DEFAULT_PUPIL[cube.instrument]
+        km = kernel_model_for(opts, cube.instrument, cube.header)
+        pupil = opts.pupil or default_pupil(cube.instrument, cube.header)
         usable = nyquist_usable(km.uv, cube.wavelengths, cube.pixscale)
         lost = (~usable).sum(axis=1)
         print(f"  pupil model {pupil}: {km.pupil.n_sub} sub-apertures, {km.n_uv} uv points, "

@@ -8,6 +8,7 @@ from ..exceptions import KpifsError
 from ..io.readers import read_cube
 from ..io.wavelengths import parse_wavelengths
 from ..modelcheck import check_pupil_model
+from ..workflow import default_pupil
 from ..window import ExtractionWindow
 
 
@@ -27,7 +28,8 @@ def _read(files, args):
         if cube.shape[0] < 4:              # before the frames are read
             raise KpifsError(f"{cube.name}: {cube.shape[0]} frame(s): kpifs model-check needs "
                              f"at least 4 frames of the star")
-        return np.array(cube.data, float), cube.wavelengths, cube.pixscale, cube.instrument
+        return (np.array(cube.data, float), cube.wavelengths, cube.pixscale,
+                (cube.instrument, cube.header))
 
 
 def run(args):
@@ -41,7 +43,7 @@ def run(args):
         if len(wl_c) != len(wl):
             raise KpifsError(f"{args.calibrator[0]} has {len(wl_c)} "
                              f"channels, {args.cubes[0]} {len(wl)}")
-    pupil = args.pupil or {"charis": "subaru", "sphere": "vlt"}.get(instrument, "subaru")
+    pupil = args.pupil or default_pupil(*instrument)
     window = ExtractionWindow.default(data.shape, size=args.window_size,
                                       radius=args.window_radius)
     steps = None if args.steps is None else u.Quantity(_floats(args.steps, "--steps"), u.m)

@@ -26,7 +26,17 @@ def run(args):
         except ValueError:
             raise KpifsError(f"--contrasts: expected comma-separated numbers, got "
                              f"{args.contrasts!r}") from None
-    if args.separation is not None or args.pa is not None:
+    sky = PRESETS[args.preset].get("sky_offset")
+    if sky is not None and (args.separation is not None or args.pa is not None):
+        # a preset fixed on the sky: --pa is the position angle East of North
+        dra, ddec = sky.to_value(u.mas)
+        sep = (to_quantity(args.separation, u.mas, name="--separation").value
+               if args.separation is not None else np.hypot(dra, ddec))
+        pa = (to_quantity(args.pa, u.deg, name="--pa").value if args.pa is not None
+              else np.degrees(np.arctan2(dra, ddec)))
+        over["sky_offset"] = [sep * np.sin(np.radians(pa)),
+                              sep * np.cos(np.radians(pa))] * u.mas
+    elif args.separation is not None or args.pa is not None:
         base = PRESETS[args.preset].get("companion_offset",
                                         SceneParameters().companion_offset).to_value(u.mas)
         sep = (to_quantity(args.separation, u.mas, name="--separation").value

@@ -10,6 +10,8 @@
 - ``sphere``: as the community SPHERE-IFS pipeline: ``science_cube.fits`` of
   shape ``(nwave, nframe, ny, nx)``, ``wavelength.fits`` (nm) and
   ``parallactic_angles.fits`` (deg).
+- ``jwst``, ``gpi``: JWST ``*_calints.fits`` and GPI ``*_spdc.fits``
+  (`kpifs.io.layouts_instruments`).
 """
 from pathlib import Path
 
@@ -24,7 +26,7 @@ from ..exceptions import KpifsError
 __all__ = ["write_plain_cube", "write_charis_exposures", "write_sphere_cube",
            "write_observation", "LAYOUTS"]
 
-LAYOUTS = ("plain", "charis", "sphere")
+LAYOUTS = ("plain", "charis", "sphere", "jwst", "gpi")
 
 
 def _base_header(cards, *, instrument, pixscale, exptime=None, obj="SIMULATED"):
@@ -182,8 +184,34 @@ def write_observation(obs, outdir, *, layout="plain", overwrite=False):
             (outdir / role).mkdir(exist_ok=True)
             out[role] = write_charis_exposures(outdir / role, cube, 1 / var, p.wavelengths,
                                                p.pixscale, **common)
+        elif layout in ("jwst", "gpi"):
+            out[role] = _write_instrument(layout, obs, role, cube, var, outdir, common)
         else:
             (outdir / role).mkdir(exist_ok=True)
             out[role] = write_sphere_cube(outdir / role, cube, p.wavelengths, p.pixscale,
                                           **common)
     return out
+
+
+def _write_instrument(layout, obs, role, cube, var, outdir, common):
+    """The JWST and GPI layouts (`kpifs.io.layouts_instruments`)."""
+    from .layouts_instruments import write_gpi_exposures, write_jwst_calints
+    p = obs.params
+    if layout == "gpi":
+        (outdir / role).mkdir(exist_ok=True)
+        mode = "NRM_H" if p.telescope == "gpi_nrm" else "H_direct"
+        return write_gpi_exposures(outdir / role, cube, var, p.wavelengths, p.pixscale,
+                                   detpa=p.detpa, obsmode=mode, **common)
+    if len(p.wavelengths) != 1:
+        raise KpifsError("the JWST layout writes one filter per file: simulate one "
+                         "wavelength")
+    inst = "NIRCAM" if "nircam" in str(p.instrument).lower() else "NIRISS"
+    pupil = "NRM" if p.telescope == "niriss_nrm" else None
+    tag = {"target": "00001", "calibrator": "00002"}[role]
+    det = "nis" if inst == "NIRISS" else ("nrca1" if p.pixscale.to_value(u.mas) < 45
+                                          else "nrcalong")
+    path = outdir / f"jw01234001001_01101_{tag}_{det}_calints.fits"
+    return [write_jwst_calints(path, cube[:, 0], var[:, 0], p.wavelengths[0], p.pixscale,
+                               instrument=inst, pupil=pupil,
+                               detpa=0.0 if p.detpa is None else float(np.mean(p.detpa)),
+                               seed=obs.seed + (role == "calibrator"), **common)]

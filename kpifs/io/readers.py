@@ -9,18 +9,21 @@ from astropy import units as u
 from ..exceptions import KpifsError, KpifsWarning
 from .charis import is_charis, read_charis
 from .cube import FrameStack, IFSCube, open_fits, read_generic, refuse_kpfits
+from .gpi import gpi_pupil, is_gpi, read_gpi
+from .jwst import is_jwst, jwst_pupil, read_jwst
 from .sphere import is_sphere, read_sphere
 from .wavelengths import parse_wavelengths
 
-__all__ = ["read_cube", "detect_instrument", "INSTRUMENTS"]
+__all__ = ["read_cube", "detect_instrument", "header_pupil", "check_pupil_header",
+           "INSTRUMENTS"]
 
 log = logging.getLogger(__name__)
 
-INSTRUMENTS = ("auto", "charis", "sphere", "generic")
+INSTRUMENTS = ("auto", "charis", "sphere", "jwst", "gpi", "generic")
 
 
 def detect_instrument(path):
-    """``'charis'``, ``'sphere'`` or ``'generic'`` from a file's headers and layout.
+    """``'charis'``, ``'sphere'``, ``'jwst'``, ``'gpi'`` or ``'generic'`` from a file's headers.
 
     Examples
     --------
@@ -39,6 +42,10 @@ def detect_instrument(path):
             return "charis"
         if is_sphere(hdul):
             return "sphere"
+        if is_jwst(hdul):
+            return "jwst"
+        if is_gpi(hdul):
+            return "gpi"
         if str(hdul[0].header.get("INSTRUME", "")).strip().upper() == "CHARIS":
             warnings.warn(f"{path}: the header says CHARIS but has no wavelength solution "
                           f"(LAM_MIN, DLOGLAM, NLAM): read as a plain cube; give the "
@@ -97,6 +104,10 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
                  instrument)
     if instrument == "charis":
         return read_charis(paths, wavelengths=wavelengths, pixscale=pixscale)
+    if instrument == "jwst":
+        return read_jwst(paths, wavelengths=wavelengths, pixscale=pixscale)
+    if instrument == "gpi":
+        return read_gpi(paths, wavelengths=wavelengths, pixscale=pixscale)
     readers = {"sphere": lambda p: read_sphere(p, wavelengths=wavelengths, pixscale=pixscale,
                                                angles=angles),
                "generic": lambda p: read_generic(p, wavelengths=wavelengths,
@@ -134,3 +145,49 @@ def _concatenate(cubes):
                    header=first.header, angles=angles, detpa=detpa,
                    detpa_source="; ".join(str(s) for s in sources), instrument=first.instrument,
                    source=[s for c in cubes for s in c.source], _files=files)
+
+
+def header_pupil(header):
+    """The built-in pupil an instrument's header names (JWST, GPI), or None.
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.readers import header_pupil
+    >>> header_pupil(fits.Header({"INSTRUME": "NIRISS", "PUPIL": "NRM"}))
+    'niriss_nrm'
+    >>> header_pupil(fits.Header({"INSTRUME": "CHARIS"})) is None
+    True
+    """
+    if str(header.get("INSTRUME", "")).strip().upper() == "GPI":
+        return gpi_pupil(header)
+    return jwst_pupil(header)
+
+
+#: Pupils that fit each telescope's headers (a warning for any other built-in one).
+_PUPIL_FAMILIES = ({"jwst", "niriss_clearp", "niriss_nrm", "nircam_clear"},
+                   {"gpi", "gemini_south", "gpi_nrm"})
+
+
+def check_pupil_header(pupil, header, *, source="cube"):
+    """Warn when a built-in *pupil* is not the telescope the header's INSTRUME names.
+
+    Examples
+    --------
+    >>> import warnings
+    >>> from astropy.io import fits
+    >>> from kpifs.io.readers import check_pupil_header
+    >>> with warnings.catch_warnings(record=True) as w:
+    ...     warnings.simplefilter("always")
+    ...     check_pupil_header("subaru", fits.Header({"INSTRUME": "NIRISS"}))
+    >>> "NIRISS" in str(w[0].message)
+    True
+    """
+    expected = header_pupil(header) if header is not None else None
+    key = str(pupil).lower()
+    if expected is None or key.endswith((".fits", ".fit", ".fits.gz")):
+        return
+    family = next((f for f in _PUPIL_FAMILIES if expected in f), {expected})
+    if key not in family:
+        warnings.warn(f"{source}: INSTRUME {header.get('INSTRUME')!r} but the pupil model is "
+                      f"{pupil!r} (expected {expected!r})", KpifsWarning, stacklevel=2)

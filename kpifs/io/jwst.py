@@ -1,0 +1,318 @@
+"""Reader for JWST stage-2 images: NIRISS kernel phase and AMI, NIRCam imaging.
+
+``*_calints.fits`` (``SCI`` of shape ``(nints, ny, nx)``) and ``*_cal.fits``
+(one 2-D image) written by the JWST pipeline. Extensions are found by
+``EXTNAME``; a scaled HDU (``DQ``: uint32 stored with ``BZERO``) is read
+into memory, never memory-mapped, while ``SCI`` stays memory-mapped. Each
+integration is a frame of one channel.
+
+- Mode: ``EXP_TYPE`` ``NIS_AMI``/``NIS_IMAGE`` (NIRISS ``PUPIL`` ``CLEARP``
+  kernel phase, ``NRM`` aperture masking, or a pupil-wheel filter) and
+  ``NRC_IMAGE``; anything else (coronagraphy, SOSS, grism, MIRI, ...) is
+  refused naming ``EXP_TYPE``.
+- Filter: ``FILTER``, or ``PUPIL`` when the filter sits in the pupil wheel
+  (NIRISS F090W-F200W with ``FILTER = CLEAR``; NIRCam's F162M, F164N, F323N,
+  F405N, F466N, F470N). Wavelength and bandwidth from `JWST_FILTERS`.
+- Pixel scale from `JWST_PIXSCALES` (``INSTRUME`` and NIRCam ``CHANNEL``),
+  checked against ``sqrt(PIXAR_A2)`` of ``SCI`` (a warning when they differ
+  by more than 2 %).
+- Sky orientation: ``DETPA = ROLL_REF - V3I_YANG * VPARITY`` (deg) from the
+  ``SCI`` header (the PRIMARY header of newer files holds guide-star values
+  under the same names), the relation jwst-kpi writes; the same for every
+  integration.
+- Bad pixels: NaN, and ``DQ`` with any of *dq_bits* set (default
+  ``DO_NOT_USE``, bit 0, as jwst-kpi and the jwst ``ami`` step).
+- Pupil: `jwst_pupil` (NIRISS ``NRM`` -> ``niriss_nrm``, ``CLEARP`` ->
+  ``niriss_clearp``, a pupil-wheel filter or NIRCam -> ``jwst``).
+"""
+import logging
+import warnings
+
+import numpy as np
+from astropy import units as u
+from astropy.io import fits
+
+from .._utils import to_quantity
+from ..exceptions import KpifsError, KpifsWarning
+from .cube import FrameStack, IFSCube, open_fits
+
+__all__ = ["read_jwst", "is_jwst", "jwst_mode", "jwst_pupil", "jwst_detpa", "JWST_FILTERS",
+           "JWST_PIXSCALES", "SUPPORTED_EXP_TYPES", "DO_NOT_USE"]
+
+log = logging.getLogger(__name__)
+
+#: DQ bit value of DO_NOT_USE (jwst ``dqflags``).
+DO_NOT_USE = 1
+
+#: EXP_TYPEs read (imaging with a full or masked pupil).
+SUPPORTED_EXP_TYPES = ("NIS_AMI", "NIS_IMAGE", "NRC_IMAGE")
+
+#: Pixel scales (mas) by instrument and NIRCam channel (jwst-kpi ``constants.py``).
+JWST_PIXSCALES = {("NIRISS", None): 65.55, ("NIRCAM", "SHORT"): 31.0,
+                  ("NIRCAM", "LONG"): 63.0}
+
+#: (mean wavelength, effective width) in um by (instrument, filter). The six of
+#: FORMATS.md's sampling table are SVO means (jwst-kpi); the others are the
+#: pivot wavelengths and bandwidths of the JWST user documentation's filter
+#: tables, rounded.
+JWST_FILTERS = {
+    ("NIRISS", "F090W"): (0.902, 0.194), ("NIRISS", "F115W"): (1.150, 0.228),
+    ("NIRISS", "F140M"): (1.404, 0.144), ("NIRISS", "F150W"): (1.494, 0.318),
+    ("NIRISS", "F158M"): (1.582, 0.198), ("NIRISS", "F200W"): (1.993, 0.464),
+    ("NIRISS", "F277W"): (2.8000, 0.6448), ("NIRISS", "F380M"): (3.8299, 0.2020),
+    ("NIRISS", "F430M"): (4.2870, 0.2039), ("NIRISS", "F480M"): (4.8196, 0.2974),
+    ("NIRCAM", "F070W"): (0.704, 0.128), ("NIRCAM", "F090W"): (0.901, 0.194),
+    ("NIRCAM", "F115W"): (1.154, 0.225), ("NIRCAM", "F140M"): (1.404, 0.142),
+    ("NIRCAM", "F150W"): (1.5106, 0.2892), ("NIRCAM", "F162M"): (1.626, 0.168),
+    ("NIRCAM", "F164N"): (1.644, 0.020), ("NIRCAM", "F182M"): (1.845, 0.238),
+    ("NIRCAM", "F187N"): (1.874, 0.024), ("NIRCAM", "F200W"): (1.990, 0.461),
+    ("NIRCAM", "F210M"): (2.093, 0.205), ("NIRCAM", "F212N"): (2.120, 0.027),
+    ("NIRCAM", "F250M"): (2.503, 0.181), ("NIRCAM", "F277W"): (2.786, 0.672),
+    ("NIRCAM", "F300M"): (2.996, 0.318), ("NIRCAM", "F323N"): (3.237, 0.038),
+    ("NIRCAM", "F335M"): (3.365, 0.347), ("NIRCAM", "F356W"): (3.563, 0.787),
+    ("NIRCAM", "F360M"): (3.621, 0.372), ("NIRCAM", "F405N"): (4.055, 0.046),
+    ("NIRCAM", "F410M"): (4.092, 0.436), ("NIRCAM", "F430M"): (4.280, 0.228),
+    ("NIRCAM", "F444W"): (4.421, 1.024), ("NIRCAM", "F460M"): (4.624, 0.228),
+    ("NIRCAM", "F466N"): (4.654, 0.054), ("NIRCAM", "F470N"): (4.707, 0.051),
+    ("NIRCAM", "F480M"): (4.8213, 0.3141),
+}
+
+_SCALED = ("BZERO", "BSCALE", "BLANK")
+
+
+def _card(hdr, key):
+    return str(hdr.get(key, "") or "").strip().upper()
+
+
+def is_jwst(hdul):
+    """True for a JWST pipeline product (``TELESCOP = 'JWST'`` and a ``SCI`` extension).
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.jwst import is_jwst
+    >>> hdr = fits.Header({"TELESCOP": "JWST"})
+    >>> is_jwst(fits.HDUList([fits.PrimaryHDU(header=hdr), fits.ImageHDU(name="SCI")]))
+    True
+    """
+    return _card(hdul[0].header, "TELESCOP") == "JWST" and "SCI" in hdul
+
+
+def jwst_mode(header, *, source="JWST file"):
+    """``(instrument, filter, pupil element)`` of a supported JWST exposure.
+
+    Refuses (`~kpifs.exceptions.KpifsError`) an ``EXP_TYPE`` other than
+    `SUPPORTED_EXP_TYPES` and a filter missing from `JWST_FILTERS`.
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.jwst import jwst_mode
+    >>> jwst_mode(fits.Header({"INSTRUME": "NIRISS", "EXP_TYPE": "NIS_AMI",
+    ...                        "FILTER": "CLEAR", "PUPIL": "F200W"}))
+    ('NIRISS', 'F200W', 'CLEAR')
+    """
+    exp = _card(header, "EXP_TYPE")
+    if exp not in SUPPORTED_EXP_TYPES:
+        raise KpifsError(f"{source}: EXP_TYPE {exp or '(missing)'} is not supported: kpifs "
+                         f"reads {', '.join(SUPPORTED_EXP_TYPES)} (kernel phase, AMI and "
+                         f"imaging), not coronagraphy, SOSS, grism or MIRI")
+    inst = _card(header, "INSTRUME")
+    filt, pupil = _card(header, "FILTER"), _card(header, "PUPIL")
+    if pupil.startswith("F") and pupil[1:4].isdigit():     # a filter in the pupil wheel
+        filt, pupil = pupil, "CLEAR"
+    if (inst, filt) not in JWST_FILTERS:
+        raise KpifsError(f"{source}: {inst} filter {filt or '(missing)'} (FILTER "
+                         f"{_card(header, 'FILTER')!r}, PUPIL {_card(header, 'PUPIL')!r}) is "
+                         f"not in kpifs's table: give --wavelengths and --pixscale with "
+                         f"--instrument generic")
+    return inst, filt, pupil
+
+
+def jwst_pupil(header):
+    """The built-in pupil (a `~kpifs.pupil.TELESCOPES` key) for a JWST header, or None.
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.jwst import jwst_pupil
+    >>> jwst_pupil(fits.Header({"INSTRUME": "NIRISS", "PUPIL": "CLEARP"}))
+    'niriss_clearp'
+    >>> jwst_pupil(fits.Header({"INSTRUME": "NIRCAM", "PUPIL": "CLEAR"}))
+    'jwst'
+    """
+    inst, pupil = _card(header, "INSTRUME"), _card(header, "PUPIL")
+    if inst == "NIRISS":
+        return {"NRM": "niriss_nrm", "CLEARP": "niriss_clearp"}.get(pupil, "jwst")
+    if inst == "NIRCAM":
+        return "jwst"
+    return None
+
+
+def jwst_detpa(sci_header, *, source="JWST file"):
+    """Detector position angle (deg) from ``ROLL_REF``, ``V3I_YANG`` and ``VPARITY``.
+
+    ``DETPA = ROLL_REF - V3I_YANG * VPARITY`` (jwst-kpi); None when a card is
+    missing.
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.jwst import jwst_detpa
+    >>> jwst_detpa(fits.Header({"ROLL_REF": 250.0, "V3I_YANG": -0.56, "VPARITY": -1}))
+    249.44
+    """
+    try:
+        roll, yang, par = (float(sci_header[k]) for k in ("ROLL_REF", "V3I_YANG", "VPARITY"))
+    except KeyError:
+        return None
+    except (TypeError, ValueError) as exc:
+        raise KpifsError(f"{source}: ROLL_REF/V3I_YANG/VPARITY not numbers: {exc}") from None
+    return round((roll - yang * par) % 360.0, 10)
+
+
+def _hdu(hdul, name, path, *, required=True):
+    if name in hdul:
+        return hdul[name]
+    if required:
+        raise KpifsError(f"{path}: no {name} extension (EXTNAME) in this JWST file")
+    return None
+
+
+def _dq_bad(path, shape, dq_bits):
+    """The DQ mask (True = bad) read into memory: DQ is scaled, so never memory-mapped."""
+    with fits.open(path, memmap=False) as hdul:
+        if "DQ" not in hdul or hdul["DQ"].data is None:
+            return None
+        dq = np.asarray(hdul["DQ"].data)
+    dq = dq[:, None] if dq.ndim == 3 else dq           # (nints, 1, ny, nx) as the frames
+    try:
+        return np.broadcast_to((dq.astype(np.uint64) & np.uint64(dq_bits)) != 0, shape)
+    except ValueError:
+        raise KpifsError(f"{path}: DQ of shape {dq.shape} does not match SCI") from None
+
+
+def _pixscale(path, inst, hdr, sci_hdr, pixscale):
+    channel = _card(hdr, "CHANNEL") if inst == "NIRCAM" else None
+    if (inst, channel) not in JWST_PIXSCALES:
+        raise KpifsError(f"{path}: no pixel scale for {inst} channel {channel!r}: give "
+                         f"--pixscale")
+    table = JWST_PIXSCALES[(inst, channel)]
+    if pixscale is not None:
+        return to_quantity(pixscale, u.mas, name="pixel scale")
+    if "PIXAR_A2" in sci_hdr:
+        try:
+            from_area = 1000 * np.sqrt(float(sci_hdr["PIXAR_A2"]))
+        except (TypeError, ValueError):
+            from_area = np.nan
+        if not abs(from_area / table - 1) <= 0.02:
+            warnings.warn(f"{path}: pixel scale {table} mas ({inst}"
+                          f"{' ' + channel if channel else ''}) differs from sqrt(PIXAR_A2) = "
+                          f"{from_area:.2f} mas; using {table} mas (give --pixscale to "
+                          f"change it)", KpifsWarning, stacklevel=3)
+    return table * u.mas
+
+
+def _read_one(path, wavelengths, pixscale, dq_bits):
+    hdul = open_fits(path)
+    try:
+        hdr = hdul[0].header
+        inst, filt, pupil = jwst_mode(hdr, source=path)
+        sci = _hdu(hdul, "SCI", path)
+        if any(k in sci.header for k in _SCALED):
+            raise KpifsError(f"{path}: SCI is a scaled (integer) image: not a stage-2 "
+                             f"calibrated product")
+        data = sci.data
+        if data is None or data.ndim not in (2, 3):
+            raise KpifsError(f"{path}: SCI must be (ny, nx) or (nints, ny, nx), got "
+                             f"{None if data is None else data.shape}")
+        view = data[None, None] if data.ndim == 2 else data[:, None]
+        bad = _dq_bad(path, view.shape, dq_bits)
+        wl = (wavelengths if wavelengths is not None
+              else [JWST_FILTERS[(inst, filt)][0]] * u.um)
+        ps = _pixscale(path, inst, hdr, sci.header, pixscale)
+        detpa = jwst_detpa(sci.header, source=path)
+        header = hdr.copy()
+        header.update({k: v for k, v in sci.header.items() if k not in header and k not in
+                       ("XTENSION", "PCOUNT", "GCOUNT", "EXTNAME", "BITPIX") and
+                       not k.startswith("NAXIS")})
+        header["KPFILTER"] = (filt, "filter kpifs read (FILTER or pupil wheel)")
+        header["KPBWIDTH"] = (JWST_FILTERS[(inst, filt)][1], "[um] filter effective width")
+        nint = view.shape[0]
+        where = "ROLL_REF - V3I_YANG * VPARITY (SCI header)"
+        if detpa is None:
+            log.warning("%s: no ROLL_REF/V3I_YANG/VPARITY in SCI: sky orientation unknown",
+                        path)
+            pa, where = np.full(nint, np.nan), "none (unknown)"
+        else:
+            pa = np.full(nint, detpa)
+        stack = FrameStack([view], None if bad is None else [bad])
+        cube = IFSCube(data=stack, wavelengths=wl, pixscale=ps, header=header,
+                       detpa=pa * u.deg, detpa_source=where, instrument="jwst",
+                       source=[str(path)], _files=[hdul])
+    except BaseException:
+        hdul.close()
+        raise
+    log.info("%s: %s %s %s, %d integration(s) %s, %.2f mas, DETPA %s", path, inst,
+             _card(hdr, "EXP_TYPE"), filt, view.shape[0], view.shape[2:], ps.value,
+             "unknown" if detpa is None else f"{detpa:.2f} deg")
+    return cube, filt
+
+
+def read_jwst(paths, *, wavelengths=None, pixscale=None, dq_bits=DO_NOT_USE):
+    """Read JWST ``_calints.fits``/``_cal.fits`` file(s) of one filter as an `IFSCube`.
+
+    Parameters
+    ----------
+    paths : str or list of str
+        Files of one target in one filter: their integrations become the frames.
+    wavelengths : `~astropy.units.Quantity`, optional
+        Replaces the filter table's mean wavelength.
+    pixscale : `~astropy.units.Quantity`, optional
+        Replaces the table's pixel scale.
+    dq_bits : int
+        DQ bits that make a pixel bad (default ``DO_NOT_USE`` = 1; e.g.
+        ``1 | 2 | 4`` adds SATURATED and JUMP_DET). NaN pixels are always bad.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from kpifs.io import write_observation
+    >>> from kpifs.io.jwst import read_jwst
+    >>> from kpifs.simulate import simulate_scene
+    >>> obs = simulate_scene("niriss", n_frames=2, npup=32, shape=(32, 32))
+    >>> files = write_observation(obs, tempfile.mkdtemp(), layout="jwst")
+    >>> with read_jwst(files["target"]) as cube:
+    ...     print(cube.shape, cube.wavelengths, cube.pixscale, cube.detpa[0])
+    (2, 1, 32, 32) [4.8196] um 65.55 mas 249.44 deg
+    """
+    if isinstance(paths, (str, bytes)) or not hasattr(paths, "__iter__"):
+        paths = [paths]
+    paths = [str(p) for p in paths]
+    if not paths:
+        raise KpifsError("no JWST files given")
+    cubes, filters = [], []
+    try:
+        for p in paths:
+            cube, filt = _read_one(p, wavelengths, pixscale, dq_bits)
+            cubes.append(cube)
+            filters.append(filt)
+        targets = [_card(c.header, "TARGNAME") for c in cubes]
+        if len(set(targets)) > 1:
+            raise KpifsError("files of different targets: " + ", ".join(
+                f"{p} ({t or '?'})" for p, t in zip(paths, targets))
+                + ": give the calibrator with --calibrator")
+        if len(set(filters)) > 1:
+            raise KpifsError(
+                "files in different filters: " + ", ".join(f"{p} ({f})" for p, f in
+                                                           zip(paths, filters))
+                + ": filters as the channels of one product are not supported yet; "
+                "extract each filter separately")
+        if len(cubes) == 1:
+            return cubes[0]
+        from .readers import _concatenate
+        return _concatenate(cubes)
+    except BaseException:
+        for c in cubes:
+            c.close()
+        raise
