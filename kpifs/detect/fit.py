@@ -18,7 +18,7 @@ from .sky import sky_to_detector
 
 optimize = lazy_module("scipy.optimize")
 
-__all__ = ["fit_binary"]
+__all__ = ["fit_binary", "refine_candidates"]
 
 
 def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pixscale=None,
@@ -208,3 +208,45 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
             "contrast": res.x[2:], "contrast_err": err[2:], "chi2": float(2 * res.cost),
             "dof": dof, "success": bool(res.success),
             "frame": "detector" if rot is None else "sky", "model": model(res.x)}
+
+
+def refine_candidates(cands, kp, w, kpd, noise_rows=None, poses=None, dof=None,
+                      from_fit=False):
+    """Fit each candidate (from its grid peak, or *from_fit* its earlier fit); with
+    *dof* (the whitened dimension of *w*, a characterisation model) the errors are
+    scaled by the fit's own reduced chi-square (never down) and ``fit_chi2_red`` is
+    added. Returns the fitted models' kernel phases, one (q, p) array per candidate
+    (what `~kpifs.detect.detect` subtracts before it searches again)."""
+    q = kp.shape[0]
+    cols = {k: [] for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err", "fit_contrast",
+                            "fit_contrast_err", "fit_chi2")}
+    models = []
+    step = 20.0
+    for row in cands:
+        kw = {} if poses is None else dict(detpa=poses[0], detpa_weights=poses[1])
+        pre = "fit_" if from_fit else ""
+        r = fit_binary(kp, w, kpd.kernel_model, kpd.wavelengths,
+                       (row[pre + "x"].to_value(u.mas), row[pre + "y"].to_value(u.mas)),
+                       np.asarray(row[pre + "contrast"]), pixscale=kpd.pixscale,
+                       window=kpd.window, bounds_mas=step, noise_rows=noise_rows, **kw)
+        k = 1.0
+        if dof is not None:
+            chi2_red = r["chi2"] / max(dof - (q + 2), 1)
+            cols.setdefault("fit_chi2_red", []).append(chi2_red)
+            k = np.sqrt(max(1.0, chi2_red))
+        cols["fit_x"].append(r["x"])
+        cols["fit_y"].append(r["y"])
+        cols["fit_x_err"].append(r["x_err"] * k)
+        cols["fit_y_err"].append(r["y_err"] * k)
+        cols["fit_contrast"].append(r["contrast"])
+        cols["fit_contrast_err"].append(np.asarray(r["contrast_err"]) * k)
+        cols["fit_chi2"].append(r["chi2"])
+        models.append(r["model"])
+    for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err"):
+        cands[k] = np.array(cols[k]) * u.mas
+    cands["fit_contrast"] = np.array(cols["fit_contrast"]).reshape(len(cands), q)
+    cands["fit_contrast_err"] = np.array(cols["fit_contrast_err"]).reshape(len(cands), q)
+    cands["fit_chi2"] = np.array(cols["fit_chi2"])
+    if "fit_chi2_red" in cols:
+        cands["fit_chi2_red"] = np.array(cols["fit_chi2_red"])
+    return models

@@ -34,7 +34,7 @@ from ._laws import norm_sf
 from ._laws import chi2_sf
 from .limits import spectrum_shape
 from .channels import channel_shrinkage, whiten_weights
-from .spectral import spectral_basis, subspace_weights
+from .spectral import spectral_basis, subspace_sign, subspace_weights
 from .stats import binary_pfa, binary_statistic
 
 
@@ -281,17 +281,7 @@ class DetectionModel:
             if corr is not None:
                 w = whiten_weights(w, corr, self.channel_alpha)
             self._subspace = w
-            # the sign of the fitted spectrum's mean along the projections: beta = M gamma
-            # with M = (W^T D A)^-1, so mean(A beta) > 0 is h . gamma > 0, h = M^T A^T 1
-            q = len(self.wavelengths)
-            ww = w.reshape(w.shape[0], q, -1).transpose(2, 1, 0)          # (npos, q, r)
-            da = np.sqrt(np.nan_to_num(self.norm2.reshape(q, -1).T))[:, :, None] * self.basis
-            m = np.matmul(ww.transpose(0, 2, 1), da)                       # (npos, r, r)
-            ones = np.broadcast_to(self.basis.sum(axis=0), (len(m), self.basis.shape[1]))
-            h = np.zeros_like(ones)
-            ok = np.abs(np.linalg.det(m)) > 0
-            h[ok] = np.linalg.solve(m[ok].transpose(0, 2, 1), ones[ok][..., None])[..., 0]
-            self._subspace_sign = h.T.reshape((-1,) + self.grid.shape)
+            self._subspace_sign = subspace_sign(w, self.norm2, self.basis)
         return self._subspace
 
     @property

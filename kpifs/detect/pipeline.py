@@ -12,16 +12,16 @@ from ..exceptions import KpifsError, KpifsWarning
 from ..kernel import MAS, KernelModel
 from ..pupil import make_pupil
 from ._laws import chi2_sf, norm_isf
-from .fit import fit_binary
+from .fit import refine_candidates
 from .sky import (add_sky_columns, data_angles, pa_bins, rotated_binary_kernel_phases,
                   search_frame, sky_search_columns)
 from .skyfit import refit_on_sky
 from .limits import (energy_lambda, limit_binary, limit_binary_correlated_forms, limit_energy,
                      limit_np, mirror_half_map, radial_curves, spectrum_shape)
 from .maps import DetectionModel
-from .null import DEFAULT_DRAWS, check_draws, scale_block_rows, search_null
+from .null import DEFAULT_DRAWS, check_draws, search_null
 from .channels import (NOISE_CONFIDENCE, combined_scale, correlated_inputs, energy_null,
-                       energy_spread, map_noise, np_correlated)
+                       energy_spread, map_noise, np_correlated, scale_block_rows)
 from .quality import add_spectrum_model, flag_candidates, resolution_mas
 from .spectral import limit_subspace
 from .stats import TESTS, check_probability, energy_threshold
@@ -386,11 +386,12 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
             break
         row = tab[:1]
         if fit:
-            model_kp = _refine(row, residual, w, kpd, null.noise_rows, poses)[0]
+            model_kp = refine_candidates(row, residual, w, kpd, null.noise_rows, poses)[0]
             if characterise is not None:
                 # from the search model's optimum (the robust start), the characterisation
-                model_kp = _refine(row, residual, characterise[0], kpd, characterise[1], poses,
-                                   dof=characterise[2], from_fit=True)[0]
+                model_kp = refine_candidates(row, residual, characterise[0], kpd,
+                                             characterise[1], poses, dof=characterise[2],
+                                             from_fit=True)[0]
             r = row[0]
             x, y = r["fit_x"].to_value(u.mas), r["fit_y"].to_value(u.mas)
         else:
@@ -443,46 +444,6 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
     out.meta = rows[0].meta
     out.meta["chi2_red"] = kappa
     return out, kappa, scale
-
-
-def _refine(cands, kp, w, kpd, noise_rows=None, poses=None, dof=None, from_fit=False):
-    """Fit each candidate (from its grid peak, or *from_fit* its earlier fit); with
-    *dof* (the whitened dimension of *w*, a characterisation model) the errors are
-    scaled by the fit's own reduced chi-square (never down) and ``fit_chi2_red`` is
-    added. Returns the fitted models' kernel phases, one (q, p) array per candidate."""
-    q = kp.shape[0]
-    cols = {k: [] for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err", "fit_contrast",
-                            "fit_contrast_err", "fit_chi2")}
-    models = []
-    step = 20.0
-    for row in cands:
-        kw = {} if poses is None else dict(detpa=poses[0], detpa_weights=poses[1])
-        pre = "fit_" if from_fit else ""
-        r = fit_binary(kp, w, kpd.kernel_model, kpd.wavelengths,
-                       (row[pre + "x"].to_value(u.mas), row[pre + "y"].to_value(u.mas)),
-                       np.asarray(row[pre + "contrast"]), pixscale=kpd.pixscale,
-                       window=kpd.window, bounds_mas=step, noise_rows=noise_rows, **kw)
-        k = 1.0
-        if dof is not None:
-            chi2_red = r["chi2"] / max(dof - (q + 2), 1)
-            cols.setdefault("fit_chi2_red", []).append(chi2_red)
-            k = np.sqrt(max(1.0, chi2_red))
-        cols["fit_x"].append(r["x"])
-        cols["fit_y"].append(r["y"])
-        cols["fit_x_err"].append(r["x_err"] * k)
-        cols["fit_y_err"].append(r["y_err"] * k)
-        cols["fit_contrast"].append(r["contrast"])
-        cols["fit_contrast_err"].append(np.asarray(r["contrast_err"]) * k)
-        cols["fit_chi2"].append(r["chi2"])
-        models.append(r["model"])
-    for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err"):
-        cands[k] = np.array(cols[k]) * u.mas
-    cands["fit_contrast"] = np.array(cols["fit_contrast"]).reshape(len(cands), q)
-    cands["fit_contrast_err"] = np.array(cols["fit_contrast_err"]).reshape(len(cands), q)
-    cands["fit_chi2"] = np.array(cols["fit_chi2"])
-    if "fit_chi2_red" in cols:
-        cands["fit_chi2_red"] = np.array(cols["fit_chi2_red"])
-    return models
 
 
 _EXAMPLE = {}

@@ -35,7 +35,8 @@ from ..exceptions import KpifsError
 from .limits import _lhs_normal, _order_quantile, spectrum_shape
 
 __all__ = ["DEFAULT_RANK", "smooth_basis", "blackbody_contrasts", "template_basis",
-           "read_spectra", "subspace_weights", "subspace_spectrum", "spectral_basis",
+           "read_spectra", "subspace_weights", "subspace_sign", "subspace_spectrum",
+           "spectral_basis",
            "limit_subspace"]
 
 log = logging.getLogger(__name__)
@@ -239,6 +240,34 @@ def subspace_weights(norm2, basis):
     isq = np.matmul(vec * inv[:, None, :], vec.transpose(0, 2, 1))  # (A^T D^2 A)^{-1/2}
     w = np.matmul(da, isq)                                         # (npos, q, r)
     return np.moveaxis(w, 0, -1).transpose(1, 0, 2).reshape((a.shape[1], q) + n2.shape[1:])
+
+
+def subspace_sign(weights, norm2, basis):
+    """``h`` (r, ...): the fitted spectrum's mean is positive where ``h . (W^T z) > 0``.
+
+    With ``gamma = W^T z`` the fitted coefficients are ``beta = M gamma``, ``M =
+    (W^T D A)^-1``, so ``mean(A beta) > 0`` is ``h . gamma > 0`` with ``h = M^T A^T 1``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.spectral import subspace_sign, subspace_weights
+    >>> n2 = np.ones((3, 1))
+    >>> w = subspace_weights(n2, np.ones((3, 1)) / 3 ** 0.5)
+    >>> float(subspace_sign(w, n2, np.ones((3, 1)) / 3 ** 0.5)[0, 0]) > 0
+    True
+    """
+    a = np.asarray(basis, float)
+    q, r = a.shape
+    n2 = np.asarray(norm2, float)
+    ww = np.asarray(weights, float).reshape(r, q, -1).transpose(2, 1, 0)     # (npos, q, r)
+    da = np.sqrt(np.nan_to_num(n2.reshape(q, -1).T))[:, :, None] * a
+    m = np.matmul(ww.transpose(0, 2, 1), da)                               # (npos, r, r)
+    ones = np.broadcast_to(a.sum(axis=0), (len(m), r))
+    h = np.zeros_like(ones)
+    ok = np.abs(np.linalg.det(m)) > 0
+    h[ok] = np.linalg.solve(m[ok].transpose(0, 2, 1), ones[ok][..., None])[..., 0]
+    return h.T.reshape((r,) + n2.shape[1:])
 
 
 def subspace_spectrum(contrast, err, basis):
