@@ -4,6 +4,7 @@ import os
 import re
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -182,16 +183,82 @@ def write_table(table, path, *, overwrite=False, format="ascii.ecsv"):
                         overwrite=overwrite)
 
 
-def progress(iterable, *, desc=None, unit="it", total=None, enabled=True):
-    """*iterable* with a tqdm progress bar on stderr, or unchanged.
+#: Seconds between the plain progress lines written when stderr is not a terminal.
+PROGRESS_EVERY = 10.0
 
-    The bar is shown only when *enabled* and stderr is a terminal, so logs
-    and pipes get no bar updates.
+
+def _duration(seconds):
+    seconds = int(round(seconds))
+    if seconds < 60:
+        return f"{seconds} s"
+    minutes, seconds = divmod(seconds, 60)
+    if minutes < 60:
+        return f"{minutes} min {seconds:02d} s"
+    hours, minutes = divmod(minutes, 60)
+    return f"{hours} h {minutes:02d} min"
+
+
+class _PlainProgress:
+    """Progress for logs and pipes: one line on stderr every `PROGRESS_EVERY` seconds
+    (none for work shorter than that), with the time left estimated from the mean pace."""
+
+    def __init__(self, iterable, desc, unit, total, every):
+        self.iterable, self.desc, self.unit, self.every = iterable, desc or "working", unit, every
+        if total is None and iterable is not None and hasattr(iterable, "__len__"):
+            total = len(iterable)
+        self.total, self.n = total, 0
+        self.start = self.last = time.monotonic()
+
+    def __iter__(self):
+        for item in self.iterable:
+            yield item
+            self.update(1)
+
+    def update(self, n=1):
+        self.n += n
+        now = time.monotonic()
+        if now - self.last >= self.every:
+            self.last = now
+            self.write(now - self.start)
+
+    def write(self, elapsed):
+        done = f"{self.n}" + (f"/{self.total}" if self.total else "") + f" {self.unit}"
+        left = ""
+        if self.total and 0 < self.n < self.total:
+            left = f", about {_duration(elapsed * (self.total - self.n) / self.n)} left"
+        print(f"kpifs: {self.desc}: {done}, {_duration(elapsed)} elapsed{left}",
+              file=sys.stderr, flush=True)
+
+    def close(self):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class _NoProgress(_PlainProgress):
+    def update(self, n=1):
+        self.n += n
+
+
+def progress(iterable=None, *, desc=None, unit="it", total=None, enabled=True):
+    """*iterable* with progress shown on stderr, or unchanged.
+
+    On a terminal a tqdm bar; otherwise (logs, pipes) a plain line every
+    `PROGRESS_EVERY` seconds with the count and the time left, so that short
+    work prints nothing. Without *iterable*, an object to ``update(n)`` by hand
+    (its ``total`` may be changed as the work grows) and ``close()``; with
+    *enabled* False it counts silently.
     """
-    if not enabled or not getattr(sys.stderr, "isatty", lambda: False)():
-        return iterable
-    from tqdm.auto import tqdm   # deferred: tqdm is only needed when a bar is shown
-    return tqdm(iterable, desc=desc, unit=unit, total=total)
+    if not enabled:
+        return iterable if iterable is not None else _NoProgress(None, desc, unit, total, 0)
+    if getattr(sys.stderr, "isatty", lambda: False)():
+        from tqdm.auto import tqdm   # deferred: tqdm is only needed when a bar is shown
+        return tqdm(iterable, desc=desc, unit=unit, total=total)
+    return _PlainProgress(iterable, desc, unit, total, PROGRESS_EVERY)
 
 
 def version_cards(header, what):

@@ -255,14 +255,23 @@ def build_parser():
     p.add_argument("--calibrator", action="append", nargs="+", metavar="CUBE",
                    help="with --curve: cube(s) of a calibrator (repeat for several)")
     p.add_argument("--separations", default="100,200,400mas",
-                   help="with --curve: separations (default 100,200,400mas)")
-    p.add_argument("--contrasts", default="1e-3,2e-3,5e-3,1e-2,2e-2",
-                   help="with --curve: contrast ladder (default 1e-3,2e-3,5e-3,1e-2,2e-2)")
-    p.add_argument("--angles", type=int, default=6,
-                   help="with --curve: position angles per step (default 6)")
-    p.add_argument("--pfa", type=float, default=1e-3, help="global P_FA (default 1e-3)")
-    p.add_argument("--draws", type=int, default=5000, help="Monte-Carlo draws (default 5000)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the angles (default 0)")
+                   help="with --curve: separations (mas if no unit; default %(default)s)")
+    p.add_argument("--contrasts", default=None,
+                   help="with --curve: a fixed contrast ladder, e.g. 1e-3,2e-3,5e-3 (default: "
+                        "one that brackets the limit by itself, from 0.5 to 2 times the "
+                        "analytic limit, extended while every step or none is found)")
+    p.add_argument("--angles", type=int, default=4,
+                   help="with --curve: position angles per contrast step (default %(default)s)")
+    p.add_argument("--pfa", type=float, default=1e-3,
+                   help="global false-alarm probability of the detections (default %(default)s)")
+    p.add_argument("--draws", type=int, default=5000,
+                   help="Monte-Carlo draws calibrating the analytic limits' search (default "
+                        "%(default)s)")
+    p.add_argument("--injection-draws", type=int, default=1000,
+                   help="with --curve: Monte-Carlo draws calibrating each injection's search "
+                        "(default %(default)s)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the angles and of the draws (default %(default)s)")
     p.add_argument("--plots", metavar="DIR", help="with --curve: write the figure there")
     _cube_options(p)
     _pupil_options(p)

@@ -23,7 +23,10 @@ def run(args):
             is_kp = "KP-DATA" in hdul
             is_model = "KER-MAT" in hdul
             is_det = hdul[0].header.get("CONTENT") == "KPIFS-DETECTION"
-        if is_det:
+            is_inj = hdul[0].header.get("CONTENT") == "KPIFS-INJECTION"
+        if is_inj:
+            _injection(path)
+        elif is_det:
             _detection(path)
         elif is_kp:
             _kpfits(path)
@@ -59,6 +62,22 @@ def _detection(path):
         print(f"    ({row[cx].to_value(u.mas):.1f}, {row[cy].to_value(u.mas):.1f}) mas"
               f"{' (dRA, dDec)' if cx == 'dra' else ''}{pa}, global P_FA "
               f"{row['pfa_global']:.1e}")
+
+
+def _injection(path):
+    from astropy.table import QTable
+    with open_fits(path) as hdul:
+        hdr = hdul[0].header
+        lim = QTable.read(hdul["LIMITS"])
+        inj = QTable.read(hdul["INJECTIONS"])
+    print(f"{path}: kpifs injection-recovery contrast curve")
+    print(f"  global P_FA {hdr.get('PFA')}, P_D {hdr.get('PD')}, {hdr.get('NANGLES')} position "
+          f"angles per contrast step, {len(inj)} steps ({hdr.get('LADDER', 'given')} ladder)")
+    for row in lim:
+        flag = str(row["flag"]).strip() if "flag" in lim.colnames else "="
+        bound = "" if flag in ("=", "") else flag + " "
+        print(f"  {row['separation'].to_value(u.mas):.0f} mas: injections "
+              f"{bound}{row['limit_injection']:.2e}, analytic {row['limit_analytic']:.2e}")
 
 
 def _kpfits(path):
