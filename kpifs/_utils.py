@@ -73,6 +73,19 @@ def threads():
         return max(1, os.cpu_count() or 1)
 
 
+def one_blas_thread():
+    """A context in which BLAS keeps to one thread.
+
+    For loops of small matrix products (a simulated frame's propagation, an
+    injection's reduction): BLAS's threads do not pay off on them, and on a
+    busy machine they wait for each other (kpifs demo's simulation: 60 s of
+    wall time for 20 frames with two BLAS threads at a load of 11, 2.4 s with
+    one). kpifs's own threads (`thread_map`) still share the cores.
+    """
+    from threadpoolctl import threadpool_limits
+    return threadpool_limits(limits=1, user_api="blas")
+
+
 def thread_map(fn, items, *, wrap=None, serial=False):
     """``[fn(x) for x in items]`` on `threads` threads, in order.
 

@@ -23,7 +23,7 @@ from astropy import units as u
 from astropy.table import QTable
 
 from ._utils import progress as progress_bar
-from ._utils import to_quantity
+from ._utils import one_blas_thread, to_quantity
 from .calibrate import calibrate
 from .detect import detect
 from .detect.sky import sky_to_detector   # noqa: F401  (kpifs.inject.sky_to_detector)
@@ -274,7 +274,6 @@ def injection_limits(target, calibrators, model, *, wavelengths, pixscale, windo
     >>> tab["n_injected"].tolist(), bool(tab["pd"][0] == 1.0), tab.meta["flags"]
     ([2], True, ['<'])
     """
-    from threadpoolctl import threadpool_limits
     target = np.asarray(target, float)
     seps = np.atleast_1d(to_quantity(separations, u.mas, name="separations").value)
     if seps.size == 0 or np.any(~np.isfinite(seps)) or np.any(seps <= 0):
@@ -296,7 +295,7 @@ def injection_limits(target, calibrators, model, *, wavelengths, pixscale, windo
                        total=sum(len(lad) for lad in ladders) * n_angles, enabled=progress)
     rows, limits, flags = [], [], []
     # the searches' own threads share the cores: BLAS's on top would oversubscribe them
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         for s, ladder in zip(seps, ladders):
             done = {}
             todo = list(ladder)

@@ -41,6 +41,7 @@ def run(args):
                                       radius=args.window_radius)
     steps = None if args.steps is None else u.Quantity(_floats(args.steps, "--steps"), u.m)
     chk = check_pupil_model(data, cal, wavelengths=wl, pixscale=ps, pupil=pupil,
+                            progress=not args.quiet,
                             window=window,
                             rotations=u.Quantity(_floats(args.rotations, "--rotations"), u.deg),
                             scales=_floats(args.scales, "--scales"),
