@@ -344,9 +344,14 @@ def build_parser():
 
     p = command("demo", "run the whole chain on simulated data",
                 "example:\n  kpifs demo -o demo_output")
-    p.add_argument("--frames", type=int, default=200, help="exposures per star (default 200)")
+    p.add_argument("--frames", type=int, default=200,
+                   help="exposures per star (default %(default)s)")
     p.add_argument("--draws", type=int, default=5000,
-                   help="Monte-Carlo draws calibrating the search (default 5000)")
-    p.add_argument("--seed", type=int, default=1)
-    _output(p, "output directory", required=False, default="kpifs_demo")
+                   help="Monte-Carlo draws calibrating the search (default %(default)s)")
+    p.add_argument("--seed", type=int, default=1,
+                   help="seed of the simulation and of the draws (default %(default)s)")
+    p.add_argument("--keep-inputs", action="store_true",
+                   help="keep the simulated CHARIS cubes in OUTPUT/charis (about 300 MB; "
+                        "default: made in a temporary folder and removed)")
+    _output(p, "output directory (default %(default)s)", required=False, default="kpifs_demo")
     return parser
