@@ -124,6 +124,11 @@ def _check_writable(folder, what):
     os.remove(probe)
 
 
+#: The option that replaces an output, as the user wrote the call: the command line sets
+#: it to ``--overwrite`` while a command runs (`kpifs._cli.main`).
+OVERWRITE_HINT = ["overwrite=True"]
+
+
 def check_output_path(path, *, overwrite=False):
     """Refuse an existing output (unless *overwrite*), a directory, a missing or unwritable
     folder: before any work is done."""
@@ -131,7 +136,7 @@ def check_output_path(path, *, overwrite=False):
     if path.is_dir():
         raise KpifsError(f"{path}: is a directory, expected an output file name")
     if path.exists() and not overwrite:
-        raise KpifsError(f"{path}: output exists; pass overwrite=True (--overwrite) to replace it")
+        raise KpifsError(f"{path}: output exists; pass {OVERWRITE_HINT[0]} to replace it")
     if not path.parent.exists():
         raise KpifsError(f"{path}: the folder {path.parent} does not exist")
     _check_writable(path.parent, path)

@@ -195,8 +195,9 @@ def _phase_measures(kt, kc):
 
 
 class _Evaluator:
-    def __init__(self, pupil, target, calibrator, wavelengths, pixscale, window, centroid):
-        self.pupil = pupil
+    def __init__(self, pupil, target, calibrator, wavelengths, pixscale, window, centroid,
+                 pupil_scale=None):
+        self.pupil, self.pupil_scale = pupil, pupil_scale
         self.target, self.calibrator = target, calibrator
         self.wl, self.ps = wavelengths, pixscale
         self.kw = dict(window=window, centroid=centroid, bad_frames="drop")
@@ -220,7 +221,8 @@ class _Evaluator:
         if ideal is None:
             ideal = self.ideal[(rotation, scale)] = simulate_psf(
                 self.pupil, self.wl, pixscale=ps, shape=self.target.shape[-2:],
-                pupil_rotation=rotation * u.deg, npup=MODEL_NPUP, supersample=4)
+                pupil_rotation=rotation * u.deg, npup=MODEL_NPUP, supersample=4,
+                pupil_scale=self.pupil_scale)
         pred = extract_kernel_phases(ideal[None], kt.kernel_model, source="model image",
                                      **args).amplitudes[0]
         mis = _amp_mismatch(amps, pred, kt.kernel_model, self.wl)
@@ -258,7 +260,8 @@ def _scan_and_refine(fn, grid, xatol):
 def check_pupil_model(target, calibrator=None, *, wavelengths, pixscale, pupil="subaru",
                       window=None, rotations=np.arange(-6.0, 6.01, 1.5) * u.deg,
                       scales=np.arange(0.97, 1.0301, 0.01), cuts=(0.05, 0.1, 0.2, 0.3, 0.5),
-                      binary=True, steps=None, centroid="com", progress=False):
+                      binary=True, steps=None, centroid="com", pupil_scale=None,
+                      progress=False):
     """Fit the pupil model's orientation and scale to a star's frames and compare models.
 
     Parameters
@@ -287,6 +290,8 @@ def check_pupil_model(target, calibrator=None, *, wavelengths, pixscale, pupil="
         Grid steps to compare (default: only the pupil's).
     centroid : str
         Star-centre method of the extraction.
+    pupil_scale : `~astropy.units.Quantity`, optional
+        Pixel size (m) of a pupil image *pupil*, overriding its ``PUPSCALE``.
     progress : bool
         Progress on stderr (a bar on a terminal, otherwise a line every few
         seconds with the time left).
@@ -324,14 +329,15 @@ def check_pupil_model(target, calibrator=None, *, wavelengths, pixscale, pupil="
     defaults = model_defaults(pupil)
     base = dict(grey=defaults.grey, min_transmission=defaults.min_transmission,
                 step=defaults.step * u.m, offset=defaults.offset * u.m)
-    ev = _Evaluator(pupil, target, calibrator, wl, ps, window, centroid)
+    ev = _Evaluator(pupil, target, calibrator, wl, ps, window, centroid, pupil_scale)
     n_steps = np.size(rotations) + np.size(scales) + len(cuts) + 2 * _REFINE_EVALUATIONS + (
         0 if steps is None else np.size(steps)) + 5
     ev.bar = progress_bar(desc="model check", unit="model", total=n_steps, enabled=progress)
     # every model is a few small products: BLAS's threads would only wait for each other
 
     def model_for(options):
-        return KernelModel.from_pupil(make_pupil(pupil, rotation=0 * u.deg, **options))
+        return KernelModel.from_pupil(make_pupil(pupil, rotation=0 * u.deg,
+                                                 pupil_scale=pupil_scale, **options))
 
     with ev.bar, one_blas_thread():
         km = model_for(base)

@@ -95,7 +95,8 @@ def phase_screens(npup, dx, n, *, rms=100e-9, mask=None, cutoff=None, seed=None)
 
 
 def simulate_psf(pupil, wavelengths, *, pixscale, shape=(64, 64), npup=128, opd=None,
-                 centre=(0.0, 0.0), companions=(), pupil_rotation=0 * u.deg, supersample=1):
+                 centre=(0.0, 0.0), companions=(), pupil_rotation=0 * u.deg, supersample=1,
+                 pupil_scale=None):
     """Noise-free images of a star (and companions) at each wavelength.
 
     Parameters
@@ -118,6 +119,8 @@ def simulate_psf(pupil, wavelengths, *, pixscale, shape=(64, 64), npup=128, opd=
         Turn of the pupil (counter-clockwise from +x to +y).
     supersample : int
         Anti-aliasing of the pupil (`~kpifs.pupil.pupil_image`).
+    pupil_scale : `~astropy.units.Quantity`, optional
+        Pixel size of a pupil image (m), overriding its ``PUPSCALE``.
 
     Returns
     -------
@@ -134,7 +137,8 @@ def simulate_psf(pupil, wavelengths, *, pixscale, shape=(64, 64), npup=128, opd=
     """
     wl = np.atleast_1d(to_quantity(wavelengths, u.m, name="wavelengths").value)
     p = to_quantity(pixscale, u.mas, name="pixel scale").value * MAS
-    pimg, dx = pupil_image(pupil, npix=npup, rotation=pupil_rotation, supersample=supersample)
+    pimg, dx = pupil_image(pupil, npix=npup, rotation=pupil_rotation, supersample=supersample,
+                           pupil_scale=pupil_scale)
     out = np.empty((len(wl),) + tuple(shape))
     cen = (centre[0] * p, centre[1] * p)
     comps = [(to_quantity(off, u.mas, name="companion offset").value * MAS,

@@ -6,9 +6,9 @@ calls `kpifs.workflow` and prints. The parser (`kpifs._cli._parser`) imports
 nothing heavy, and a command's module is imported only when that command
 runs, so ``kpifs --help`` and ``kpifs --version`` start fast.
 
-Exit status: 0 success, 2 bad input or usage (one-line message naming the file
-and the problem), 3 an unexpected internal error (rerun with ``--debug`` for
-the traceback).
+Exit status: 0 success, 1 ``kpifs batch`` with failed entries, 2 bad input or
+usage (one-line message naming the file and the problem), 3 an unexpected
+internal error (rerun with ``--debug`` for the traceback), 130 interrupted.
 """
 import importlib
 import logging
@@ -56,6 +56,8 @@ def main(argv=None):
     run = importlib.import_module(f"{__name__}.{args.module}").run
     bad_input = (importlib.import_module("kpifs.exceptions").KpifsError, OSError)
     old_show = warnings.showwarning
+    hint = importlib.import_module("kpifs._utils").OVERWRITE_HINT
+    hint[0] = "--overwrite"      # messages name the command line's options, not the API's
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("default")
@@ -81,3 +83,4 @@ def main(argv=None):
         return 3
     finally:
         warnings.showwarning = old_show
+        hint[0] = "overwrite=True"
