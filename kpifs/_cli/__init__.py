@@ -12,6 +12,7 @@ internal error (rerun with ``--debug`` for the traceback), 130 interrupted.
 """
 import importlib
 import logging
+import os
 import sys
 import warnings
 
@@ -43,6 +44,21 @@ def _make_show(args):
     return show
 
 
+def _blas_threads():
+    """BLAS on one thread while a command runs (``KPIFS_BLAS_THREADS`` sets another number).
+
+    kpifs spreads its heavy work over the cores itself (`kpifs._utils.thread_map`,
+    one BLAS thread per chunk); what is left to BLAS are products of a few hundred
+    rows, where its threads gain little on two cores and, on a busy machine, wait
+    for each other: ``kpifs detect`` on the README's 400 frames took 27 s of CPU
+    with two BLAS threads at a load of 15, 4.4 s with one.
+    """
+    from threadpoolctl import threadpool_limits
+    env = os.environ.get("KPIFS_BLAS_THREADS", "").strip()
+    return threadpool_limits(limits=int(env) if env.isdigit() and int(env) > 0 else 1,
+                             user_api="blas")
+
+
 def main(argv=None):
     """Run the ``kpifs`` command line; return the exit status."""
     parser = build_parser()
@@ -59,7 +75,7 @@ def main(argv=None):
     hint = importlib.import_module("kpifs._utils").OVERWRITE_HINT
     hint[0] = "--overwrite"      # messages name the command line's options, not the API's
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), _blas_threads():
             warnings.simplefilter("default")
             warnings.showwarning = _make_show(args)
             return run(args)

@@ -78,10 +78,12 @@ _FLAG_WORDS = {"=": "bracketed", "<": "found at every step: an upper bound",
 def _curve(args, options, data, wl, ps, instrument, name):
     if not args.calibrator:
         raise KpifsError("inject --curve: give the calibrator's cubes (--calibrator)")
+    say = (lambda text: None) if args.quiet else (lambda text: print(text, flush=True))
+    seps = np.atleast_1d(_floats(args.separations, "--separations", u.mas))
+    say("[1/2] the analytic limits: extraction, calibration and search of the target")
     model = kernel_model_for(options, instrument)
     cals = [extract_observation(c, calibrator_options(options), model=model)
             for c in args.calibrator]
-    seps = np.atleast_1d(_floats(args.separations, "--separations", u.mas))
     # the analytic limits first: the ladders start from them
     target = extract_observation(args.cubes, options, model=model)
     analytic = detect_observation(calibrate_observation(target, cals, options),
@@ -94,6 +96,9 @@ def _curve(args, options, data, wl, ps, instrument, name):
         raise KpifsError(f"inject --curve: no analytic limit at {bad} mas (outside the search "
                          f"grid) to start the contrast ladder from; give --contrasts")
     window = options.window_for(data.shape)
+    say(f"[2/2] injections: {args.angles} position angles per contrast step, from 0.5 to 2 "
+        f"times the analytic limit until the steps bracket P_D 0.5" if ladder is None else
+        f"[2/2] injections: {args.angles} position angles at each of {len(ladder)} contrasts")
     tab = injection_limits(data, cals, cals[0].kernel_model, wavelengths=wl, pixscale=ps,
                            window=window, separations=seps, contrasts=ladder, start=ana,
                            n_angles=args.angles, pfa=args.pfa, seed=args.seed,
