@@ -179,8 +179,9 @@ def plot_injection_limits(table, *, analytic=None, ax=None):
                                (">", "^", "injections: lower bound (no step found enough)")):
         sel = flags == flag
         if sel.any():
-            ax.plot(seps[sel], lims[sel], "k" + marker, ms=8, ls="none")
-            handles.append(Line2D([], [], color="k", marker=marker, ls="none", label=text))
+            style = dict(color="k", marker=marker, ms=10, mfc="none", mew=1.5, ls="none")
+            ax.plot(seps[sel], lims[sel], **style)
+            handles.append(Line2D([], [], label=text, **style))
     if analytic is not None and "B_median" in analytic.curves.colnames:
         handles += ax.plot(analytic.curves["separation"].to_value(u.mas),
                            analytic.curves["B_median"], "b--",
