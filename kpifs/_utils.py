@@ -240,7 +240,9 @@ class _PlainProgress:
             self.write(now - self.start)
 
     def write(self, elapsed):
-        done = f"{self.n}" + (f"/{self.total}" if self.total else "") + f" {self.unit}"
+        unit = self.unit if self.n == 1 or self.unit.endswith("s") else (
+            self.unit[:-1] + "ies" if self.unit.endswith("y") else self.unit + "s")
+        done = f"{self.n}" + (f"/{self.total}" if self.total else "") + f" {unit}"
         left = ""
         if self.total and 0 < self.n < self.total:
             left = f", about {_duration(elapsed * (self.total - self.n) / self.n)} left"

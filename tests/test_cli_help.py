@@ -94,3 +94,20 @@ def test_detect_on_a_cube_suggests_extract(tmp_path, capsys):
         from kpifs import KpifsError
         with pytest.raises(KpifsError, match="pass overwrite=True"):     # the API's words
             check_output_path(tmp_path / "kp.fits")
+
+
+def test_progress_lines_with_the_time_left_when_stderr_is_not_a_terminal(monkeypatch, capsys):
+    import kpifs._utils as utils
+    monkeypatch.setattr(utils, "PROGRESS_EVERY", 0.0)          # a line at every step
+    assert list(utils.progress(range(4), desc="work", unit="entry")) == [0, 1, 2, 3]
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 4 and lines[0].startswith("kpifs: work: 1/4 entry, ")
+    assert lines[1].startswith("kpifs: work: 2/4 entries") and lines[1].endswith("left")
+    bar = utils.progress(desc="grow", unit="injection", total=2)    # updated by hand
+    bar.update(2)
+    bar.total += 2                                                  # the work grew
+    bar.update(1)
+    bar.close()
+    assert "3/4 injections" in capsys.readouterr().err
+    assert list(utils.progress(range(3), enabled=False)) == [0, 1, 2]
+    assert capsys.readouterr().err == ""
