@@ -4,6 +4,7 @@ import os
 import re
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -72,6 +73,19 @@ def threads():
         return max(1, os.cpu_count() or 1)
 
 
+def one_blas_thread():
+    """A context in which BLAS keeps to one thread.
+
+    For loops of small matrix products (a simulated frame's propagation, an
+    injection's reduction): BLAS's threads do not pay off on them, and on a
+    busy machine they wait for each other (kpifs demo's simulation: 60 s of
+    wall time for 20 frames with two BLAS threads at a load of 11, 2.4 s with
+    one). kpifs's own threads (`thread_map`) still share the cores.
+    """
+    from threadpoolctl import threadpool_limits
+    return threadpool_limits(limits=1, user_api="blas")
+
+
 def thread_map(fn, items, *, wrap=None, serial=False):
     """``[fn(x) for x in items]`` on `threads` threads, in order.
 
@@ -110,6 +124,11 @@ def _check_writable(folder, what):
     os.remove(probe)
 
 
+#: The option that replaces an output, as the user wrote the call: the command line sets
+#: it to ``--overwrite`` while a command runs (`kpifs._cli.main`).
+OVERWRITE_HINT = ["overwrite=True"]
+
+
 def check_output_path(path, *, overwrite=False):
     """Refuse an existing output (unless *overwrite*), a directory, a missing or unwritable
     folder: before any work is done."""
@@ -120,7 +139,7 @@ def check_output_path(path, *, overwrite=False):
     if path.is_dir():
         raise KpifsError(f"{path}: is a directory, expected an output file name")
     if path.exists() and not overwrite:
-        raise KpifsError(f"{path}: output exists; pass overwrite=True (--overwrite) to replace it")
+        raise KpifsError(f"{path}: output exists; pass {OVERWRITE_HINT[0]} to replace it")
     if not path.parent.exists():
         raise KpifsError(f"{path}: the folder {path.parent} does not exist")
     _check_writable(path.parent, path)
@@ -188,16 +207,84 @@ def write_table(table, path, *, overwrite=False, format="ascii.ecsv"):
                         overwrite=overwrite)
 
 
-def progress(iterable, *, desc=None, unit="it", total=None, enabled=True):
-    """*iterable* with a tqdm progress bar on stderr, or unchanged.
+#: Seconds between the plain progress lines written when stderr is not a terminal.
+PROGRESS_EVERY = 10.0
 
-    The bar is shown only when *enabled* and stderr is a terminal, so logs
-    and pipes get no bar updates.
+
+def _duration(seconds):
+    seconds = int(round(seconds))
+    if seconds < 60:
+        return f"{seconds} s"
+    minutes, seconds = divmod(seconds, 60)
+    if minutes < 60:
+        return f"{minutes} min {seconds:02d} s"
+    hours, minutes = divmod(minutes, 60)
+    return f"{hours} h {minutes:02d} min"
+
+
+class _PlainProgress:
+    """Progress for logs and pipes: one line on stderr every `PROGRESS_EVERY` seconds
+    (none for work shorter than that), with the time left estimated from the mean pace."""
+
+    def __init__(self, iterable, desc, unit, total, every):
+        self.iterable, self.desc, self.unit, self.every = iterable, desc or "working", unit, every
+        if total is None and iterable is not None and hasattr(iterable, "__len__"):
+            total = len(iterable)
+        self.total, self.n = total, 0
+        self.start = self.last = time.monotonic()
+
+    def __iter__(self):
+        for item in self.iterable:
+            yield item
+            self.update(1)
+
+    def update(self, n=1):
+        self.n += n
+        now = time.monotonic()
+        if now - self.last >= self.every:
+            self.last = now
+            self.write(now - self.start)
+
+    def write(self, elapsed):
+        unit = self.unit if self.n == 1 or self.unit.endswith("s") else (
+            self.unit[:-1] + "ies" if self.unit.endswith("y") else self.unit + "s")
+        done = f"{self.n}" + (f"/{self.total}" if self.total else "") + f" {unit}"
+        left = ""
+        if self.total and 0 < self.n < self.total:
+            left = f", about {_duration(elapsed * (self.total - self.n) / self.n)} left"
+        print(f"kpifs: {self.desc}: {done}, {_duration(elapsed)} elapsed{left}",
+              file=sys.stderr, flush=True)
+
+    def close(self):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class _NoProgress(_PlainProgress):
+    def update(self, n=1):
+        self.n += n
+
+
+def progress(iterable=None, *, desc=None, unit="it", total=None, enabled=True):
+    """*iterable* with progress shown on stderr, or unchanged.
+
+    On a terminal a tqdm bar; otherwise (logs, pipes) a plain line every
+    `PROGRESS_EVERY` seconds with the count and the time left, so that short
+    work prints nothing. Without *iterable*, an object to ``update(n)`` by hand
+    (its ``total`` may be changed as the work grows) and ``close()``; with
+    *enabled* False it counts silently.
     """
-    if not enabled or not getattr(sys.stderr, "isatty", lambda: False)():
-        return iterable
-    from tqdm.auto import tqdm   # deferred: tqdm is only needed when a bar is shown
-    return tqdm(iterable, desc=desc, unit=unit, total=total)
+    if not enabled:
+        return iterable if iterable is not None else _NoProgress(None, desc, unit, total, 0)
+    if getattr(sys.stderr, "isatty", lambda: False)():
+        from tqdm.auto import tqdm   # deferred: tqdm is only needed when a bar is shown
+        return tqdm(iterable, desc=desc, unit=unit, total=total)
+    return _PlainProgress(iterable, desc, unit, total, PROGRESS_EVERY)
 
 
 def version_cards(header, what):

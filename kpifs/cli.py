@@ -1,9 +1,9 @@
 """The ``kpifs`` command line: `main` (the ``kpifs`` script, ``python -m kpifs``).
 
 The commands live in the private package ``kpifs._cli``, one module each.
-Exit status: 0 success, 2 bad input or usage (one-line message naming the file
-and the problem), 3 an unexpected internal error (rerun with ``--debug`` for
-the traceback).
+Exit status: 0 success, 1 ``kpifs batch`` with failed entries, 2 bad input or
+usage (one-line message naming the file and the problem), 3 an unexpected
+internal error (rerun with ``--debug`` for the traceback), 130 interrupted.
 """
 import sys
 

@@ -7,11 +7,13 @@ all through `kpifs.workflow.process_observation`, as ``kpifs batch`` and the
 ``extract``/``detect`` commands would.
 """
 import logging
+import tempfile
+from pathlib import Path
 
 import numpy as np
 from astropy import units as u
 
-from ._utils import check_output_dir
+from ._utils import check_output_dir, one_blas_thread
 from .detect.sky import detector_to_sky, mean_angle
 from .exceptions import KpifsError
 from .io.layouts import write_observation
@@ -19,7 +21,7 @@ from .plotting import save_detection_plots
 from .simulate import simulate_scene
 from .workflow import DetectOptions, ExtractOptions, process_observation
 
-__all__ = ["run_demo", "DEMO_SCENE", "DEMO_STEP"]
+__all__ = ["run_demo", "DEMO_SCENE", "DEMO_STEP", "DEMO_MIN_TRANSMISSION"]
 
 log = logging.getLogger(__name__)
 
@@ -29,19 +31,36 @@ DEMO_SCENE = dict(shape=(64, 64), exptime=1.0 * u.s, npup=96,
                   contrasts=1e-3 * np.linspace(1.4, 0.6, 22),
                   companion_offset=[-100.0, 83.0] * u.mas)
 
-#: The demo's pupil model: Subaru on a 0.8 m grid (74 kernel phases), so that
-#: the 200 frames per star far outnumber the kernel phases and the estimated
-#: covariance (hence the false-alarm calibration) is trustworthy.
+#: The demo's pupil model: Subaru on a 0.8 m grid, so that the 200 frames per star
+#: far outnumber the 74 kernel phases and the estimated covariance (hence the
+#: false-alarm calibration) is trustworthy ...
 DEMO_STEP = 0.8 * u.m
+#: ... of cells at least 90 % inside the pupil: its longest baseline (7.2 m) is
+#: sampled by CHARIS's 16.2 mas pixels down to the shortest channel, 1.16 um
+#: (the default cut, 0.2, reaches 7.6 m, beyond the 7.4 m there).
+DEMO_MIN_TRANSMISSION = 0.9
 
 
-def run_demo(outdir, *, frames=200, seed=1, overwrite=False, progress=True, draws=5000):
+def _position(row, sky):
+    """A candidate's fitted position, naming its frame."""
+    def text(a, b, names):
+        va, ea = row[f"fit_{a}"].to_value(u.mas), row[f"fit_{a}_err"].to_value(u.mas)
+        vb, eb = row[f"fit_{b}"].to_value(u.mas), row[f"fit_{b}_err"].to_value(u.mas)
+        return f"{names[0]} {va:.1f} +- {ea:.1f}, {names[1]} {vb:.1f} +- {eb:.1f} mas"
+    if sky and "fit_dra" in row.colnames:
+        return text("dra", "ddec", ("dRA", "dDec")) + " on the sky (East positive)"
+    return text("x", "y", ("x", "y")) + " on the detector"
+
+
+def run_demo(outdir, *, frames=200, seed=1, overwrite=False, progress=True, draws=5000,
+             keep_inputs=False):
     """Run the demonstration; returns the `~kpifs.data.DetectionResult`.
 
-    Writes in *outdir*: ``charis/target/*_cube.fits`` and
-    ``charis/calibrator/*_cube.fits`` (simulated), ``target_kp.fits`` and
-    ``calibrator_kp.fits`` (KPFITS), ``calibrated_kp.fits``, ``detection.fits``
-    and ``figures/*.png``.
+    Writes in *outdir*: ``target_kp.fits`` and ``calibrator_kp.fits`` (KPFITS),
+    ``calibrated_kp.fits``, ``detection.fits`` and ``figures/*.png`` (24 MB with
+    the defaults). The simulated CHARIS cubes are made in a temporary folder and
+    removed (about 300 MB), or kept in ``charis/target/*_cube.fits`` and
+    ``charis/calibrator/*_cube.fits`` with *keep_inputs*.
 
     Examples
     --------
@@ -57,16 +76,25 @@ def run_demo(outdir, *, frames=200, seed=1, overwrite=False, progress=True, draw
     if (outdir / "detection.fits").exists() and not overwrite:
         raise KpifsError(f"{outdir}: holds the products of an earlier demo; pass --overwrite")
     outdir.mkdir(parents=True, exist_ok=True)
-    say = print if progress else (lambda *a, **k: None)
+    with tempfile.TemporaryDirectory(prefix="kpifs-demo-") as tmp, one_blas_thread():
+        # the chain's products are small matrices: BLAS's own threads would only wait
+        inputs = outdir / "charis" if keep_inputs else Path(tmp)
+        return _run(outdir, inputs, frames=frames, seed=seed, overwrite=overwrite,
+                    progress=progress, draws=draws, keep_inputs=keep_inputs)
 
-    say(f"[1/4] simulating {frames} CHARIS exposures of a target and of a calibrator")
+
+def _run(outdir, inputs, *, frames, seed, overwrite, progress, draws, keep_inputs):
+    say = print if progress else (lambda *a, **k: None)
+    where = f"in {inputs}" if keep_inputs else "in a temporary folder"
+    say(f"[1/4] simulating {frames} CHARIS exposures of a target and of a calibrator ({where})")
     obs = simulate_scene("charis", n_frames=frames, seed=seed, progress=progress, **DEMO_SCENE)
-    files = write_observation(obs, outdir / "charis", layout="charis", overwrite=overwrite)
+    files = write_observation(obs, inputs, layout="charis", overwrite=overwrite)
 
     say(f"[2/4] reading, extracting, calibrating and searching (GLR test, {draws} "
         f"Monte-Carlo draws)")
+    xo = ExtractOptions(step=DEMO_STEP, min_transmission=DEMO_MIN_TRANSMISSION)
     out = process_observation(files["target"], [files["calibrator"]], outdir,
-                              extract_options=ExtractOptions(step=DEMO_STEP),
+                              extract_options=xo,
                               detect_options=DetectOptions(test="B", pfa=1e-3, pd=0.5,
                                                            draws=draws, seed=seed),
                               overwrite=overwrite, keep_stars=True, progress=progress)
@@ -74,21 +102,21 @@ def run_demo(outdir, *, frames=200, seed=1, overwrite=False, progress=True, draw
 
     say("[3/4] drawing figures")
     truth = tuple(obs.params.companion_offset.to_value(u.mas))
-    shown = truth
-    if res.meta.get("frame") == "sky":        # maps on the sky: the truth turned likewise
-        shown = detector_to_sky(*truth, mean_angle(res.meta["pa_bins"][0]))
+    sky = res.meta.get("frame") == "sky"
+    shown = detector_to_sky(*truth, mean_angle(res.meta["pa_bins"][0])) if sky else truth
     save_detection_plots(res, outdir / "figures", truth=shown,
                          truth_spectrum=obs.params.contrasts)
 
-    say(f"[4/4] truth: companion at ({truth[0]:.0f}, {truth[1]:.0f}) mas, mean contrast "
+    frame = ("dRA {:.0f}, dDec {:.0f} mas on the sky (East positive)" if sky
+             else "x {:.0f}, y {:.0f} mas on the detector")
+    say(f"[4/4] truth: companion at {frame.format(*shown)}, mean contrast "
         f"{obs.params.contrasts.mean():.1e}")
-    for row in res.candidates:
-        x, dx = row["fit_x"].to_value(u.mas), row["fit_x_err"].to_value(u.mas)
-        y, dy = row["fit_y"].to_value(u.mas), row["fit_y_err"].to_value(u.mas)
-        say(f"found: ({x:.1f} +- {dx:.1f}, {y:.1f} +- {dy:.1f}) mas, "
-            f"mean contrast {np.mean(row['fit_contrast']):.2e}, global P_FA "
-            f"{row['pfa_global']:.1e}")
+    for i, row in enumerate(res.candidates, 1):
+        say(f"found {i}: {_position(row, sky)}, mean contrast "
+            f"{np.mean(row['fit_contrast']):.2e}, global P_FA {row['pfa_global']:.1e}")
     if not len(res.candidates):
         say("found: no candidate above the threshold")
-    say(f"products in {outdir}/: detection.fits, calibrated_kp.fits, figures/")
+    size = sum(p.stat().st_size for p in outdir.rglob("*") if p.is_file()) / 2 ** 20
+    say(f"products in {outdir}/ ({size:.0f} MB): detection.fits, calibrated_kp.fits, "
+        f"figures/")
     return res

@@ -23,7 +23,7 @@ from astropy import units as u
 from astropy.table import QTable
 
 from ._utils import progress as progress_bar
-from ._utils import to_quantity
+from ._utils import one_blas_thread, to_quantity
 from .calibrate import calibrate
 from .detect import detect
 from .detect.sky import sky_to_detector   # noqa: F401  (kpifs.inject.sky_to_detector)
@@ -160,10 +160,96 @@ def _detected(result, x, y, radius):
     return bool(np.any(np.hypot(cx.to_value(u.mas) - x, cy.to_value(u.mas) - y) < radius))
 
 
+#: The first steps of a ladder, as factors of the separation's starting contrast (the
+#: analytic limit); the ladder grows by `LADDER_RATIO` beyond its ends until it brackets
+#: the detection probability.
+LADDER_FACTORS = (0.5, 1.0, 2.0)
+LADDER_RATIO = 2.0
+
+#: Candidates each injection search reports at most: the injected companion, a real
+#: one and a side lobe fit well within, and the search stops early.
+INJECTION_CANDIDATES = 5
+
+
+def _limit(contrasts, fractions, pd):
+    """The contrast where the found fraction reaches *pd* (log interpolation) and how it is
+    known: '=' bracketed, '<' found at every step (the lowest step is an upper bound),
+    '>' never found enough (the highest step is a lower bound)."""
+    p = np.maximum.accumulate(np.asarray(fractions, float))     # monotone in contrast
+    c = np.asarray(contrasts, float)
+    k = np.flatnonzero(p >= pd)
+    if not len(k):
+        return float(c[-1]), ">"
+    i = k[0]
+    if i == 0:
+        return float(c[0]), "<"
+    f = (pd - p[i - 1]) / (p[i] - p[i - 1])
+    lc = np.log(c)
+    return float(np.exp(lc[i - 1] + f * (lc[i] - lc[i - 1]))), "="
+
+
+def _next_contrast(contrasts, fractions, pd, max_steps):
+    """The next step of an adaptive ladder, or None once it brackets *pd* (or is full)."""
+    if len(contrasts) >= max_steps:
+        return None
+    flag = _limit(contrasts, fractions, pd)[1]
+    if flag == "<":
+        return min(contrasts) / LADDER_RATIO
+    if flag == ">":
+        return max(contrasts) * LADDER_RATIO
+    return None
+
+
+class _Injector:
+    """One injection at a time: the companion into the target's frames, the target
+    re-extracted, calibrated against the calibrators' kernel phases (extracted once) and
+    searched; returns whether a candidate lies within *radius* of the injection."""
+
+    def __init__(self, target, calibrators, model, *, wavelengths, pixscale, window, pfa, pd,
+                 n_draws):
+        self.target, self.calibrators, self.model = target, calibrators, model
+        self.wl, self.ps, self.window = wavelengths, pixscale, window
+        self.pfa, self.pd, self.n_draws = pfa, pd, n_draws
+        ps = to_quantity(pixscale, u.mas, name="pixel scale").value
+        resolution = to_quantity(wavelengths, u.um).to_value(u.m).min() / float(
+            np.max(np.hypot(*model.uv.to_value(u.m).T))) / (np.pi / 180 / 3600e3)
+        self.radius = max(resolution, 2 * ps)
+
+    def __call__(self, x, y, contrast, seed):
+        cube = inject_companion(self.target, position=[x, y] * u.mas, contrast=contrast,
+                                pixscale=self.ps)
+        kpd = extract_kernel_phases(cube, self.model, wavelengths=self.wl, pixscale=self.ps,
+                                    window=self.window, keep_phases=False, source="injected")
+        # found or not is all that is asked: one error model (no characterisation model),
+        # no limits, and a search that stops after a few candidates
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*max_candidates", category=KpifsWarning)
+            res = detect(calibrate(kpd, self.calibrators, fit_modes=None), pfa=self.pfa,
+                         pd=self.pd, n_draws=self.n_draws, seed=seed, limits=False,
+                         max_candidates=INJECTION_CANDIDATES)
+        return _detected(res, x, y, self.radius)
+
+
 def injection_limits(target, calibrators, model, *, wavelengths, pixscale, window,
-                     separations, contrasts, n_angles=6, pfa=1e-3, pd=0.5, seed=0,
-                     n_draws=5000, progress=False):
+                     separations, contrasts=None, start=None, n_angles=4, pfa=1e-3, pd=0.5,
+                     seed=0, n_draws=1000, max_steps=8, progress=False):
     """Empirical contrast curve from companions injected into the target's frames.
+
+    At each separation, companions of one contrast are injected at *n_angles*
+    position angles (evenly spaced from a seeded random start), each into the
+    target's frames alone, and the whole reduction is rerun: extraction,
+    calibration against the calibrators' kernel phases (extracted once), the
+    search at *pfa*. The fraction found is counted per contrast step, and the
+    contrast where it reaches *pd* is interpolated in log contrast.
+
+    The ladder is either given (*contrasts*, tried at every separation) or
+    made to bracket the limit by itself: it starts at *start* times
+    `LADDER_FACTORS` (give the analytic limit) and grows by `LADDER_RATIO`
+    below its lowest step while every step is found, above its highest while
+    none is found often enough, up to *max_steps* steps. A limit that the
+    ladder does not bracket is censored: flag ``'<'`` (the lowest step was found
+    at least *pd* of the time: an upper bound) or ``'>'`` (the highest was not:
+    a lower bound).
 
     Parameters
     ----------
@@ -176,21 +262,33 @@ def injection_limits(target, calibrators, model, *, wavelengths, pixscale, windo
     wavelengths, pixscale, window
         As for `~kpifs.extract_kernel_phases`.
     separations : `~astropy.units.Quantity` (nsep,)
-    contrasts : array-like (ncon,)
-        Contrast ladder (flat spectrum) tried at every separation.
+    contrasts : array-like (ncon,), optional
+        A fixed contrast ladder (flat spectrum) tried at every separation.
+    start : array-like (nsep,), optional
+        Without *contrasts*: the contrast each separation's ladder starts
+        from (the analytic limit).
     n_angles : int
-        Position angles per (separation, contrast), random (seeded).
+        Position angles per (separation, contrast).
     pfa, pd : float
         False-alarm probability of the detection and the detection probability
         of the reported limit.
+    seed : int
+        Seed of the angles and of the searches' null draws.
+    n_draws : int
+        Monte-Carlo draws calibrating each injection's search.
+    max_steps : int
+        Most contrast steps of an adaptive ladder.
+    progress : bool
+        Progress on stderr (a bar on a terminal, otherwise a line every few
+        seconds with the time left).
 
     Returns
     -------
     `~astropy.table.QTable`
         One row per (separation, contrast): ``separation``, ``contrast``,
         ``n_injected``, ``n_detected``, ``pd``; ``meta['limits']`` the contrast
-        at P_D = *pd* per separation (interpolated in log contrast; NaN when the
-        ladder does not bracket it), with the options in ``meta``.
+        at P_D = *pd* per separation and ``meta['flags']`` how each is known
+        ('=', '<' or '>'), with the options in ``meta``.
 
     Examples
     --------
@@ -203,50 +301,60 @@ def injection_limits(target, calibrators, model, *, wavelengths, pixscale, windo
     >>> args = dict(wavelengths=obs.wavelengths, pixscale=obs.params.pixscale)
     >>> cal = extract_kernel_phases(obs.calibrator, km, **args)
     >>> tab = injection_limits(obs.target, [cal], km, window=cal.window, **args,
-    ...                        separations=[60] * u.mas, contrasts=[0.05], n_angles=2,
-    ...                        n_draws=1000)
-    >>> tab["n_injected"].tolist(), bool(tab["pd"][0] == 1.0)
-    ([2], True)
+    ...                        separations=[60] * u.mas, contrasts=[0.05], n_angles=2)
+    >>> tab["n_injected"].tolist(), bool(tab["pd"][0] == 1.0), tab.meta["flags"]
+    ([2], True, ['<'])
     """
     target = np.asarray(target, float)
     seps = np.atleast_1d(to_quantity(separations, u.mas, name="separations").value)
-    ladder = np.sort(np.atleast_1d(np.asarray(contrasts, float)))
-    if ladder.size == 0 or np.any(ladder <= 0) or seps.size == 0 or np.any(seps <= 0):
-        raise KpifsError("injection limits: separations and contrasts must be > 0")
+    if seps.size == 0 or np.any(~np.isfinite(seps)) or np.any(seps <= 0):
+        raise KpifsError("injection limits: separations must be > 0")
+    if contrasts is not None:
+        ladders = [list(np.sort(np.atleast_1d(np.asarray(contrasts, float))))] * len(seps)
+    elif start is not None:
+        s0 = np.broadcast_to(np.asarray(start, float), seps.shape)
+        ladders = [list(c * np.asarray(LADDER_FACTORS)) for c in s0]
+    else:
+        raise KpifsError("injection limits: give a contrast ladder or the contrasts to start "
+                         "from (the analytic limits)")
+    if any(len(lad) == 0 or not np.all(np.isfinite(lad)) or min(lad) <= 0 for lad in ladders):
+        raise KpifsError("injection limits: contrasts must be finite and > 0")
     rng = np.random.default_rng(seed)
-    ps = to_quantity(pixscale, u.mas, name="pixel scale").value
-    resolution = to_quantity(wavelengths, u.um).to_value(u.m).min() / float(
-        np.max(np.hypot(*model.uv.to_value(u.m).T))) / (np.pi / 180 / 3600e3)
-    rows = []
-    todo = [(s, c) for s in seps for c in ladder]
-    for s, c in progress_bar(todo, desc="injections", unit="step", enabled=progress):
-        hits = 0
-        for th in rng.uniform(0, 2 * np.pi, n_angles):
-            x, y = s * np.cos(th), s * np.sin(th)
-            cube = inject_companion(target, position=[x, y] * u.mas, contrast=c,
-                                    pixscale=ps * u.mas)
-            kpd = extract_kernel_phases(cube, model, wavelengths=wavelengths, pixscale=pixscale,
-                                        window=window, keep_phases=False, source="injected")
-            res = detect(calibrate(kpd, calibrators), pfa=pfa, pd=pd, n_draws=n_draws,
-                         seed=int(rng.integers(2 ** 31)), limits=False)
-            hits += _detected(res, x, y, max(resolution, 2 * ps))
-        rows.append((s, c, n_angles, hits, hits / n_angles))
-        log.info("injected %.3g at %.0f mas: %d of %d found", c, s, hits, n_angles)
+    inject = _Injector(target, calibrators, model, wavelengths=wavelengths, pixscale=pixscale,
+                       window=window, pfa=pfa, pd=pd, n_draws=n_draws)
+    bar = progress_bar(desc="injections", unit="injection",
+                       total=sum(len(lad) for lad in ladders) * n_angles, enabled=progress)
+    rows, limits, flags = [], [], []
+    # the searches' own threads share the cores: BLAS's on top would oversubscribe them
+    with one_blas_thread():
+        for s, ladder in zip(seps, ladders):
+            done = {}
+            todo = list(ladder)
+            while todo:
+                c = todo.pop(0)
+                th = rng.uniform(0, 2 * np.pi) + 2 * np.pi * np.arange(n_angles) / n_angles
+                hits = 0
+                for t in th:
+                    hits += inject(s * np.cos(t), s * np.sin(t), c, int(rng.integers(2 ** 31)))
+                    bar.update(1)
+                done[c] = hits
+                log.info("injected %.3g at %.0f mas: %d of %d found", c, s, hits, n_angles)
+                if not todo and contrasts is None:
+                    cs = sorted(done)
+                    nxt = _next_contrast(cs, [done[k] / n_angles for k in cs], pd, max_steps)
+                    if nxt is not None:
+                        todo.append(nxt)
+                        bar.total += n_angles
+            cs = sorted(done)
+            rows += [(s, c, n_angles, done[c], done[c] / n_angles) for c in cs]
+            lim, flag = _limit(cs, [done[k] / n_angles for k in cs], pd)
+            limits.append(lim)
+            flags.append(flag)
+    bar.close()
     tab = QTable(rows=rows, names=("separation", "contrast", "n_injected", "n_detected", "pd"))
     tab["separation"].unit = u.mas
-    limits = []
-    for s in seps:
-        sel = tab[tab["separation"].value == s]
-        p = np.maximum.accumulate(np.asarray(sel["pd"], float))     # monotone in contrast
-        k = np.flatnonzero(p >= pd)
-        if not len(k) or k[0] == 0:
-            limits.append(np.nan if not len(k) else float(sel["contrast"][0]))
-            continue
-        i = k[0]
-        lc = np.log(np.asarray(sel["contrast"], float))
-        f = (pd - p[i - 1]) / (p[i] - p[i - 1])
-        limits.append(float(np.exp(lc[i - 1] + f * (lc[i] - lc[i - 1]))))
-    tab.meta.update(limits=limits, pfa=pfa, pd=pd, n_angles=n_angles, seed=seed,
+    tab.meta.update(limits=limits, flags=flags, pfa=pfa, pd=pd, n_angles=n_angles, seed=seed,
                     n_draws=n_draws, separations_mas=seps.tolist(),
+                    ladder="given" if contrasts is not None else "adaptive",
                     method="companions made of each frame's own PSF, whole reduction rerun")
     return tab

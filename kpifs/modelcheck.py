@@ -26,7 +26,8 @@ Two measures, each for what it is good at:
   compared by the *calibrated reduced chi2*: the residual between the two
   stars (or halves) in the leading modes of the frame scatter, relative to
   that scatter. The default is kept unless another model lowers it by more
-  than twice its statistical scatter. The same test decides whether a fitted
+  than twice the standard deviation of the difference (a chi2 of ``n`` modes
+  scatters by ``sqrt(2 n)``). The same test decides whether a fitted
   orientation and scale that the textbook pupil does not describe to within
   the amplitudes' noise are worth using.
 """
@@ -38,7 +39,8 @@ from astropy import units as u
 from astropy.table import QTable
 
 from ._lazy import lazy_module
-from ._utils import to_quantity
+from ._utils import one_blas_thread, to_quantity
+from ._utils import progress as progress_bar
 from .exceptions import KpifsError
 from .extract import extract_kernel_phases
 from .kernel import KernelModel
@@ -51,14 +53,27 @@ __all__ = ["ModelCheck", "check_pupil_model"]
 
 log = logging.getLogger(__name__)
 
-#: A model replaces the default only when it lowers the calibrated reduced chi2
-#: by more than this many of its standard deviations, ``sqrt(2 / n_modes)``
-#: relative (with 50 frames per half and one channel, 40 %).
+#: A model replaces the default only when it lowers the calibrated reduced chi2 by
+#: more than this many standard deviations of the difference (`_chi2_difference_sd`).
 CHI2_SIGMAS = 2.0
 
 
+def _chi2_difference_sd(row, ref):
+    """Standard deviation of the difference of two models' calibrated reduced chi2.
+
+    A chi2 of ``n`` degrees of freedom (the modes) has a standard deviation
+    ``sqrt(2 n)``; one ``chi2_red`` times larger than its law (noise the frames'
+    scatter does not show) ``chi2_red * sqrt(2 n)``: in reduced units
+    ``chi2_red * sqrt(2 / n)``. The two models see the same frames, but not
+    the same kernels: their chi2 are taken as independent, which errs towards
+    keeping the default.
+    """
+    return float(np.sqrt(2 * ref["chi2_red"] ** 2 / ref["n_modes"]
+                         + 2 * row["chi2_red"] ** 2 / row["n_modes"]))
+
+
 def _significantly_lower(row, ref):
-    return row["chi2_red"] < ref["chi2_red"] * (1 - CHI2_SIGMAS * np.sqrt(2 / ref["n_modes"]))
+    return ref["chi2_red"] - row["chi2_red"] > CHI2_SIGMAS * _chi2_difference_sd(row, ref)
 
 
 #: The fitted geometry is trusted outright when the amplitude mismatch is within
@@ -74,6 +89,9 @@ MIN_TRANSFER = 0.2
 #: halo is not a Gaussian.
 ATTENUATION_DEGREE = 3
 ATTENUATION_SCALE = 1e6
+
+#: Evaluations a bounded 1-D refinement takes, about (for the progress estimate).
+_REFINE_EVALUATIONS = 8
 
 #: Pupil sampling of the model images (a coarser pupil turns in jumps).
 MODEL_NPUP = 256
@@ -177,12 +195,14 @@ def _phase_measures(kt, kc):
 
 
 class _Evaluator:
-    def __init__(self, pupil, target, calibrator, wavelengths, pixscale, window, centroid):
-        self.pupil = pupil
+    def __init__(self, pupil, target, calibrator, wavelengths, pixscale, window, centroid,
+                 pupil_scale=None):
+        self.pupil, self.pupil_scale = pupil, pupil_scale
         self.target, self.calibrator = target, calibrator
         self.wl, self.ps = wavelengths, pixscale
         self.kw = dict(window=window, centroid=centroid, bad_frames="drop")
         self.rows = []
+        self.bar = None
         self.floor = None
         self.ideal = {}
 
@@ -201,7 +221,8 @@ class _Evaluator:
         if ideal is None:
             ideal = self.ideal[(rotation, scale)] = simulate_psf(
                 self.pupil, self.wl, pixscale=ps, shape=self.target.shape[-2:],
-                pupil_rotation=rotation * u.deg, npup=MODEL_NPUP, supersample=4)
+                pupil_rotation=rotation * u.deg, npup=MODEL_NPUP, supersample=4,
+                pupil_scale=self.pupil_scale)
         pred = extract_kernel_phases(ideal[None], kt.kernel_model, source="model image",
                                      **args).amplitudes[0]
         mis = _amp_mismatch(amps, pred, kt.kernel_model, self.wl)
@@ -217,6 +238,10 @@ class _Evaluator:
                               scatter=scat))
         log.info("model check %s: rotation %.2f deg, scale %.4f, %s: mismatch %.5f, "
                  "chi2_red %.2f", scan, rotation, scale, options, mis, chi2)
+        if self.bar is not None:
+            if self.bar.n + 1 >= self.bar.total:     # the refinements took more steps
+                self.bar.total += 1
+            self.bar.update(1)
         return mis
 
 
@@ -235,7 +260,8 @@ def _scan_and_refine(fn, grid, xatol):
 def check_pupil_model(target, calibrator=None, *, wavelengths, pixscale, pupil="subaru",
                       window=None, rotations=np.arange(-6.0, 6.01, 1.5) * u.deg,
                       scales=np.arange(0.97, 1.0301, 0.01), cuts=(0.05, 0.1, 0.2, 0.3, 0.5),
-                      binary=True, steps=None, centroid="com"):
+                      binary=True, steps=None, centroid="com", pupil_scale=None,
+                      progress=False):
     """Fit the pupil model's orientation and scale to a star's frames and compare models.
 
     Parameters
@@ -264,6 +290,11 @@ def check_pupil_model(target, calibrator=None, *, wavelengths, pixscale, pupil="
         Grid steps to compare (default: only the pupil's).
     centroid : str
         Star-centre method of the extraction.
+    pupil_scale : `~astropy.units.Quantity`, optional
+        Pixel size (m) of a pupil image *pupil*, overriding its ``PUPSCALE``.
+    progress : bool
+        Progress on stderr (a bar on a terminal, otherwise a line every few
+        seconds with the time left).
 
     Returns
     -------
@@ -298,59 +329,66 @@ def check_pupil_model(target, calibrator=None, *, wavelengths, pixscale, pupil="
     defaults = model_defaults(pupil)
     base = dict(grey=defaults.grey, min_transmission=defaults.min_transmission,
                 step=defaults.step * u.m, offset=defaults.offset * u.m)
-    ev = _Evaluator(pupil, target, calibrator, wl, ps, window, centroid)
+    ev = _Evaluator(pupil, target, calibrator, wl, ps, window, centroid, pupil_scale)
+    n_steps = np.size(rotations) + np.size(scales) + len(cuts) + 2 * _REFINE_EVALUATIONS + (
+        0 if steps is None else np.size(steps)) + 5
+    ev.bar = progress_bar(desc="model check", unit="model", total=n_steps, enabled=progress)
+    # every model is a few small products: BLAS's threads would only wait for each other
 
     def model_for(options):
-        return KernelModel.from_pupil(make_pupil(pupil, rotation=0 * u.deg, **options))
+        return KernelModel.from_pupil(make_pupil(pupil, rotation=0 * u.deg,
+                                                 pupil_scale=pupil_scale, **options))
 
-    km = model_for(base)
-    rot_grid = np.atleast_1d(to_quantity(rotations, u.deg, name="rotations").value)
-    scale_grid = np.atleast_1d(np.asarray(scales, float))
-    rot0 = defaults.rotation
-    ev("default", km, rot0, 1.0, base)
-    rot = _scan_and_refine(lambda r: ev("rotation", km, rot0 + r, 1.0, base), rot_grid, 0.05)
-    rot += rot0
-    scale = _scan_and_refine(lambda f: ev("scale", km, rot, f, base), scale_grid, 5e-4)
-    if len(scale_grid) > 1 and len(rot_grid) > 1:
-        span = rot_grid[1] - rot_grid[0]
-        rot = _scan_and_refine(lambda r: ev("refine", km, r, scale, base),
-                               np.array([rot - span / 2, rot, rot + span / 2]), 0.05)
-    ev("fitted", km, rot, scale, base)
-    fitted, default = ev.rows[-1], ev.rows[0]
-    # Trust the fitted geometry when the textbook pupil describes the amplitudes to
-    # within their noise; otherwise only when the kernel phases agree that it is better.
-    shape_ok = fitted["amp_mismatch"] < SHAPE_TOLERANCE * ev.floor
-    better = _significantly_lower(fitted, default)
-    use_fit = shape_ok or better
-    geo_rot, geo_scale = (rot, scale) if use_fit else (rot0, 1.0)
-    if shape_ok:
-        geo_reason = (f"rotation and pixel scale fitted to the Fourier amplitudes, which the "
-                      f"textbook pupil describes to within their noise (mismatch "
-                      f"{fitted['amp_mismatch']:.4f}, noise {ev.floor:.4f})")
-    else:
-        geo_reason = (f"the textbook pupil does not describe the Fourier amplitudes (mismatch "
-                      f"{fitted['amp_mismatch']:.4f} against a noise of {ev.floor:.4f}): the "
-                      f"fitted rotation {rot:+.2f} deg and scale {scale:.4f} are indicative, and "
-                      f"the calibrated reduced chi2 {fitted['chi2_red']:.2f} against "
-                      f"{default['chi2_red']:.2f} for the default geometry "
-                      + ("confirms them" if better else "does not confirm them: default kept"))
-    # transmission cut and step, at the recommended orientation and scale
-    variants = [dict(base, min_transmission=c) for c in cuts]
-    if binary:
-        variants.append(dict(base, grey=False, min_transmission=BINARY_MIN_TRANSMISSION))
-    for st in ([] if steps is None else np.atleast_1d(to_quantity(steps, u.m, name="steps"))):
-        variants.append(dict(base, step=st))
-    if not any(v == base for v in variants):
-        variants.append(dict(base))
-    rows = []
-    for opts in variants:
-        scan = "step" if opts["step"] != base["step"] else "cut"
-        ev(scan, model_for(opts), geo_rot, geo_scale, opts)
-        rows.append(ev.rows[-1])
-    chi2 = [r["chi2_red"] for r in rows]
-    i_base = next(i for i, v in enumerate(variants) if v == base)
-    i_best = int(np.argmin(chi2))
-    pick = i_best if _significantly_lower(rows[i_best], rows[i_base]) else i_base
+    with ev.bar, one_blas_thread():
+        km = model_for(base)
+        rot_grid = np.atleast_1d(to_quantity(rotations, u.deg, name="rotations").value)
+        scale_grid = np.atleast_1d(np.asarray(scales, float))
+        rot0 = defaults.rotation
+        ev("default", km, rot0, 1.0, base)
+        rot = _scan_and_refine(lambda r: ev("rotation", km, rot0 + r, 1.0, base), rot_grid, 0.05)
+        rot += rot0
+        scale = _scan_and_refine(lambda f: ev("scale", km, rot, f, base), scale_grid, 5e-4)
+        if len(scale_grid) > 1 and len(rot_grid) > 1:
+            span = rot_grid[1] - rot_grid[0]
+            rot = _scan_and_refine(lambda r: ev("refine", km, r, scale, base),
+                                   np.array([rot - span / 2, rot, rot + span / 2]), 0.05)
+        ev("fitted", km, rot, scale, base)
+        fitted, default = ev.rows[-1], ev.rows[0]
+        # Trust the fitted geometry when the textbook pupil describes the amplitudes to
+        # within their noise; otherwise only when the kernel phases agree that it is better.
+        shape_ok = fitted["amp_mismatch"] < SHAPE_TOLERANCE * ev.floor
+        better = _significantly_lower(fitted, default)
+        use_fit = shape_ok or better
+        geo_rot, geo_scale = (rot, scale) if use_fit else (rot0, 1.0)
+        if shape_ok:
+            geo_reason = (f"rotation and pixel scale fitted to the Fourier amplitudes, which the "
+                          f"textbook pupil describes to within their noise (mismatch "
+                          f"{fitted['amp_mismatch']:.4f}, noise {ev.floor:.4f})")
+        else:
+            geo_reason = (f"the textbook pupil does not describe the Fourier amplitudes "
+                          f"(mismatch {fitted['amp_mismatch']:.4f} against a noise of "
+                          f"{ev.floor:.4f}): the fitted rotation {rot:+.2f} deg and scale "
+                          f"{scale:.4f} are indicative, and the calibrated reduced chi2 "
+                          f"{fitted['chi2_red']:.2f} against {default['chi2_red']:.2f} for the "
+                          f"default geometry "
+                          + ("confirms them" if better else "does not confirm them: default kept"))
+        # transmission cut and step, at the recommended orientation and scale
+        variants = [dict(base, min_transmission=c) for c in cuts]
+        if binary:
+            variants.append(dict(base, grey=False, min_transmission=BINARY_MIN_TRANSMISSION))
+        for st in ([] if steps is None else np.atleast_1d(to_quantity(steps, u.m, name="steps"))):
+            variants.append(dict(base, step=st))
+        if not any(v == base for v in variants):
+            variants.append(dict(base))
+        rows = []
+        for opts in variants:
+            scan = "step" if opts["step"] != base["step"] else "cut"
+            ev(scan, model_for(opts), geo_rot, geo_scale, opts)
+            rows.append(ev.rows[-1])
+        chi2 = [r["chi2_red"] for r in rows]
+        i_base = next(i for i, v in enumerate(variants) if v == base)
+        i_best = int(np.argmin(chi2))
+        pick = i_best if _significantly_lower(rows[i_best], rows[i_base]) else i_base
 
     table = QTable(rows=[[r[k] for k in ev.rows[0]] for r in ev.rows], names=list(ev.rows[0]))
     table["rotation"].unit = u.deg
@@ -365,13 +403,16 @@ def check_pupil_model(target, calibrator=None, *, wavelengths, pixscale, pupil="
                 f"{u.Quantity(o['step'], u.m).value:g} m")
     reason = (f"{geo_reason}; between {pair} the {kind(chosen)} model gives calibrated "
               f"reduced chi2 {chi2[pick]:.2f}")
+    sd = _chi2_difference_sd(rows[i_best], rows[i_base])
     if pick == i_base:
         reason += (f" (the default; the best other, {kind(variants[i_best])}, "
                    f"{chi2[i_best]:.2f}, is not lower by {CHI2_SIGMAS:g} standard deviations "
-                   f"of chi2, {CHI2_SIGMAS * np.sqrt(2 / rows[i_base]['n_modes']):.0%})"
+                   f"of the difference, {CHI2_SIGMAS * sd:.2f})"
                    if i_best != i_base else " (the default, and the lowest)")
     else:
-        reason += f", {1 - chi2[pick] / chi2[i_base]:.0%} below the default's {chi2[i_base]:.2f}"
+        reason += (f", below the default's {chi2[i_base]:.2f} by "
+                   f"{(chi2[i_base] - chi2[pick]) / sd:.1f} standard deviations of the "
+                   f"difference")
     recommended = dict(pupil=str(pupil), rotation=geo_rot * u.deg, pixscale=ps * geo_scale,
                        grey=chosen["grey"], min_transmission=chosen["min_transmission"],
                        step=u.Quantity(chosen["step"], u.m), offset=chosen["offset"])

@@ -34,40 +34,78 @@ def _axes(ax, figsize=(5.5, 4.5)):
     return ax.figure, ax
 
 
+#: What each test's name means, for legends.
+TEST_LABELS = {"NP": r"NP: matched filter, known spectrum (reference)",
+               "B": r"B: GLR, $\Sigma_i \max(z_i, 0)^2$",
+               "B-paper": r"B-paper: the paper's $\Sigma_i \max(z_i, 0)$",
+               "E": r"E: energy, $\|y\|^2$"}
+
+PFA = r"$P_\mathrm{FA}$"
+PD = r"$P_\mathrm{D}$"
+
+
+def _test_label(name):
+    return TEST_LABELS.get(name, name)
+
+
+def _candidate_xy(row, sky):
+    cx, cy = ("dra", "ddec") if sky else ("x", "y")
+    x = row["fit_" + cx] if "fit_" + cx in row.colnames else row[cx]
+    y = row["fit_" + cy] if "fit_" + cy in row.colnames else row[cy]
+    return x.to_value(u.mas), y.to_value(u.mas)
+
+
 def plot_detection_map(result, *, ax=None, truth=None):
-    """The map statistic with candidates circled (and the truth marked, if given).
+    """The map statistic in units of the threshold, candidates circled and numbered.
+
+    The colour scale is asinh (linear up to the threshold, logarithmic far
+    above it), so that a peak just above the threshold shows next to a bright
+    companion; the threshold is the contour.
 
     Examples
     --------
     >>> from kpifs.detect.pipeline import _example_result
     >>> from kpifs.plotting import plot_detection_map
     >>> fig = plot_detection_map(_example_result(), truth=(60, -40))
-    >>> len(fig.axes)
-    2
+    >>> len(fig.axes), fig.axes[1].get_ylabel()
+    (2, 'B statistic / threshold (asinh scale)')
     """
-    fig, ax = _axes(ax)
+    from matplotlib.colors import AsinhNorm
+    from matplotlib.lines import Line2D
+    fig, ax = _axes(ax, figsize=(6.4, 5.0))
     g = result.grid
     ext = [g.x[0], g.x[-1], g.y[0], g.y[-1]]
-    im = ax.imshow(result.statistic, origin="lower", extent=ext, cmap="magma")
-    fig.colorbar(im, ax=ax, label=f"{result.meta.get('test', result.test)} statistic")
-    ax.contour(g.X, g.Y, np.nan_to_num(result.statistic), levels=[result.threshold],
-               colors="cyan", linewidths=0.8)
+    test = result.meta.get("test", result.test)
+    ratio = np.asarray(result.statistic, float) / result.threshold
+    top = max(float(np.nanmax(ratio)) if np.isfinite(ratio).any() else 1.0, 1.5)
+    im = ax.imshow(ratio, origin="lower", extent=ext, cmap="magma",
+                   norm=AsinhNorm(linear_width=1.0, vmin=0, vmax=top))
+    ticks = [t for t in (0, 0.5, 1, 2, 5, 10, 20, 50, 100, 200, 500, 1000) if t <= top]
+    fig.colorbar(im, ax=ax, label=f"{test} statistic / threshold (asinh scale)", ticks=ticks,
+                 format="%g")
+    ax.contour(g.X, g.Y, np.nan_to_num(ratio), levels=[1.0], colors="cyan", linewidths=0.8)
+    handles = [Line2D([], [], color="cyan", lw=0.8,
+                      label=f"threshold {result.threshold:.3g} (global {PFA} = {result.pfa:g})")]
     sky = getattr(g, "frame", "detector") == "sky"
-    cx, cy = ("dra", "ddec") if sky else ("x", "y")
-    for row in result.candidates:
-        x = row["fit_" + cx] if "fit_" + cx in row.colnames else row[cx]
-        y = row["fit_" + cy] if "fit_" + cy in row.colnames else row[cy]
-        ax.plot(x.to_value(u.mas), y.to_value(u.mas), "o", mfc="none", mec="cyan", ms=14)
+    for i, row in enumerate(result.candidates, 1):
+        x, y = _candidate_xy(row, sky)
+        ax.plot(x, y, "o", mfc="none", mec="cyan", ms=14)
+        ax.annotate(str(i), (x, y), xytext=(9, 9), textcoords="offset points", color="cyan",
+                    fontsize=9, fontweight="bold")
+    if len(result.candidates):
+        handles.append(Line2D([], [], ls="none", marker="o", mfc="none", mec="cyan", ms=10,
+                              label="candidates (numbered), fitted position"))
     if truth is not None:
-        ax.plot(*truth, "+", color="lime", ms=12, label="truth")
-        ax.legend(loc="upper right", fontsize=8)
+        handles += ax.plot(*truth, "+", color="lime", ms=12, label="simulated companion")
+    ax.legend(handles=handles, loc="upper right", fontsize=7, framealpha=0.8)
     if sky:     # the grid runs East to West: East is on the left
         ax.set_xlabel("dRA (mas, East to the left)")
         ax.set_ylabel("dDec (mas)")
     else:
-        ax.set_xlabel("offset along x (mas)")
-        ax.set_ylabel("offset along y (mas)")
-    ax.set_title(f"P_FA = {result.pfa:g}: {len(result.candidates)} candidate(s)")
+        ax.set_xlabel("offset along detector x (mas)")
+        ax.set_ylabel("offset along detector y (mas)")
+    ax.set_title(f"{_test_label(test)}\n{len(result.candidates)} candidate(s) at global "
+                 f"{PFA} = {result.pfa:g}", fontsize=10)
     return fig
 
 
@@ -82,19 +120,24 @@ def plot_contrast_curves(result, *, ax=None):
     >>> fig.axes[0].get_xlabel()
     'separation (mas)'
     """
-    fig, ax = _axes(ax)
+    from matplotlib.patches import Patch
+    fig, ax = _axes(ax, figsize=(6.4, 4.8))
     sep = result.curves["separation"].to_value(u.mas)
     for name in ("NP", "B", "B-paper", "E"):
         if f"{name}_median" not in result.curves.colnames:
             continue
         med = np.asarray(result.curves[f"{name}_median"])
-        line, = ax.semilogy(sep, med, label=name)
+        line, = ax.semilogy(sep, med, label=_test_label(name))
         ax.fill_between(sep, result.curves[f"{name}_min"], result.curves[f"{name}_max"],
                         color=line.get_color(), alpha=0.15)
+    handles = ax.get_legend_handles_labels()[0]
+    handles.append(Patch(color="grey", alpha=0.3,
+                         label="band: min to max over position angles (line: median)"))
     ax.set_xlabel("separation (mas)")
-    ax.set_ylabel("limiting contrast")
-    ax.set_title(f"P_FA = {result.pfa:g}, P_D = {result.pd:g}")
-    ax.legend(fontsize=8)
+    ax.set_ylabel("limiting contrast (companion / star)")
+    ax.set_title(f"detection limits: global {PFA} = {result.pfa:g}, {PD} = {result.pd:g}",
+                 fontsize=10)
+    ax.legend(handles=handles, fontsize=7)
     return fig
 
 
@@ -102,7 +145,9 @@ def plot_injection_limits(table, *, analytic=None, ax=None):
     """Empirical 50 % limit from injections (points: found / not found) beside the analytic one.
 
     *table* is `~kpifs.inject.injection_limits`'s; *analytic* a
-    `~kpifs.DetectionResult` of the same data without injections (its B median curve).
+    `~kpifs.DetectionResult` of the same data without injections (its B median
+    curve). A limit the ladder did not bracket (``table.meta['flags']``) is
+    drawn as an arrow: down for an upper bound, up for a lower one.
 
     Examples
     --------
@@ -113,51 +158,74 @@ def plot_injection_limits(table, *, analytic=None, ax=None):
     ...               "n_injected": [4, 4], "n_detected": [0, 4], "pd": [0.0, 1.0]})
     >>> tab.meta.update(limits=[1.7e-3], separations_mas=[100.0], pd=0.5, pfa=1e-3)
     >>> plot_injection_limits(tab).axes[0].get_ylabel()
-    'contrast'
+    'contrast (companion / star)'
     """
-    fig, ax = _axes(ax)
+    from matplotlib.lines import Line2D
+    fig, ax = _axes(ax, figsize=(6.4, 4.8))
     sep = np.asarray(table["separation"].to_value(u.mas))
     c = np.asarray(table["contrast"], float)
     p = np.asarray(table["pd"], float)
-    sc = ax.scatter(sep, c, c=p, cmap="RdYlGn", vmin=0, vmax=1, s=25, edgecolors="k",
-                    linewidths=0.3)
-    fig.colorbar(sc, ax=ax, label="fraction detected")
-    ax.plot(table.meta["separations_mas"], table.meta["limits"], "ko-",
-            label=f"injections, P_D = {table.meta.get('pd', 0.5):g}")
+    pd = table.meta.get("pd", 0.5)
+    sc = ax.scatter(sep, c, c=p, cmap="RdYlGn", vmin=0, vmax=1, s=30, edgecolors="k",
+                    linewidths=0.3, label="injection steps (colour: fraction found)")
+    fig.colorbar(sc, ax=ax, label="fraction of the injections found")
+    seps = np.asarray(table.meta["separations_mas"], float)
+    lims = np.asarray(table.meta["limits"], float)
+    flags = np.asarray(table.meta.get("flags", ["="] * len(lims)))
+    ax.plot(seps, lims, "k-", lw=1)
+    handles = [sc]
+    for flag, marker, text in (("=", "o", f"injections: {PD} = {pd:g} (interpolated)"),
+                               ("<", "v", "injections: upper bound (every step found)"),
+                               (">", "^", "injections: lower bound (no step found enough)")):
+        sel = flags == flag
+        if sel.any():
+            style = dict(color="k", marker=marker, ms=10, mfc="none", mew=1.5, ls="none")
+            ax.plot(seps[sel], lims[sel], **style)
+            handles.append(Line2D([], [], label=text, **style))
     if analytic is not None and "B_median" in analytic.curves.colnames:
-        ax.plot(analytic.curves["separation"].to_value(u.mas), analytic.curves["B_median"],
-                "b--", label="analytic (B, median)")
+        handles += ax.plot(analytic.curves["separation"].to_value(u.mas),
+                           analytic.curves["B_median"], "b--",
+                           label="analytic limit (B test, median over angles)")
     ax.set_yscale("log")
     ax.set_xlabel("separation (mas)")
-    ax.set_ylabel("contrast")
-    ax.set_title(f"P_FA = {table.meta.get('pfa', float('nan')):g}")
-    ax.legend(fontsize=8)
+    ax.set_ylabel("contrast (companion / star)")
+    ax.set_title(f"injection-recovery at global {PFA} = "
+                 f"{table.meta.get('pfa', float('nan')):g}", fontsize=10)
+    ax.legend(handles=handles, fontsize=7)
     return fig
 
 
 def plot_candidate_spectrum(result, index=0, *, ax=None, truth=None):
-    """Per-channel contrasts of a candidate (fitted, with 1-sigma errors).
+    """Per-channel contrasts of candidate ``index + 1`` (fitted, with 1-sigma errors).
 
     Examples
     --------
     >>> from kpifs.detect.pipeline import _example_result
     >>> from kpifs.plotting import plot_candidate_spectrum
     >>> fig = plot_candidate_spectrum(_example_result())
-    >>> fig.axes[0].get_ylabel()
-    'contrast'
+    >>> fig.axes[0].get_ylabel(), fig.axes[0].get_title()[:11]
+    ('contrast (companion / star)', 'candidate 1')
     """
     fig, ax = _axes(ax)
     wl = result.wavelengths.to_value(u.um)
+    title = f"candidate {index + 1}: none above the threshold"
     if len(result.candidates) > index:
         row = result.candidates[index]
         key = "fit_contrast" if "fit_contrast" in row.colnames else "contrast"
         ax.errorbar(wl, np.asarray(row[key]), yerr=np.asarray(row[key + "_err"]), fmt="o",
-                    label="candidate")
+                    label=f"candidate {index + 1}: fitted contrast, 1σ errors")
+        sky = getattr(result.grid, "frame", "detector") == "sky"
+        x, y = _candidate_xy(row, sky)
+        where = (f"dRA {x:.1f}, dDec {y:.1f} mas" if sky
+                 else f"detector x {x:.1f}, y {y:.1f} mas")
+        title = f"candidate {index + 1} at {where}"
     if truth is not None:
-        ax.plot(wl, truth, "k--", label="truth")
-    ax.set_xlabel("wavelength (um)")
-    ax.set_ylabel("contrast")
-    ax.legend(fontsize=8)
+        ax.plot(wl, truth, "k--", label="simulated companion's spectrum")
+    ax.set_xlabel("wavelength (µm)")
+    ax.set_ylabel("contrast (companion / star)")
+    ax.set_title(title, fontsize=10)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8)
     return fig
 
 
@@ -168,27 +236,33 @@ def plot_roc(curves, *, ax=None, theory=None, title=None):
     --------
     >>> import numpy as np
     >>> from kpifs.plotting import plot_roc
-    >>> fig = plot_roc({"test": (np.logspace(-4, 0, 5), np.linspace(0.2, 1, 5))})
-    >>> fig.axes[0].get_xlabel()
-    'P_FA'
+    >>> fig = plot_roc({"NP": (np.logspace(-4, 0, 5), np.linspace(0.2, 1, 5))})
+    >>> fig.axes[0].get_legend().get_texts()[0].get_text()[:3]
+    'NP:'
     """
+    from matplotlib.lines import Line2D
     fig, ax = _axes(ax)
     for label, (pfa, pd) in curves.items():
-        line, = ax.semilogx(pfa, pd, label=label)
+        line, = ax.semilogx(pfa, pd, label=_test_label(label))
         if theory and label in theory:
             ax.semilogx(*theory[label], "--", color=line.get_color(), lw=0.9)
-    ax.set_xlabel("P_FA")
-    ax.set_ylabel("P_D")
+    handles = ax.get_legend_handles_labels()[0]
+    if theory:
+        handles.append(Line2D([], [], color="grey", ls="--", lw=0.9,
+                              label="dashed: theory"))
+    ax.set_xlabel(PFA)
+    ax.set_ylabel(PD)
     ax.set_xlim(1e-4, 1)
     ax.set_ylim(0, 1.01)
     if title:
-        ax.set_title(title)
-    ax.legend(fontsize=7, loc="lower right")
+        ax.set_title(title, fontsize=10)
+    ax.legend(handles=handles, fontsize=7, loc="lower right")
     return fig
 
 
 def save_detection_plots(result, outdir, *, truth=None, truth_spectrum=None):
-    """Write detection_map.png, contrast_curves.png and candidate_spectrum.png.
+    """Write detection_map.png, contrast_curves.png and candidate_spectrum.png (candidate
+    1; candidate_spectrum_2.png and on for the next ones, up to `MAX_SPECTRA`).
 
     Examples
     --------
@@ -200,10 +274,24 @@ def save_detection_plots(result, outdir, *, truth=None, truth_spectrum=None):
     """
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
-    return [_save(fig, outdir / f"{name}.png") for name, fig in (
+    paths = [_save(fig, outdir / f"{name}.png") for name, fig in (
         ("detection_map", plot_detection_map(result, truth=truth)),
         ("contrast_curves", plot_contrast_curves(result)),
         ("candidate_spectrum", plot_candidate_spectrum(result, truth=truth_spectrum)))]
+    for i in range(1, min(len(result.candidates), MAX_SPECTRA)):
+        paths.append(_save(plot_candidate_spectrum(result, i),
+                           outdir / f"candidate_spectrum_{i + 1}.png"))
+    return paths
+
+
+#: Candidates whose spectrum `save_detection_plots` draws (the first in
+#: candidate_spectrum.png, candidate n in candidate_spectrum_n.png).
+MAX_SPECTRA = 5
+
+
+def _channels(name):
+    """A channel set's name as the experiment gives it ('1.52um'), with its unit written."""
+    return name[:-2] + " µm" if name.endswith("um") else name
 
 
 def save_roc_plots(curves, outdir):
@@ -228,10 +316,11 @@ def save_roc_plots(curves, outdir):
         c = curves[name]
         plot_roc({k: v for k, v in c.items() if "theory" not in k}, ax=ax,
                  theory={k.split()[0]: v for k, v in c.items() if "theory" in k},
-                 title=f"channels: {name}")
+                 title=f"channels: {_channels(name)}")
     paths = [_save(fig, outdir / "roc.png", dpi=90)]
     fig, ax = plt.subplots(figsize=(5, 4))
-    plot_roc({n: curves[n]["NP"] for n in names}, ax=ax,
-             theory={n: curves[n]["NP theory"] for n in names}, title="NP: channel sets")
+    plot_roc({_channels(n): curves[n]["NP"] for n in names}, ax=ax,
+             theory={_channels(n): curves[n]["NP theory"] for n in names},
+             title=f"{TEST_LABELS['NP']}: channel sets")
     paths.append(_save(fig, outdir / "roc_np_channels.png", dpi=90))
     return paths

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from astropy import units as u
 
-from ._utils import as_rng, to_quantity
+from ._utils import as_rng, one_blas_thread, to_quantity
 from ._utils import progress as progress_bar
 from .exceptions import KpifsError
 from .kernel import MAS
@@ -95,7 +95,8 @@ def phase_screens(npup, dx, n, *, rms=100e-9, mask=None, cutoff=None, seed=None)
 
 
 def simulate_psf(pupil, wavelengths, *, pixscale, shape=(64, 64), npup=128, opd=None,
-                 centre=(0.0, 0.0), companions=(), pupil_rotation=0 * u.deg, supersample=1):
+                 centre=(0.0, 0.0), companions=(), pupil_rotation=0 * u.deg, supersample=1,
+                 pupil_scale=None):
     """Noise-free images of a star (and companions) at each wavelength.
 
     Parameters
@@ -118,6 +119,8 @@ def simulate_psf(pupil, wavelengths, *, pixscale, shape=(64, 64), npup=128, opd=
         Turn of the pupil (counter-clockwise from +x to +y).
     supersample : int
         Anti-aliasing of the pupil (`~kpifs.pupil.pupil_image`).
+    pupil_scale : `~astropy.units.Quantity`, optional
+        Pixel size of a pupil image (m), overriding its ``PUPSCALE``.
 
     Returns
     -------
@@ -134,7 +137,8 @@ def simulate_psf(pupil, wavelengths, *, pixscale, shape=(64, 64), npup=128, opd=
     """
     wl = np.atleast_1d(to_quantity(wavelengths, u.m, name="wavelengths").value)
     p = to_quantity(pixscale, u.mas, name="pixel scale").value * MAS
-    pimg, dx = pupil_image(pupil, npix=npup, rotation=pupil_rotation, supersample=supersample)
+    pimg, dx = pupil_image(pupil, npix=npup, rotation=pupil_rotation, supersample=supersample,
+                           pupil_scale=pupil_scale)
     out = np.empty((len(wl),) + tuple(shape))
     cen = (centre[0] * p, centre[1] * p)
     comps = [(to_quantity(off, u.mas, name="companion offset").value * MAS,
@@ -437,22 +441,24 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
     screens_rms = params.wavefront_rms.to_value(u.m)
     cubes = {k: np.empty((nf, nw) + shape, np.float32) for k in ("target", "calibrator")}
     slow = _QuasiStatic(params, pimg, dx, rng)
-    for n in iterator:
-        which = "target" if n < nf else "calibrator"
-        i = n % nf
-        opd = phase_screens(params.npup, dx, 1, rms=screens_rms, mask=pimg > 0,
-                            seed=rng)[0] if screens_rms > 0 else None
-        opd = slow.add(opd, which)
-        jit = rng.normal(0, params.jitter, 2) * p_rad
-        for iw, lam in enumerate(wl_m):
-            fieldp = pimg if opd is None else pimg * np.exp(2j * np.pi * opd / lam)
-            img = _propagate(fieldp, dx, shape, p_rad, lam, centre_rad=tuple(jit))
-            if which == "target":
-                img = img + params.contrasts[iw] * _propagate(
-                    fieldp, dx, shape, p_rad, lam, offset_rad=tuple(offs[i]), centre_rad=tuple(jit))
-            electrons = rng.poisson(img * nphot[iw]).astype(float)
-            electrons += rng.normal(0, params.read_noise, shape)
-            cubes[which][i, iw] = electrons
+    with one_blas_thread():     # 96x96 products: BLAS threads only wait for each other
+        for n in iterator:
+            which = "target" if n < nf else "calibrator"
+            i = n % nf
+            opd = phase_screens(params.npup, dx, 1, rms=screens_rms, mask=pimg > 0,
+                                seed=rng)[0] if screens_rms > 0 else None
+            opd = slow.add(opd, which)
+            jit = rng.normal(0, params.jitter, 2) * p_rad
+            for iw, lam in enumerate(wl_m):
+                fieldp = pimg if opd is None else pimg * np.exp(2j * np.pi * opd / lam)
+                img = _propagate(fieldp, dx, shape, p_rad, lam, centre_rad=tuple(jit))
+                if which == "target":
+                    img = img + params.contrasts[iw] * _propagate(
+                        fieldp, dx, shape, p_rad, lam, offset_rad=tuple(offs[i]),
+                        centre_rad=tuple(jit))
+                electrons = rng.poisson(img * nphot[iw]).astype(float)
+                electrons += rng.normal(0, params.read_noise, shape)
+                cubes[which][i, iw] = electrons
     for k in cubes:
         out[k] = cubes[k]
         out["var_" + k] = np.clip(cubes[k], 0, None) + params.read_noise ** 2

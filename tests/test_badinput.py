@@ -642,7 +642,7 @@ def test_existing_output_and_directory_output(corpus, tmp_path, capsys):
     out = tmp_path / "kp.fits"
     out.write_bytes(b"keep me")
     assert main(["extract", str(corpus["target"]), "-o", str(out)]) == 2
-    assert "exists; pass overwrite=True (--overwrite)" in capsys.readouterr().err
+    assert "exists; pass --overwrite to replace it" in capsys.readouterr().err
     assert out.read_bytes() == b"keep me"
     assert main(["extract", str(corpus["target"]), "-o", str(tmp_path)]) == 2
     assert "is a directory" in capsys.readouterr().err

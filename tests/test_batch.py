@@ -146,11 +146,15 @@ def test_batch_interrupt_keeps_a_record(small_archive, tmp_path):
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "kpifs", "batch", str(small_archive / "small.csv"), *SMALL,
            "-o", str(out)]
+    # Ctrl-C reaches the command even when this test runs in the background, where the
+    # shell ignores SIGINT and the child would inherit that
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+                            start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     t0 = time.time()
     while not (out / "s0" / "detection.fits").exists() and time.time() - t0 < 120:
         time.sleep(0.05)
+    assert proc.poll() is None, "the batch finished before it could be interrupted"
     os.kill(proc.pid, signal.SIGINT)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err

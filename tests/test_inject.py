@@ -118,3 +118,42 @@ def test_flux_falling_off_the_image_is_stated_or_refused():
                          pixscale=10 * u.mas)
     with pytest.raises(KpifsError, match=r"in \[0, 1\)"):
         inject_companion(cube, position=[10, 0] * u.mas, contrast=1.5, pixscale=10 * u.mas)
+
+
+def test_limit_is_interpolated_or_censored():
+    from kpifs.inject import _limit, _next_contrast
+    c = [1e-3, 2e-3, 4e-3]
+    assert _limit(c, [1.0, 1.0, 1.0], 0.5) == (1e-3, "<")      # an upper bound
+    assert _limit(c, [0.0, 0.25, 0.25], 0.5) == (4e-3, ">")    # a lower bound
+    assert _limit(c, [0.0, 0.5, 1.0], 0.5) == (pytest.approx(2e-3, rel=1e-12), "=")
+    # halfway from 0.25 to 0.75 in found fraction: halfway from 2e-3 to 4e-3 in log contrast
+    lim, flag = _limit(c, [0.0, 0.25, 0.75], 0.5)
+    assert flag == "=" and lim == pytest.approx(2e-3 * np.sqrt(2), rel=1e-12)
+    # a ladder grows below while everything is found, above while nothing is, up to its size
+    assert _next_contrast(c, [1.0, 1.0, 1.0], 0.5, 8) == pytest.approx(5e-4)
+    assert _next_contrast(c, [0.0, 0.0, 0.25], 0.5, 8) == pytest.approx(8e-3)
+    assert _next_contrast(c, [0.0, 0.5, 1.0], 0.5, 8) is None
+    assert _next_contrast(c, [1.0, 1.0, 1.0], 0.5, 3) is None
+
+
+@pytest.mark.filterwarnings("ignore:.*too few frames")
+def test_adaptive_ladder_brackets_the_limit(tmp_path):
+    """Started 8 times too high, the ladder steps down by itself until it brackets the
+    50 % level; with too few steps allowed the limit is reported as a bound."""
+    from kpifs import KernelModel, extract_kernel_phases, make_pupil
+    from kpifs.inject import injection_limits
+    from kpifs.simulate import simulate_scene
+    obs = simulate_scene("paper", n_frames=24, seed=3, npup=32, contrasts=0.0, shape=(40, 40))
+    km = KernelModel.from_pupil(make_pupil("subaru", step=0.8 * u.m))
+    args = dict(wavelengths=obs.wavelengths, pixscale=obs.params.pixscale)
+    cal = extract_kernel_phases(obs.calibrator, km, **args)
+    kw = dict(window=cal.window, separations=[80] * u.mas, n_angles=2, n_draws=1000, **args)
+    # the analytic limit at 80 mas is 2e-3 here
+    tab = injection_limits(obs.target, [cal], km, start=0.016, **kw)
+    c, p = np.asarray(tab["contrast"]), np.asarray(tab["pd"])
+    assert tab.meta["flags"] == ["="] and tab.meta["ladder"] == "adaptive"
+    assert c.min() < 0.004 and len(c) > 3            # it went below the first steps
+    assert p[0] < 0.5 <= p[-1]                         # bracketed
+    assert c[0] < tab.meta["limits"][0] < c[-1]
+    short = injection_limits(obs.target, [cal], km, start=0.016, max_steps=3, **kw)
+    assert short.meta["flags"] == ["<"] and short.meta["limits"] == [pytest.approx(0.008)]

@@ -3,13 +3,20 @@
 Each subcommand names the module of `kpifs._cli` that runs it; the shared
 option groups (cubes, pupil model, extraction, search) are defined once here
 and turned into `~kpifs.workflow.ExtractOptions` / `~kpifs.workflow.DetectOptions`
-by `kpifs._cli._options`.
+by `kpifs._cli._options`. One vocabulary throughout: ``--step`` is the pupil
+model's grid step (m), ``--grid-step`` the search grid's (mas); a number
+without a unit is in the unit the option's help names. Every option's help
+says its default.
 """
 import argparse
 
 from .._meta import VERSION
 
-__all__ = ["build_parser"]
+__all__ = ["build_parser", "EXIT_STATUS"]
+
+EXIT_STATUS = ("exit status: 0 success; 1 batch: some entries failed (see summary.ecsv); "
+               "2 bad input or usage (a one-line message naming the file and the problem); "
+               "3 internal error (--debug shows the traceback); 130 interrupted (Ctrl-C)")
 
 EPILOG_KERNEL = """examples:
   kpifs kernel --pupil subaru --step 0.38m -o subaru_model.fits
@@ -20,7 +27,8 @@ EPILOG_MODELCHECK = """Fits the turn of the pupil model and the pixel-scale fact
 amplitudes of a star without a known companion, and compares transmission
 cuts (and steps) by the calibrated reduced chi2 between two stars or between
 the two halves of one sequence; prints every model tried and the one it
-recommends, with the reason.
+recommends, with the reason: another model than the default only when its
+chi2 is lower by more than twice the noise of the difference.
 
 examples:
   kpifs model-check cal.fits --wavelengths 2.145um --pixscale 25mas --pupil pharo
@@ -41,6 +49,7 @@ EPILOG_DETECT = """examples:
   kpifs detect target_kp.fits --calibrator calib_kp.fits --test B-paper --pfa 1e-3 \\
       --max-sep 200mas --grid-step 5mas -o detection.fits
   kpifs detect cal_kp.fits --test NP --spectrum 1.3,1.0,0.7 -o detection.fits
+detect reads kernel phases (KPFITS): make them from cubes with 'kpifs extract' first.
 """
 EPILOG_BATCH = """examples:
   kpifs batch archive.csv -o reprocessed
@@ -55,17 +64,21 @@ a rerun skips entries already done.
 """
 EPILOG_INJECT = """examples:
   kpifs inject cube.fits --position 150,-80mas --contrast 5e-3 -o injected.fits
-  kpifs inject target/CRSA*_cube.fits --position 120,40mas --sky --contrast 2e-3,1.5e-3 \
+  kpifs inject target/CRSA*_cube.fits --position 120,40mas --sky --contrast 2e-3,1.5e-3 \\
       -o injected.fits
-  kpifs inject tgt.fits --calibrator cal.fits --curve --separations 100,200,400mas \
-      --contrasts 1e-3,2e-3,5e-3,1e-2 --angles 6 -o curve.fits --plots figures
+  kpifs inject tgt.fits --calibrator cal.fits --curve --separations 60,120mas \\
+      -o curve.fits --plots figures
+  kpifs inject tgt.fits --calibrator cal.fits --curve --separations 100,200mas \\
+      --contrasts 1e-3,2e-3,5e-3,1e-2 --angles 6 -o curve.fits
 an injected companion is each frame's own image, shifted and scaled (per channel);
 --curve reruns the whole reduction for every injection and writes the contrast at
-which half are found at --pfa beside the analytic limit.
+which half are found at --pfa beside the analytic limit; a limit the contrast
+steps do not bracket is reported as a bound ('<' or '>').
 """
 EPILOG_INFO = """examples:
   kpifs info target/CRSA00000000_cube.fits
   kpifs info kp.fits
+  kpifs info detection.fits curve.fits
 """
 EPILOG_SIMULATE = """examples:
   kpifs simulate --preset paper --frames 100 -o sim
@@ -73,36 +86,48 @@ EPILOG_SIMULATE = """examples:
   kpifs simulate --preset sphere --layout sphere -o sphere_sim
   kpifs simulate --preset niriss --layout jwst -o niriss_sim   # NIRISS _calints.fits
   kpifs simulate --preset gpi --layout gpi -o gpi_sim          # GPI _spdc.fits
-  kpifs simulate --preset charis --frames 40 --drift 40nm --drift-time 8 \
+  kpifs simulate --preset charis --frames 40 --drift 40nm --drift-time 8 \\
       --static-diff 15nm -o unkind     # drifting aberrations, target != calibrator
+presets: paper (the seed paper's Subaru scene: 3 channels at 1.52-1.68 um, 40x40 pixels
+of 10.42 mas, 1000 frames), charis (22 channels at 1.16-2.37 um, 201x201 pixels of
+16.2 mas, 20 frames), sphere (VLT, 39 channels at 0.96-1.33 um, 64x64 pixels of
+7.46 mas, 20 frames).
 """
 
 TESTS = ("B", "B-paper", "S", "NP", "E")
 INSTRUMENTS = ("auto", "charis", "sphere", "jwst", "gpi", "generic")
+PRESETS = ("paper", "charis", "sphere", "sphere-sam", "niriss", "nircam", "gpi")
+ROC_PRESETS = ("paper", "charis", "sphere", "sphere-sam")
 
 
 def _cube_options(p):
     g = p.add_argument_group("input cubes")
     g.add_argument("--instrument", default="auto", choices=INSTRUMENTS,
-                   help="file format (default: recognised from the header)")
+                   help="file format (default auto: recognised from the header)")
     g.add_argument("--wavelengths", help="list (1.52um,1.60um) or file (text/FITS, um or nm); "
                                          "default: from the file's header")
-    g.add_argument("--pixscale", help="pixel scale, e.g. 10.42mas; default: from the header "
-                                      "or the instrument (CHARIS 16.2mas, SPHERE 7.46mas)")
+    g.add_argument("--pixscale", help="pixel scale, mas if no unit, e.g. 10.42mas; default: "
+                                      "from the header or the instrument (CHARIS 16.2mas, "
+                                      "SPHERE 7.46mas)")
 
 
-def _pupil_options(p):
+def _pupil_options(p, *, model_files=True):
     g = p.add_argument_group("pupil model")
+    files = " or a kernel-model FITS" if model_files else ""
     g.add_argument("--pupil", default=None,
-                   help="telescope name (subaru, vlt, pharo), pupil image FITS (PUPSCALE "
-                        "keyword or --pupil-scale) or kernel-model FITS (default: the "
-                        "instrument's telescope, subaru for plain cubes)")
-    g.add_argument("--pupil-scale", help="pupil image pixel size, e.g. 0.02m")
+                   help="telescope: subaru (aliases scexao, charis), vlt (alias sphere) or "
+                        "pharo; or a pupil image FITS (pixel size in PUPSCALE or "
+                        f"--pupil-scale){files}. Circular and annular apertures (a diameter "
+                        "and a central obstruction) are built from Python "
+                        "(kpifs.make_pupil('annular', diameter=..., obstruction=...)); "
+                        "default: the instrument's telescope, subaru for plain cubes")
+    g.add_argument("--pupil-scale", help="pixel size of a pupil image, m if no unit, e.g. "
+                                         "0.02m (default: its PUPSCALE keyword)")
     g.add_argument("--step", default=None,
-                   help="pupil grid step (default: the pupil's, 0.38m for subaru and vlt, "
-                        "0.16m for pharo)")
+                   help="pupil model's grid step, m if no unit (default: the pupil's, 0.38m "
+                        "for subaru and vlt, 0.16m for pharo)")
     g.add_argument("--offset", default=None,
-                   help="grid offset x,y (default 0.17m,0.11m; 0,0 gives a "
+                   help="grid offset x,y, m if no unit (default 0.17m,0.11m; 0,0 gives a "
                         "centro-symmetric model)")
     g.add_argument("--min-transmission", type=float, default=None,
                    help="keep cells at least this much inside the pupil (default 0.2 for a "
@@ -115,9 +140,9 @@ def _pupil_options(p):
     kind.add_argument("--binary", dest="grey", action="store_const", const=False,
                       help="binary model: every kept cell counts 1")
     g.add_argument("--rotation", default=None,
-                   help="turn of the whole model to the pupil on the detector, e.g. -2deg "
-                        "(kpifs model-check measures it; default 0)")
-    g.add_argument("--hexagonal", action="store_true", help="hexagonal grid")
+                   help="turn of the whole model to the pupil on the detector, deg if no "
+                        "unit, e.g. -2deg (kpifs model-check measures it; default 0)")
+    g.add_argument("--hexagonal", action="store_true", help="hexagonal grid (default square)")
 
 
 def _extraction_options(p):
@@ -127,34 +152,39 @@ def _extraction_options(p):
     g.add_argument("--window-radius", type=float,
                    help="super-Gaussian radius in pixels (default 0.8 x half the cut-out)")
     g.add_argument("--centroid", default="com", choices=("com", "peak", "quadratic", "2dg"),
-                   help="star-centre method (default com)")
+                   help="star-centre method (default %(default)s)")
     g.add_argument("--bad-pixels", default="fill", choices=("fill", "exclude"),
-                   help="interpolate bad pixels (default) or leave them out")
+                   help="interpolate bad pixels or leave them out (default %(default)s)")
     g.add_argument("--bad-frames", default="drop", choices=("drop", "fail"),
                    help="frames empty, mostly NaN or without flux: drop them with a warning "
-                        "(default) or refuse the cube")
+                        "or refuse the cube (default %(default)s)")
     g.add_argument("--nyquist", default="drop", choices=("drop", "raise"),
-                   help="uv points beyond the Nyquist limit: drop (warn) or refuse")
+                   help="uv points beyond the Nyquist limit: drop (warn) or refuse (default "
+                        "%(default)s)")
     g.add_argument("--precision", default="double", choices=("double", "single"),
-                   help="Fourier products in double (default) or single precision: ~2x "
-                        "faster, ~1e-6 rad added to the kernel phases")
+                   help="Fourier products in double or single precision (~2x faster, ~1e-6 "
+                        "rad added to the kernel phases; default %(default)s)")
     g = p.add_argument_group("covariance")
     g.add_argument("--shrinkage", default="auto", choices=("auto", "ledoit-wolf", "none"),
-                   help="covariance estimator (auto: Ledoit-Wolf when frames are too few)")
+                   help="covariance estimator (default auto: Ledoit-Wolf when frames are too "
+                        "few)")
     g.add_argument("--joint-covariance", action="store_true",
                    help="also estimate the joint covariance across channels")
     g.add_argument("--covariance", action="store_true",
                    help="store the frames' covariance even without a calibrator")
 
 
-def _search_options(p, *, grid_step_aliases=("--grid-step",), draws=5000):
+def _search_options(p, *, draws=5000):
     g = p.add_argument_group("search")
     g.add_argument("--test", default="B", choices=TESTS,
-                   help="B: GLR sum max(z,0)^2 (default); B-paper: sum max(z,0); S: spectral "
-                        "model (GLR for a spectrum in --basis, the channels' correlation "
-                        "weighed); NP: matched filter for --spectrum; E: energy detector")
-    g.add_argument("--pfa", type=float, default=1e-3, help="global false-alarm probability")
-    g.add_argument("--pd", type=float, default=0.5, help="detection probability of the limits")
+                   help="B: GLR sum max(z,0)^2; B-paper: the paper's sum max(z,0); S: "
+                        "spectral model (GLR for a spectrum in --basis, the channels' "
+                        "correlation weighed); NP: matched filter for --spectrum; E: energy "
+                        "detector (default %(default)s)")
+    g.add_argument("--pfa", type=float, default=1e-3,
+                   help="global false-alarm probability of the search (default %(default)s)")
+    g.add_argument("--pd", type=float, default=0.5,
+                   help="detection probability of the limits (default %(default)s)")
     g.add_argument("--frame", default="auto", choices=("auto", "sky", "detector"),
                    help="search and map on the sky (dRA East-positive, dDec; the model turned "
                         "by each frame's detector angle; celestial WCS) or the detector "
@@ -164,17 +194,23 @@ def _search_options(p, *, grid_step_aliases=("--grid-step",), draws=5000):
                         "sign flips of the stars' time blocks (empirical), or the more "
                         "conservative of the two (both; default auto: both when the data carry "
                         "time blocks)")
-    g.add_argument("--max-sep", help="largest separation searched, e.g. 200mas")
-    g.add_argument("--min-sep", help="smallest separation searched, e.g. 20mas")
-    g.add_argument(*grid_step_aliases, dest="grid_step",
-                   help="search grid step, e.g. 5mas (default lambda/4D)")
-    g.add_argument("--spectrum", help="companion spectrum shape: flat, comma list or file")
+    g.add_argument("--max-sep", help="largest separation searched, mas if no unit, e.g. "
+                                     "200mas (default: the extraction window's radius, within "
+                                     "the pupil grid's aliasing limit)")
+    g.add_argument("--min-sep", help="smallest separation searched, mas if no unit, e.g. "
+                                     "20mas (default: half a resolution element)")
+    g.add_argument("--grid-step", dest="grid_step",
+                   help="search grid step, mas if no unit, e.g. 5mas (default lambda/4D)")
+    g.add_argument("--spectrum", help="companion spectrum shape: flat, comma list or file "
+                                      "(default flat)")
     g.add_argument("--basis", help="spectral model of --test S: smooth:R (polynomial of rank "
-                                   "R in wavelength; default smooth:3), blackbody, or a file "
-                                   "of template spectra (ECSV with a wavelength column, FITS)")
+                                   "R in wavelength), blackbody, or a file of template "
+                                   "spectra (ECSV with a wavelength column, FITS) (default "
+                                   "smooth:3)")
     g.add_argument("--draws", type=int, default=draws,
-                   help=f"Monte-Carlo draws calibrating the grid search (default {draws})")
-    g.add_argument("--seed", type=int, default=0, help="seed of those draws (default 0)")
+                   help="Monte-Carlo draws calibrating the grid search (default %(default)s)")
+    g.add_argument("--seed", type=int, default=0,
+                   help="seed of those draws (default %(default)s)")
 
 
 def _output(p, help_text="output FITS file", *, required=True, default=None):
@@ -182,46 +218,32 @@ def _output(p, help_text="output FITS file", *, required=True, default=None):
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
 
 
-def build_parser():
-    """The ``kpifs`` parser; ``args.module`` names the `kpifs._cli` module that runs it."""
-    parser = argparse.ArgumentParser(
-        prog="kpifs", description="Multi-wavelength kernel-phase analysis of IFS cubes.",
-        epilog="Run 'kpifs COMMAND --help' for the options and examples of each command. "
-               "Exit status: 0 ok, 2 bad input, 3 internal error.")
-    parser.add_argument("--version", action="version", version=f"kpifs {VERSION}")
-    common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("-v", "--verbose", action="count", default=0, help="more messages")
-    common.add_argument("-q", "--quiet", action="store_true", help="errors only")
-    common.add_argument("--debug", action="store_true", help="show tracebacks")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    raw = argparse.RawDescriptionHelpFormatter
-
-    def command(name, help_text, epilog, module=None):
-        p = sub.add_parser(name, parents=[common], help=help_text, epilog=epilog,
-                           formatter_class=raw)
-        p.set_defaults(module=module or name)
-        return p
-
+def _kernel(command):
     p = command("kernel", "build a kernel model and save it", EPILOG_KERNEL)
     _pupil_options(p)
-    _output(p)
+    _output(p, "output kernel-model FITS file (required)")
 
+
+def _extract(command):
     p = command("extract", "kernel phases of IFS cubes", EPILOG_EXTRACT)
     p.add_argument("cubes", nargs="+", metavar="CUBE",
                    help="FITS cube(s) of the target; several files are more frames")
     p.add_argument("--calibrator", action="append", nargs="+", metavar="CUBE",
                    help="cube(s) of a calibrator star; repeat the option for several "
-                        "calibrators (their mean is subtracted)")
+                        "calibrators, whose mean is subtracted (default: none, kernel phases "
+                        "of the target alone)")
     _cube_options(p)
     p.add_argument("--pa", metavar="DEG|LIST|FILE",
                    help="detector position angle of the target's frames (deg, East of North "
                         "of the detector +y axis): one value, a comma list with one per "
-                        "frame, or a text/FITS file; replaces the instrument's (CHARIS "
+                        "frame, or a text/FITS file (default: the instrument's: CHARIS "
                         "PARANG+113, SPHERE angle file+33.76, generic DETPA or 0)")
     _pupil_options(p)
     _extraction_options(p)
-    _output(p, "output KPFITS file")
+    _output(p, "output KPFITS file (required)")
 
+
+def _modelcheck(command):
     p = command("model-check", "fit the pupil model to a star's frames; compare models",
                 EPILOG_MODELCHECK, module="modelcheck")
     p.add_argument("cubes", nargs="+", metavar="CUBE",
@@ -231,125 +253,213 @@ def build_parser():
                         "of CUBE's frames)")
     _cube_options(p)
     p.add_argument("--pupil", default=None,
-                   help="telescope name or pupil image FITS (default: the instrument's "
-                        "telescope, subaru for plain cubes)")
+                   help="telescope (subaru, vlt, pharo; aliases scexao, charis, sphere) or "
+                        "pupil image FITS (default: the instrument's telescope, subaru for "
+                        "plain cubes)")
+    p.add_argument("--pupil-scale", help="pixel size of a pupil image, m if no unit, e.g. "
+                                         "0.02m (default: its PUPSCALE keyword)")
     p.add_argument("--rotations", default="-6,-4.5,-3,-1.5,0,1.5,3,4.5,6",
                    help="coarse grid of model turns, deg (default -6 to 6 by 1.5)")
     p.add_argument("--scales", default="0.97,0.98,0.99,1,1.01,1.02,1.03",
-                   help="coarse grid of pixel-scale factors (default 0.97 to 1.03)")
+                   help="coarse grid of pixel-scale factors (default 0.97 to 1.03 by 0.01)")
     p.add_argument("--cuts", default="0.05,0.1,0.2,0.3,0.5",
-                   help="grey transmission cuts compared (the binary model too)")
+                   help="transmission cuts of the grey models compared, besides the binary "
+                        "model (default %(default)s)")
     p.add_argument("--steps", help="grid steps compared, m (default: the pupil's only)")
     p.add_argument("--window", "--window-size", dest="window_size", type=int,
-                   help="cut-out size in pixels (default as extract)")
-    p.add_argument("--window-radius", type=float, help="super-Gaussian radius in pixels")
-    _output(p, "write the table of models tried (ECSV)", required=False)
+                   help="cut-out size in pixels (default: the image size, at most 64)")
+    p.add_argument("--window-radius", type=float,
+                   help="super-Gaussian radius in pixels (default 0.8 x half the cut-out)")
+    _output(p, "write the table of models tried (ECSV; default: printed only)",
+            required=False)
 
+
+def _inject(command):
     p = command("inject", "inject companions into cubes; injection contrast curve",
                 EPILOG_INJECT)
     p.add_argument("cubes", nargs="+", metavar="CUBE", help="FITS cube(s) of the target")
     p.add_argument("--position", help="companion offset x,y (detector) or dRA,dDec (--sky), "
-                                      "e.g. 150,-80mas")
+                                      "mas if no unit, e.g. 150,-80mas (required without "
+                                      "--curve)")
     p.add_argument("--sky", action="store_true",
                    help="--position is on the sky (East positive), turned by each frame's "
-                        "detector position angle")
-    p.add_argument("--contrast", help="contrast, or one per channel (comma list)")
+                        "detector position angle (default: on the detector)")
+    p.add_argument("--contrast", help="contrast, or one per channel (comma list; required "
+                                      "without --curve)")
     p.add_argument("--pa", metavar="DEG|LIST|FILE", help="detector position angles (see "
-                                                         "extract)")
+                                                         "extract; default: the instrument's)")
     p.add_argument("--curve", action="store_true",
                    help="measure the injection contrast curve instead (needs --calibrator)")
     p.add_argument("--calibrator", action="append", nargs="+", metavar="CUBE",
-                   help="with --curve: cube(s) of a calibrator (repeat for several)")
+                   help="with --curve: cube(s) of a calibrator, repeat for several "
+                        "(required with --curve)")
     p.add_argument("--separations", default="100,200,400mas",
-                   help="with --curve: separations (default 100,200,400mas)")
-    p.add_argument("--contrasts", default="1e-3,2e-3,5e-3,1e-2,2e-2",
-                   help="with --curve: contrast ladder (default 1e-3,2e-3,5e-3,1e-2,2e-2)")
-    p.add_argument("--angles", type=int, default=6,
-                   help="with --curve: position angles per step (default 6)")
-    p.add_argument("--pfa", type=float, default=1e-3, help="global P_FA (default 1e-3)")
-    p.add_argument("--draws", type=int, default=5000, help="Monte-Carlo draws (default 5000)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the angles (default 0)")
-    p.add_argument("--plots", metavar="DIR", help="with --curve: write the figure there")
+                   help="with --curve: separations, mas if no unit (default %(default)s)")
+    p.add_argument("--contrasts", default=None,
+                   help="with --curve: a fixed contrast ladder, e.g. 1e-3,2e-3,5e-3 (default: "
+                        "one that brackets the limit by itself, from 0.5 to 2 times the "
+                        "analytic limit, extended while every step or none is found)")
+    p.add_argument("--angles", type=int, default=4,
+                   help="with --curve: position angles per contrast step (default %(default)s)")
+    p.add_argument("--pfa", type=float, default=1e-3,
+                   help="global false-alarm probability of the detections (default %(default)s)")
+    p.add_argument("--draws", type=int, default=5000,
+                   help="Monte-Carlo draws calibrating the analytic limits' search (default "
+                        "%(default)s)")
+    p.add_argument("--injection-draws", type=int, default=1000,
+                   help="with --curve: Monte-Carlo draws calibrating each injection's search "
+                        "(default %(default)s)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the angles and of the draws (default %(default)s)")
+    p.add_argument("--plots", metavar="DIR",
+                   help="with --curve: write the figure there (default: no figure)")
     _cube_options(p)
     _pupil_options(p)
     _extraction_options(p)
-    _output(p, "output FITS file (injected cube, or the curve with --curve)")
+    _output(p, "output FITS file: the injected cube, or the curve with --curve (required)")
 
-    p = command("info", "describe a cube, KPFITS, model or detection file", EPILOG_INFO)
-    p.add_argument("files", nargs="+", metavar="FILE")
+
+def _info(command):
+    p = command("info", "describe a cube, KPFITS, model, detection or injection file",
+                EPILOG_INFO)
+    p.add_argument("files", nargs="+", metavar="FILE", help="FITS file(s) to describe")
     _cube_options(p)
     _pupil_options(p)
 
+
+def _simulate(command):
     p = command("simulate", "simulate a target and a calibrator", EPILOG_SIMULATE)
-    p.add_argument("--preset", default="paper",
-                   choices=("paper", "charis", "sphere", "sphere-sam", "niriss", "nircam",
-                            "gpi"))
+    p.add_argument("--preset", default="paper", choices=PRESETS,
+                   help="instrument and scene to start from (see below; default %(default)s)")
     p.add_argument("--layout", default="plain",
                    choices=("plain", "charis", "sphere", "jwst", "gpi"),
-                   help="file layout (default plain 4-D cube)")
-    p.add_argument("--frames", type=int, help="number of frames (preset default)")
-    p.add_argument("--contrasts", help="per-channel contrasts, comma separated")
-    p.add_argument("--separation", help="companion separation, e.g. 100mas")
-    p.add_argument("--pa", help="companion angle from +x towards +y, e.g. 36.87deg "
-                                "(niriss, nircam, gpi: East of North on the sky)")
-    p.add_argument("--wavefront", help="rms wavefront error, e.g. 100nm")
-    p.add_argument("--shape", type=int, help="image side in pixels (preset default)")
-    p.add_argument("--exptime", help="exposure time per frame, e.g. 1s (default 0.1s)")
+                   help="file layout: one 4-D cube per star, or the instrument pipeline's "
+                        "files (default %(default)s)")
+    p.add_argument("--frames", type=int,
+                   help="number of frames per star (default: the preset's)")
+    p.add_argument("--contrasts", help="per-channel contrasts, comma separated (default: the "
+                                       "preset's)")
+    p.add_argument("--separation", help="companion separation, mas if no unit, e.g. 100mas "
+                                        "(default: the preset's)")
+    p.add_argument("--pa", help="companion angle from +x towards +y, deg if no unit, e.g. "
+                                "36.87deg; niriss, nircam, gpi: East of North on the sky "
+                                "(default: the preset's)")
+    p.add_argument("--wavefront", help="rms wavefront error, nm if no unit, e.g. 100nm "
+                                       "(default: the preset's)")
+    p.add_argument("--shape", type=int, help="image side in pixels (default: the preset's)")
+    p.add_argument("--exptime", help="exposure time per frame, s if no unit, e.g. 1s "
+                                     "(default 0.1s)")
     g = p.add_argument_group("quasi-static aberrations (as on sky; default none)")
-    g.add_argument("--drift", help="rms of aberrations drifting from frame to frame, e.g. 30nm")
+    g.add_argument("--drift", help="rms of aberrations drifting from frame to frame, nm if "
+                                   "no unit, e.g. 30nm (default 0)")
     g.add_argument("--drift-time", type=float,
                    help="their correlation time in frames (default 10)")
-    g.add_argument("--static", help="rms of static aberrations common to both stars")
+    g.add_argument("--static", help="rms of static aberrations common to both stars, nm if no "
+                                    "unit (default 0)")
     g.add_argument("--static-diff", help="rms of static aberrations of the calibrator only "
-                                         "(a calibration residual), e.g. 10nm")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    _output(p, "output directory")
+                                         "(a calibration residual), nm if no unit, e.g. 10nm "
+                                         "(default 0)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
+    _output(p, "output directory (required)")
 
+
+def _detect(command):
     p = command("detect", "search kernel phases for companions", EPILOG_DETECT)
-    p.add_argument("kp", metavar="KP.fits", help="kernel-phase data (KPFITS) or closure "
-                   "phases (OIFITS)")
+    p.add_argument("kp", metavar="KP.fits", help="kernel-phase data (KPFITS, from kpifs "
+                                                 "extract) or closure phases (OIFITS)")
     p.add_argument("--calibrator", nargs="+", metavar="CAL_KP.fits",
-                   help="kernel phases of calibrator(s), if KP.fits is not calibrated")
-    _search_options(p, grid_step_aliases=("--grid-step", "--step"))
+                   help="kernel phases of calibrator(s), if KP.fits is not calibrated "
+                        "(default: none)")
+    _search_options(p)
+    # --step was the search grid here; everywhere else it is the pupil grid
+    p.add_argument("--step", dest="deprecated_step", help=argparse.SUPPRESS)
     p.add_argument("--shrinkage", default="auto", choices=("auto", "ledoit-wolf", "none"),
-                   help="covariance estimator when calibrating here")
+                   help="covariance estimator when calibrating here (default %(default)s)")
     p.add_argument("--allow-uncalibrated", action="store_true",
                    help="search data that no calibrator was subtracted from (refused "
                         "otherwise: aberrations look like companions)")
-    p.add_argument("--plots", metavar="DIR", help="write PNG figures there")
-    _output(p)
+    p.add_argument("--plots", metavar="DIR", help="write PNG figures there (default: none)")
+    _output(p, "output detection FITS file (required)")
 
+
+def _roc(command):
     p = command("roc", "the seed paper's ROC experiment",
                 "example:\n  kpifs roc --preset paper --frames 300 -o roc")
-    p.add_argument("--preset", default="paper",
-                   choices=("paper", "charis", "sphere", "sphere-sam"))
-    p.add_argument("--frames", type=int, default=1000, help="calibrator frames (default 1000)")
-    p.add_argument("--draws", type=int, default=30000, help="Monte-Carlo draws (default 30000)")
-    p.add_argument("--seed", type=int, default=0)
-    _output(p, "output directory")
+    p.add_argument("--preset", default="paper", choices=ROC_PRESETS,
+                   help="scene simulated (default %(default)s)")
+    p.add_argument("--frames", type=int, default=1000,
+                   help="calibrator frames (default %(default)s)")
+    p.add_argument("--draws", type=int, default=30000,
+                   help="Monte-Carlo draws (default %(default)s)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the simulation and the draws (default %(default)s)")
+    _output(p, "output directory (required)")
 
+
+def _batch(command):
     p = command("batch", "reprocess many observations on Dask", EPILOG_BATCH)
     p.add_argument("manifest", nargs="*", metavar="MANIFEST",
                    help="CSV/ECSV with columns name, target, calibrator (';' separates files, "
                         "'|' calibrator stars; globs allowed)")
-    p.add_argument("--glob", help="one entry per matching target file")
-    p.add_argument("--calibrator", help="with --glob: calibrator file pattern for every entry")
+    p.add_argument("--glob", help="one entry per matching target file (default: the entries "
+                                  "of the manifest)")
+    p.add_argument("--calibrator", help="with --glob: calibrator file pattern for every entry "
+                                        "(default: none)")
     p.add_argument("--scheduler", help="address of a running Dask scheduler (default: a local "
                                        "cluster)")
-    p.add_argument("--workers", type=int, default=2, help="local-cluster workers (default 2)")
+    p.add_argument("--workers", type=int, default=2,
+                   help="local-cluster workers (default %(default)s)")
     _cube_options(p)
     _pupil_options(p)
     _extraction_options(p)
     _search_options(p)
-    p.add_argument("-o", "--output", required=True, help="output directory")
+    p.add_argument("-o", "--output", required=True, help="output directory (required)")
     p.add_argument("--overwrite", action="store_true",
                    help="redo entries already done (default: skip them, resuming a run)")
 
+
+def _demo(command):
     p = command("demo", "run the whole chain on simulated data",
                 "example:\n  kpifs demo -o demo_output")
-    p.add_argument("--frames", type=int, default=200, help="exposures per star (default 200)")
+    p.add_argument("--frames", type=int, default=200,
+                   help="exposures per star (default %(default)s)")
     p.add_argument("--draws", type=int, default=5000,
-                   help="Monte-Carlo draws calibrating the search (default 5000)")
-    p.add_argument("--seed", type=int, default=1)
-    _output(p, "output directory", required=False, default="kpifs_demo")
+                   help="Monte-Carlo draws calibrating the search (default %(default)s)")
+    p.add_argument("--seed", type=int, default=1,
+                   help="seed of the simulation and of the draws (default %(default)s)")
+    p.add_argument("--keep-inputs", action="store_true",
+                   help="keep the simulated CHARIS cubes in OUTPUT/charis (about 300 MB; "
+                        "default: made in a temporary folder and removed)")
+    _output(p, "output directory (default %(default)s)", required=False, default="kpifs_demo")
+
+
+#: The commands, in the order ``kpifs --help`` lists them.
+COMMANDS = (_kernel, _extract, _modelcheck, _inject, _info, _simulate, _detect, _roc, _batch,
+            _demo)
+
+
+def build_parser():
+    """The ``kpifs`` parser; ``args.module`` names the `kpifs._cli` module that runs it."""
+    parser = argparse.ArgumentParser(
+        prog="kpifs", description="Multi-wavelength kernel-phase analysis of IFS cubes.",
+        epilog="Run 'kpifs COMMAND --help' for the options and examples of each command.\n"
+               + EXIT_STATUS.replace("; ", ";\n  ").replace(": 0", ":\n  0"),
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"kpifs {VERSION}")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("-v", "--verbose", action="count", default=0,
+                        help="more messages (-vv for debugging ones)")
+    common.add_argument("-q", "--quiet", action="store_true",
+                        help="errors only: no progress, warnings or results printed")
+    common.add_argument("--debug", action="store_true", help="show tracebacks")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    def command(name, help_text, epilog, module=None):
+        p = sub.add_parser(name, parents=[common], help=help_text, epilog=epilog,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+        p.set_defaults(module=module or name)
+        return p
+
+    for add in COMMANDS:
+        add(command)
     return parser

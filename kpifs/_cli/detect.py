@@ -1,23 +1,54 @@
 """``kpifs detect``: search kernel phases for companions and write the products."""
 import sys
+import warnings
 
 from astropy import units as u
 
 from .._checks import preflight_detect
 from .._utils import check_output_dir, check_output_path
 from ..data import KernelPhaseData
+from ..exceptions import KpifsError, KpifsWarning
+from ..io.cube import open_fits
 from ..detect.sky import detector_to_sky, mean_angle
 from ..plotting import save_detection_plots
 from ..workflow import detect_observation
 from ._options import detect_options
 
 
+def _grid_step(args):
+    """``--step`` was the search grid's step here (the pupil grid's everywhere else): still
+    read, with a warning, for one release."""
+    if args.deprecated_step is None:
+        return
+    if args.grid_step is not None:
+        raise KpifsError("give the search grid's step once, with --grid-step")
+    warnings.warn("--step in kpifs detect is deprecated: the search grid's step is "
+                  "--grid-step (--step is the pupil grid's step in every other command)",
+                  KpifsWarning)
+    args.grid_step = args.deprecated_step
+
+
+def _check_kernel_phases(path):
+    """Refuse, with the command that makes them, a file that holds no kernel phases."""
+    with open_fits(path) as hdul:
+        if "KP-DATA" in hdul:
+            return
+        what = ("detection products" if hdul[0].header.get("CONTENT") == "KPIFS-DETECTION"
+                else "no KP-DATA extension (no kernel phases)")
+    raise KpifsError(f"{path}: {what}; kpifs detect searches kernel phases: make them from "
+                     f"the cubes first, e.g. 'kpifs extract {path} --calibrator CAL.fits -o "
+                     f"kp.fits', then 'kpifs detect kp.fits'")
+
+
 def run(args):
+    _grid_step(args)
     options = detect_options(args).validate()
     check_output_path(args.output, overwrite=args.overwrite)
     preflight_detect(args.kp, args.calibrator, args.output, options)
     if args.plots:
         check_output_dir(args.plots)
+    for path in [args.kp] + list(args.calibrator or []):
+        _check_kernel_phases(path)
     kpd = KernelPhaseData.read(args.kp)
     cals = [KernelPhaseData.read(c) for c in (args.calibrator or [])]
     res = detect_observation(kpd, options, calibrators=cals,

@@ -134,11 +134,13 @@ def _injection(path):
         n_rows = len(hdul["INJECTIONS"].data) if "INJECTIONS" in hdul else 0
     print(f"{path}: kpifs injection-recovery contrast curve")
     print(f"  global P_FA {hdr.get('PFA', float('nan')):g}, P_D {hdr.get('PD', 0.5):g}; "
-          f"{hdr.get('NANGLES', '?')} position angle(s) per step, {n_rows} step(s)")
-    if lim is not None:
-        for row in lim:
-            print(f"  {row['separation'].to_value(u.mas):.0f} mas: injections "
-                  f"{row['limit_injection']:.2e}, analytic {row['limit_analytic']:.2e}")
+          f"{hdr.get('NANGLES', '?')} position angle(s) per step, {n_rows} step(s) "
+          f"({hdr.get('LADDER', 'given')} ladder)")
+    for row in ([] if lim is None else lim):
+        flag = str(row["flag"]).strip() if "flag" in lim.colnames else "="
+        bound = "" if flag in ("=", "") else flag + " "
+        print(f"  {row['separation'].to_value(u.mas):.0f} mas: injections "
+              f"{bound}{row['limit_injection']:.2e}, analytic {row['limit_analytic']:.2e}")
 
 
 def _verify_small(path, hdul, limit=16 * 2 ** 20):

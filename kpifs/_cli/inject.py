@@ -116,35 +116,74 @@ def run(args):
         print(f"injected a companion at {args.position} ({'sky' if args.sky else 'detector'}) "
               f"with contrast {args.contrast} into {name} -> {args.output}")
         return 0
+    return _curve(args, options, data, wl, ps, instrument, name)
+
+
+#: How each limit is known, in words (``LIMITS.flag``).
+_FLAG_WORDS = {"=": "bracketed", "<": "found at every step: an upper bound",
+               ">": "not found often enough at any step: a lower bound"}
+
+
+def _curve(args, options, data, wl, ps, instrument, name):
     if not args.calibrator:
         raise KpifsError("inject --curve: give the calibrator's cubes (--calibrator)")
+    say = (lambda text: None) if args.quiet else (lambda text: print(text, flush=True))
+    seps = np.atleast_1d(_floats(args.separations, "--separations", u.mas))
+    say("[1/2] the analytic limits: extraction, calibration and search of the target")
     model = kernel_model_for(options, instrument)
     window = options.window_for(data.shape)
-    seps = np.atleast_1d(_floats(args.separations, "--separations", u.mas))
     _check_reach(args, seps, window, ps, wl, model)
     cals = [extract_observation(c, calibrator_options(options), model=model)
             for c in args.calibrator]
-    ladder = _floats(args.contrasts, "--contrasts")
-    tab = injection_limits(data, cals, cals[0].kernel_model, wavelengths=wl, pixscale=ps,
-                           window=window, separations=seps, contrasts=ladder,
-                           n_angles=args.angles, pfa=args.pfa, seed=args.seed,
-                           n_draws=args.draws, progress=not args.quiet)
+    # the analytic limits first: the ladders start from them
     target = extract_observation(args.cubes, options, model=model)
     analytic = detect_observation(calibrate_observation(target, cals, options),
                                   DetectOptions(pfa=args.pfa, draws=args.draws, seed=args.seed))
     ana = np.interp(seps.value, analytic.curves["separation"].to_value(u.mas),
                     analytic.curves["B_median"], left=np.nan, right=np.nan)
+    ladder = None if args.contrasts is None else _floats(args.contrasts, "--contrasts")
+    if ladder is None and not np.all(np.isfinite(ana)):
+        bad = ", ".join(f"{s:g}" for s in seps.value[~np.isfinite(ana)])
+        raise KpifsError(f"inject --curve: no analytic limit at {bad} mas (outside the search "
+                         f"grid) to start the contrast ladder from; give --contrasts")
+    say(f"[2/2] injections: {args.angles} position angles per contrast step, from 0.5 to 2 "
+        f"times the analytic limit until the steps bracket P_D 0.5" if ladder is None else
+        f"[2/2] injections: {args.angles} position angles at each of {len(ladder)} contrasts")
+    tab = injection_limits(data, cals, cals[0].kernel_model, wavelengths=wl, pixscale=ps,
+                           window=window, separations=seps, contrasts=ladder, start=ana,
+                           n_angles=args.angles, pfa=args.pfa, seed=args.seed,
+                           n_draws=args.injection_draws, progress=not args.quiet)
+    write_hdulist(_curve_hdulist(tab, seps, ana, args, name), args.output,
+                  overwrite=args.overwrite)
+    print(f"injection curve of {name} (P_FA {args.pfa:g}, P_D 0.5) -> {args.output}")
+    for s, a, flag, b in zip(seps.value, tab.meta["limits"], tab.meta["flags"], ana):
+        value = f"{'' if flag == '=' else flag + ' '}{a:.2e}"
+        note = "" if flag == "=" else f" ({_FLAG_WORDS[flag]})"
+        print(f"  {s:.0f} mas: injections {value}{note}, analytic {b:.2e}")
+    if args.plots:
+        Path(args.plots).mkdir(parents=True, exist_ok=True)
+        _save(plot_injection_limits(tab, analytic=analytic), f"{args.plots}/injection_limits.png")
+        print(f"  figure in {args.plots}/")
+    return 0
+
+
+def _curve_hdulist(tab, seps, ana, args, name):
+    """The curve's FITS: the primary header, the injections and the limits (with flags)."""
     lim = QTable({"separation": seps, "limit_injection": tab.meta["limits"],
-                  "limit_analytic": ana})
+                  "flag": tab.meta["flags"], "limit_analytic": ana})
     hdr = fits.Header()
     hdr["CONTENT"] = ("KPIFS-INJECTION", "kpifs injection-recovery contrast curve")
     hdr["KPIFSVER"] = (VERSION, "kpifs version")
-    hdr["PFA"] = (args.pfa, "global false-alarm probability of the detections")
+    hdr["PFA"] = (args.pfa, "global false-alarm probability of detections")
     hdr["PD"] = (0.5, "detection probability of the limits")
-    hdr["NANGLES"] = (args.angles, "position angles per separation and contrast")
+    hdr["NANGLES"] = (args.angles, "position angles per separation, contrast")
     hdr["SEED"] = (args.seed, "seed of the position angles")
+    hdr["LADDER"] = (tab.meta["ladder"], "contrast ladder: given, or adaptive")
+    hdr["NDRAWS"] = (tab.meta["n_draws"], "null draws of each injection's search")
     hdr.add_history(f"kpifs {VERSION}: injections into {ascii_text(name)}")
     hdr["COMMENT"] = tab.meta["method"]
+    hdr["COMMENT"] = ("LIMITS.flag: '=' bracketed by the ladder, '<' an upper bound (the "
+                      "lowest step found), '>' a lower bound (the highest step not found)")
     # the table's own meta holds lists (the limits: in LIMITS) and long names: plain cards
     inj = tab.copy(copy_data=False)
     inj.meta = {"PFA": tab.meta["pfa"], "PD": tab.meta["pd"], "NANGLES": tab.meta["n_angles"],
@@ -153,13 +192,4 @@ def run(args):
     t1.name = "INJECTIONS"
     t2 = fits.table_to_hdu(lim)
     t2.name = "LIMITS"
-    write_hdulist(fits.HDUList([fits.PrimaryHDU(header=hdr), t1, t2]), args.output,
-                  overwrite=args.overwrite)
-    print(f"injection curve of {name} (P_FA {args.pfa:g}, P_D 0.5) -> {args.output}")
-    for s, a, b in zip(seps.value, tab.meta["limits"], ana):
-        print(f"  {s:.0f} mas: injections {a:.2e}, analytic {b:.2e}")
-    if args.plots:
-        Path(args.plots).mkdir(parents=True, exist_ok=True)
-        _save(plot_injection_limits(tab, analytic=analytic), f"{args.plots}/injection_limits.png")
-        print(f"  figure in {args.plots}/")
-    return 0
+    return fits.HDUList([fits.PrimaryHDU(header=hdr), t1, t2])

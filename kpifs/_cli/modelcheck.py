@@ -48,7 +48,9 @@ def run(args):
                                       radius=args.window_radius)
     steps = None if args.steps is None else u.Quantity(_floats(args.steps, "--steps"), u.m)
     chk = check_pupil_model(data, cal, wavelengths=wl, pixscale=ps, pupil=pupil,
-                            window=window,
+                            progress=not args.quiet, window=window,
+                            pupil_scale=None if args.pupil_scale is None
+                            else to_quantity(args.pupil_scale, u.m, name="--pupil-scale"),
                             rotations=u.Quantity(_floats(args.rotations, "--rotations"), u.deg),
                             scales=_floats(args.scales, "--scales"),
                             cuts=_floats(args.cuts, "--cuts"), steps=steps)

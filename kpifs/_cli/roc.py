@@ -1,7 +1,7 @@
 """``kpifs roc``: the seed paper's ROC experiment, as a table and figures."""
 from pathlib import Path
 
-from .._utils import write_table
+from .._utils import one_blas_thread, write_table
 from ..detect.roc import paper_experiment
 from ..exceptions import KpifsError
 from ..plotting import save_roc_plots
@@ -14,9 +14,10 @@ def run(args):
     table_path = out / "roc.ecsv"
     if table_path.exists() and not args.overwrite:
         raise KpifsError(f"{table_path}: output exists; pass --overwrite to replace it")
-    table, curves = paper_experiment(preset=args.preset, n_frames=args.frames,
-                                     n_draws=args.draws, seed=args.seed,
-                                     progress=not args.quiet)
+    with one_blas_thread():      # the simulation's and the draws' small products
+        table, curves = paper_experiment(preset=args.preset, n_frames=args.frames,
+                                         n_draws=args.draws, seed=args.seed,
+                                         progress=not args.quiet)
     out.mkdir(parents=True, exist_ok=True)
     save_roc_plots(curves, out)
     write_table(table, table_path, overwrite=True)

@@ -108,6 +108,18 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
     >>> hdul[0].header["INSTRUME"], hdul[0].header["DIAM"]
     ('UNKNOWN', 7.92)
     """
+    hdus = [fits.PrimaryHDU(header=_primary_header(kpd, inputs, history)),
+            *model_hdus(kpd.kernel_model)]
+    hdus += _data_hdus(kpd)
+    hdus.append(_wavelength_hdu(kpd))
+    hdus += _angle_hdus(kpd)
+    if kpd.phases is not None and kpd.amplitudes is not None:
+        hdus.append(_visibility_hdu(kpd))
+    return fits.HDUList(hdus)
+
+
+def _primary_header(kpd, inputs, history):
+    """The primary header: the input cube's cards, the KPFITS1 cards and kpifs's own."""
     km = kpd.kernel_model
     nframe, nwave, nkp = kpd.kp.shape
     hdr = _clean_header(kpd.header)
@@ -160,7 +172,25 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
         hdr.add_history(line)
     hdr.add_history(f"kpifs {VERSION}: kernel phases of "
                     f"{ascii_text(kpd.meta.get('source', '?'))}")
-    hdus = [fits.PrimaryHDU(header=hdr), *model_hdus(km)]
+    return hdr
+
+
+#: kpifs's own extensions: (attribute of the data, extension, unit, what it holds).
+_ERROR_MODEL_HDUS = (
+    ("covariance_rows", "KP-COVROWS", "rad",
+     "rows R with R^T R = covariance of KP-DATA across all channels"),
+    ("fit_covariance_rows", "KP-FITROWS", "rad",
+     "rows of the error model that characterises candidates"),
+    ("block_rows", "KP-BLKROWS", "rad",
+     "centred time-block means, scaled: the empirical null's rows"),
+    ("joint_covariance", "KP-JCOV", "rad2",
+     "joint covariance across channels, index = iwave * nkp + ikp"))
+
+
+def _data_hdus(kpd):
+    """KP-DATA, KP-SIGM and KP-COV, then kpifs's error-model rows and joint covariance."""
+    nframe = kpd.kp.shape[0]
+    hdus = []
     kd = fits.ImageHDU(np.asarray(kpd.kp, np.float64), name="KP-DATA")   # no copy
     kd.header["BUNIT"] = "rad"
     kd.header["COMMENT"] = "kernel phases (nframe, nwave, nkp)"
@@ -193,36 +223,34 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
                      "indexing it per frame find it for frame 0 only", kpd.name, nframe,
                      cov.nbytes / 2 ** 20)
         hdus.append(hc)
-    if kpd.covariance_rows is not None:
-        hr = fits.ImageHDU(np.asarray(kpd.covariance_rows, float), name="KP-COVROWS")
-        hr.header["BUNIT"] = "rad"
-        hr.header["COMMENT"] = "rows R with R^T R = covariance of KP-DATA across all channels"
-        hdus.append(hr)
-    if getattr(kpd, "fit_covariance_rows", None) is not None:
-        hf = fits.ImageHDU(np.asarray(kpd.fit_covariance_rows, float), name="KP-FITROWS")
-        hf.header["BUNIT"] = "rad"
-        hf.header["COMMENT"] = "rows of the error model that characterises candidates"
-        hdus.append(hf)
-    if getattr(kpd, "block_rows", None) is not None:
-        hb = fits.ImageHDU(np.asarray(kpd.block_rows, float), name="KP-BLKROWS")
-        hb.header["BUNIT"] = "rad"
-        hb.header["COMMENT"] = "centred time-block means, scaled: the empirical null's rows"
-        hdus.append(hb)
-    if kpd.joint_covariance is not None:
-        hj = fits.ImageHDU(np.asarray(kpd.joint_covariance, float), name="KP-JCOV")
-        hj.header["BUNIT"] = "rad2"
-        hj.header["COMMENT"] = "joint covariance across channels, index = iwave * nkp + ikp"
-        hdus.append(hj)
+    for attr, name, bunit, comment in _ERROR_MODEL_HDUS:
+        value = getattr(kpd, attr, None)
+        if value is not None:
+            h = fits.ImageHDU(np.asarray(value, float), name=name)
+            h.header["BUNIT"] = bunit
+            h.header["COMMENT"] = comment
+            hdus.append(h)
+    return hdus
+
+
+def _wavelength_hdu(kpd):
+    """CWAVEL: central wavelengths and bandwidths (m)."""
     wl = kpd.wavelengths.to_value(u.m)
     bw = (u.Quantity(kpd.bandwidth, u.um).to_value(u.m) if kpd.bandwidth is not None
           else (np.gradient(wl) if len(wl) > 1 else 0.05 * wl))
     bw = np.broadcast_to(np.asarray(bw, float), wl.shape)
     cw = _table_hdu({"CWAVEL": wl, "BWIDTH": bw, "DWAVEL": bw}, "CWAVEL",
                     dict.fromkeys(("CWAVEL", "BWIDTH", "DWAVEL"), "m"))
-    hdus.append(_label_columns(cw, {
+    return _label_columns(cw, {
         "CWAVEL": "central wavelength of the channel [m]",
         "BWIDTH": "channel bandwidth [m]",
-        "DWAVEL": "channel bandwidth [m] (same as BWIDTH)"}))
+        "DWAVEL": "channel bandwidth [m] (same as BWIDTH)"})
+
+
+def _angle_hdus(kpd):
+    """DETPA (per frame) and, for calibrated data, DETPA-FR (the averaged frames')."""
+    nframe = kpd.kp.shape[0]
+    hdus = []
     if kpd.detpa is not None:
         detpa, where = np.asarray(kpd.detpa, float), kpd.meta.get("detpa_source", "given")
     else:
@@ -238,21 +266,24 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
         hf.header["BUNIT"] = "deg"
         hf.header["COMMENT"] = "detector position angle of each averaged target frame"
         hdus.append(hf)
-    if kpd.phases is not None and kpd.amplitudes is not None:
-        # diagnostics, stored in float32 (~1e-7 relative): half the file and the write;
-        # cos and sin in float32 too (5x faster), off by < 2e-7 (|V| <= 1), as storage is
-        # (ufuncs cast their float64 inputs chunk by chunk: no temporary of the data's size)
-        cv = np.empty((2,) + np.shape(kpd.phases), np.float32)
-        np.cos(kpd.phases, out=cv[0], dtype=np.float32, casting="same_kind")
-        np.sin(kpd.phases, out=cv[1], dtype=np.float32, casting="same_kind")
-        for part in cv:
-            np.multiply(part, kpd.amplitudes, out=part, dtype=np.float32, casting="same_kind")
-        hv = fits.ImageHDU(cv, name="CVIS-DATA")
-        hv.header["CVISFORM"] = ("REIM", "real and imaginary parts")
-        hv.header["COMMENT"] = ("flux-normalised complex visibilities (2, nframe, nwave, nuv): "
-                                "real, imaginary")
-        hdus.append(hv)
-    return fits.HDUList(hdus)
+    return hdus
+
+
+def _visibility_hdu(kpd):
+    """CVIS-DATA: the flux-normalised complex visibilities (float32)."""
+    # diagnostics, stored in float32 (~1e-7 relative): half the file and the write;
+    # cos and sin in float32 too (5x faster), off by < 2e-7 (|V| <= 1), as storage is
+    # (ufuncs cast their float64 inputs chunk by chunk: no temporary of the data's size)
+    cv = np.empty((2,) + np.shape(kpd.phases), np.float32)
+    np.cos(kpd.phases, out=cv[0], dtype=np.float32, casting="same_kind")
+    np.sin(kpd.phases, out=cv[1], dtype=np.float32, casting="same_kind")
+    for part in cv:
+        np.multiply(part, kpd.amplitudes, out=part, dtype=np.float32, casting="same_kind")
+    hv = fits.ImageHDU(cv, name="CVIS-DATA")
+    hv.header["CVISFORM"] = ("REIM", "real and imaginary parts")
+    hv.header["COMMENT"] = ("flux-normalised complex visibilities (2, nframe, nwave, nuv): "
+                            "real, imaginary")
+    return hv
 
 
 def write_kpfits(kpd, path, *, overwrite=False, inputs=(), history=()):
