@@ -10,7 +10,7 @@ from kpifs.calibrate import block_rows, calibrate
 from kpifs.covariance import whiten, whitening_matrix
 from kpifs.data import DetectionGrid, DetectionResult
 from kpifs.detect import DetectionModel, NullCalibration, detect
-from kpifs.detect.null import scale_block_rows
+from kpifs.detect.channels import scale_block_rows
 from kpifs.exceptions import KpifsError
 
 WL = [1.6] * u.um

@@ -286,9 +286,9 @@ class DetectionModel:
 
     @property
     def subspace_sign(self):
-        """``h`` (r, ny, nx): a companion's fitted spectrum has a positive mean where
-        ``h . (U^T z) > 0`` (the subspace test counts only those: a spectrum of
-        negative mean is the mirror position's)."""
+        """Sign vectors ``h`` (r, ny, nx) of the subspace test: the fitted spectrum has a
+        positive mean where the dot product of ``h`` and ``U^T z`` is positive (the
+        test counts only those: a spectrum of negative mean is the mirror position's)."""
         self.subspace
         return self._subspace_sign
 
