@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ._segmented import SEGMENTED_TELESCOPES
+
 __all__ = ["ApertureGeometry", "TELESCOPES", "ModelDefaults", "MODEL_DEFAULTS",
            "BINARY_MIN_TRANSMISSION", "model_defaults"]
 
@@ -256,7 +258,6 @@ def _gpi_vanes():
 
 
 def _register_segmented():
-    from ._segmented import SEGMENTED_TELESCOPES
     TELESCOPES.update(SEGMENTED_TELESCOPES)
     TELESCOPES["gemini_south"] = ApertureGeometry(
         diameter=7.7701, obstruction=1.2968, vanes=_gpi_vanes(), name="Gemini South/GPI")

@@ -287,3 +287,11 @@ def test_files_written_by_the_jwst_datamodels(niriss, tmp_path, capsys):
     assert len(cand) == 1
     assert np.hypot(cand["fit_dra"][0].to_value(u.mas) - dra,
                     cand["fit_ddec"][0].to_value(u.mas) - ddec) < 5
+
+
+def test_files_of_one_filter_add_frames(niriss, tmp_path):
+    second = _modified(niriss["target"], tmp_path / "second_calints.fits")
+    with read_jwst([niriss["target"], second]) as cube:
+        assert cube.shape == (60, 1, 80, 80) and len(cube.detpa) == 60
+        assert np.array_equal(np.isnan(np.asarray(cube.data[28:32])),
+                              np.isnan(np.asarray(cube.data[[28, 29, 0, 1]])))

@@ -310,9 +310,22 @@ def read_jwst(paths, *, wavelengths=None, pixscale=None, dq_bits=DO_NOT_USE):
                 "extract each filter separately")
         if len(cubes) == 1:
             return cubes[0]
-        from .readers import _concatenate
-        return _concatenate(cubes)
+        return _join(cubes)
     except BaseException:
         for c in cubes:
             c.close()
         raise
+
+
+def _join(cubes):
+    """Files of one target and filter as more frames of one cube."""
+    first = cubes[0]
+    for c in cubes[1:]:
+        if abs(c.pixscale / first.pixscale - 1) > 1e-3:
+            raise KpifsError(f"{c.name}: pixel scale {c.pixscale} differs from {first.pixscale}")
+    detpa = np.concatenate([c.detpa.to_value(u.deg) for c in cubes]) * u.deg
+    return IFSCube(data=FrameStack([c.data for c in cubes]), wavelengths=first.wavelengths,
+                   pixscale=first.pixscale, header=first.header, detpa=detpa,
+                   detpa_source=first.detpa_source, instrument="jwst",
+                   source=[s for c in cubes for s in c.source],
+                   _files=[f for c in cubes for f in c._files])

@@ -22,6 +22,7 @@ from astropy.io import fits
 from .._meta import VERSION
 from .._utils import check_output_path, write_hdulist
 from ..exceptions import KpifsError
+from .layouts_instruments import write_gpi_exposures, write_jwst_calints
 
 __all__ = ["write_plain_cube", "write_charis_exposures", "write_sphere_cube",
            "write_observation", "LAYOUTS"]
@@ -195,7 +196,6 @@ def write_observation(obs, outdir, *, layout="plain", overwrite=False):
 
 def _write_instrument(layout, obs, role, cube, var, outdir, common):
     """The JWST and GPI layouts (`kpifs.io.layouts_instruments`)."""
-    from .layouts_instruments import write_gpi_exposures, write_jwst_calints
     p = obs.params
     if layout == "gpi":
         (outdir / role).mkdir(exist_ok=True)
