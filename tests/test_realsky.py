@@ -51,10 +51,12 @@ def test_eps_her_calibrating_itself_gives_no_candidate(pharo, split):
     assert len(res.candidates) == 0, res.candidates
     assert res.meta["error_model"]["model"] == "modes"
     # the empirical null (sign flips of 12-14 time blocks) against the Gaussian one:
-    # measured 0.91-1.17; the search uses the larger
+    # measured 0.91-1.17 with the split-halves residual, 0.71-0.75 with the residual
+    # measured at detection (the block rows keep the model's scale); the search uses
+    # the larger
     nul = res.meta["null"]
     assert nul["method"] == "gaussian+empirical"
-    assert 0.75 < nul["threshold_empirical"] / nul["threshold_gaussian"] < 1.35
+    assert 0.65 < nul["threshold_empirical"] / nul["threshold_gaussian"] < 1.35
     assert res.threshold == max(nul["threshold_gaussian"], nul["threshold_empirical"])
 
 

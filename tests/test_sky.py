@@ -200,10 +200,11 @@ def test_detect_refits_a_rotating_sequence_on_the_sky(tmp_path, via_file):
     assert "rotating model" in res.candidates.meta["sky_fit"]
     assert abs(row["fit_pa_sky"].to_value(u.deg) - pa) < 1.0
     assert row["fit_separation"].to_value(u.mas) == pytest.approx(sep, rel=0.01)
-    # the detector fit rotated by the mean angle is biased by the smearing
+    # the detector fit rotated by the mean angle is biased by the smearing (2.1 deg with the
+    # out-of-sample error model, over 5 with the earlier one), the rotating refit is not
     _, pa_mean = separation_pa(*detector_to_sky(row["fit_x"].value, row["fit_y"].value,
                                                 res.candidates.meta["detpa"]))
-    assert abs(pa_mean - pa) > 5.0
+    assert abs(pa_mean - pa) > 1.5
     assert np.all(np.isfinite([row["fit_dra_err"].value, row["fit_pa_sky_err"].value]))
 
 

@@ -31,7 +31,7 @@ def _grid_step(args):
 def _check_kernel_phases(path):
     """Refuse, with the command that makes them, a file that holds no kernel phases."""
     with open_fits(path) as hdul:
-        if "KP-DATA" in hdul:
+        if "KP-DATA" in hdul or "OI_T3" in hdul:      # kernel or closure phases
             return
         what = ("detection products" if hdul[0].header.get("CONTENT") == "KPIFS-DETECTION"
                 else "no KP-DATA extension (no kernel phases)")

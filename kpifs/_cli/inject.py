@@ -50,7 +50,8 @@ def _check_args(args):
         DetectOptions(pfa=args.pfa, draws=args.draws, seed=args.seed).validate()
         if args.angles < 1:
             raise KpifsError(f"--angles must be at least 1, got {args.angles}")
-        _contrasts(args.contrasts, "--contrasts")
+        if args.contrasts is not None:              # else the ladder is adaptive
+            _contrasts(args.contrasts, "--contrasts")
         seps = np.atleast_1d(_floats(args.separations, "--separations", u.mas).value)
         if not np.all(np.isfinite(seps)) or np.any(seps <= 0):
             raise KpifsError(f"--separations {args.separations}: separations must be > 0")

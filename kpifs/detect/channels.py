@@ -16,10 +16,14 @@ from .limits import limit_energy_correlated
 
 __all__ = ["whiten_weights", "channel_shrinkage", "SHRINKAGE_GRID", "np_correlated",
            "energy_spread", "noise_scale", "map_noise", "combined_scale", "NOISE_CONFIDENCE",
+           "MIN_SCALE",
            "energy_null", "correlated_inputs", "scale_block_rows"]
 
 #: One-sided confidence of the upper bound a conservative error model is scaled down to.
 NOISE_CONFIDENCE = 0.023
+#: Smallest noise scale applied (an error model ten times too conservative; degenerate
+#: data, all zero, would otherwise divide by zero).
+MIN_SCALE = 0.1
 
 
 def whiten_weights(w, corr, alpha):
@@ -189,8 +193,9 @@ def map_noise(model, y):
     >>> bool(abs(np.mean([map_noise(dm, yy) for yy in y]) - 1) < 0.05)
     True
     """
-    z = model.z_maps(y)
-    return float(np.mean(z[..., model.grid.valid] ** 2))
+    z = model.z_maps(y)[..., model.grid.valid]
+    z = z[np.isfinite(z)]
+    return float(np.mean(z ** 2)) if z.size else float("nan")
 
 
 def combined_scale(kappa, spread, kappa_map, map_low):
@@ -199,7 +204,7 @@ def combined_scale(kappa, spread, kappa_map, map_low):
     Each is scaled up by its own measure when above 1, down only to its
     upper confidence bound (`noise_scale`): *spread* for the energy, *map_low*
     (the `NOISE_CONFIDENCE` quantile of `~kpifs.detect.null.NullCalibration.noise_draws`)
-    for the map's mean square *kappa_map*.
+    for the map's mean square *kappa_map*; never below `MIN_SCALE`.
 
     Examples
     --------
@@ -207,8 +212,12 @@ def combined_scale(kappa, spread, kappa_map, map_low):
     >>> combined_scale(1.2, 0.1, 1.5, 0.8), combined_scale(0.5, 0.1, 0.6, 0.8)
     (1.5, 0.75)
     """
-    s_map = kappa_map if kappa_map >= 1 else min(1.0, kappa_map / max(map_low, 1e-12))
-    return float(max(noise_scale(kappa, spread), s_map))
+    if not np.isfinite(kappa_map):      # no valid position: the energy alone
+        s = noise_scale(kappa, spread) if np.isfinite(kappa) else 1.0
+    else:
+        s_map = kappa_map if kappa_map >= 1 else min(1.0, kappa_map / max(map_low, 1e-12))
+        s = s_map if not np.isfinite(kappa) else max(noise_scale(kappa, spread), s_map)
+    return float(max(s, MIN_SCALE))
 
 
 def correlated_inputs(model, rows, a, energy, te, seed):

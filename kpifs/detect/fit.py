@@ -216,7 +216,23 @@ def refine_candidates(cands, kp, w, kpd, noise_rows=None, poses=None, dof=None,
     *dof* (the whitened dimension of *w*, a characterisation model) the errors are
     scaled by the fit's own reduced chi-square (never down) and ``fit_chi2_red`` is
     added. Returns the fitted models' kernel phases, one (q, p) array per candidate
-    (what `~kpifs.detect.detect` subtracts before it searches again)."""
+    (what `~kpifs.detect.detect` subtracts before it searches again).
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from astropy.table import QTable
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs.detect.fit import refine_candidates
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=0.6 * u.m))
+    >>> wl = [1.6] * u.um
+    >>> kp = km.binary_kernel_phases([60, -30] * u.mas, [5e-3], wl)
+    >>> kpd = KernelPhaseData(kp[None], wl, 10 * u.mas, km)
+    >>> t = QTable({"x": [55.0] * u.mas, "y": [-25.0] * u.mas, "contrast": [[3e-3]]})
+    >>> models = refine_candidates(t, kp, np.eye(km.n_kp)[None] * 1e4, kpd)
+    >>> round(float(t["fit_x"][0].value), 1), models[0].shape == kp.shape
+    (60.0, True)
+    """
     q = kp.shape[0]
     cols = {k: [] for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err", "fit_contrast",
                             "fit_contrast_err", "fit_chi2")}
