@@ -243,7 +243,8 @@ def subspace_weights(norm2, basis):
 
 
 def subspace_sign(weights, norm2, basis):
-    """``h`` (r, ...): the fitted spectrum's mean is positive where ``h . (W^T z) > 0``.
+    """Sign vectors ``h`` (r, ...): the fitted spectrum's mean is positive where ``h`` and
+    ``W^T z`` have a positive dot product.
 
     With ``gamma = W^T z`` the fitted coefficients are ``beta = M gamma``, ``M =
     (W^T D A)^-1``, so ``mean(A beta) > 0`` is ``h . gamma > 0`` with ``h = M^T A^T 1``.
