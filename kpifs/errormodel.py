@@ -67,8 +67,6 @@ log = logging.getLogger(__name__)
 RESIDUAL_METHODS = ("auto", "cal-vs-cal", "split-halves", "chi2", "none")
 #: Fewest frames of every star for cross-validation and batch means.
 MIN_FRAMES_CV = 6
-#: Fewest frames of every star for the split-halves residual.
-MIN_FRAMES_SPLIT = 8
 
 
 @dataclass
