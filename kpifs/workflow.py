@@ -44,7 +44,7 @@ __all__ = ["ExtractOptions", "DetectOptions", "DEFAULT_PUPIL", "kernel_model_for
            "default_pupil",
            "calibrator_options",
            "extract_observation", "calibrate_observation", "detect_observation",
-           "process_observation", "parse_spectrum", "options_record", "inputs_digest",
+           "process_observation", "options_record", "inputs_digest",
            "products_digest", "observation_digest"]
 
 # kpifs.detect brings astropy.table (a tenth of a second): loaded when a search runs,
@@ -52,6 +52,7 @@ __all__ = ["ExtractOptions", "DetectOptions", "DEFAULT_PUPIL", "kernel_model_for
 _null = lazy_module("kpifs.detect.null")
 _pipeline = lazy_module("kpifs.detect.pipeline")
 _sky = lazy_module("kpifs.detect.sky")
+_spectral = lazy_module("kpifs.detect.spectral")
 _stats = lazy_module("kpifs.detect.stats")
 
 log = logging.getLogger(__name__)
@@ -369,31 +370,6 @@ def calibrate_observation(target, calibrators=(), options=None):
     return target
 
 
-def parse_spectrum(value, n_channels):
-    """A companion spectrum shape from 'flat'/None, a sequence, a comma list or a text file.
-
-    Examples
-    --------
-    >>> from kpifs.workflow import parse_spectrum
-    >>> parse_spectrum("1.3,1.0,0.7", 3)
-    array([1.3, 1. , 0.7])
-    """
-    if value is None or (isinstance(value, str) and value == "flat"):
-        return None
-    if isinstance(value, (str, Path)) and Path(value).is_file():
-        try:
-            return np.loadtxt(value, ndmin=1)
-        except ValueError as exc:
-            raise KpifsError(f"{value}: cannot read a spectrum: {exc}") from None
-    if isinstance(value, str):
-        try:
-            return np.array([float(v) for v in value.split(",")])
-        except ValueError:
-            raise KpifsError(f"spectrum: expected 'flat', comma-separated values or a file, "
-                             f"got {value!r}") from None
-    return np.asarray(value, float)
-
-
 def _mas(value, name):
     return None if value is None else to_quantity(value, u.mas, name=name)
 
@@ -429,7 +405,7 @@ def detect_observation(kpd, options=None, *, calibrators=(), progress=False):
                             frame=_sky.search_frame(kpd, options.frame))
     try:
         result = detect(kpd, test=options.test, pfa=options.pfa, pd=options.pd, grid=grid,
-                        spectrum=parse_spectrum(options.spectrum, kpd.n_wave),
+                        spectrum=_spectral.parse_spectrum(options.spectrum, kpd.n_wave),
                         basis=options.basis, n_draws=options.draws, seed=options.seed,
                         shrinkage=options.shrinkage, fit=options.fit,
                         max_candidates=options.max_candidates,

@@ -95,17 +95,7 @@ def _kpfits(path):
     if kpd.kp_err is not None:
         cov += "; per-frame errors"
     print(f"  covariance: {cov}")
-    if kpd.detpa is None:
-        print("  detector position angle: unknown")
-    else:
-        pa = kpd.detpa
-        known = pa[np.isfinite(pa)]
-        text = "unknown" if known.size == 0 else (
-            f"{known[0]:.2f} deg" if np.ptp(known) == 0 else
-            f"{known.min():.2f} to {known.max():.2f} deg")
-        if 0 < known.size < pa.size:
-            text += f" ({pa.size - known.size} frame(s) unknown)"
-        print(f"  detector position angle: {text} ({meta.get('detpa_source') or 'file'})")
+    _print_angles(kpd.detpa, meta.get("detpa_source") or "file")
     for note in meta.get("notes", []):
         print(f"  note: {note}")
 
@@ -125,6 +115,21 @@ def _oifits(path):
     for note in kpd.meta.get("notes", []):
         print(f"  note: {note}")
     print(f"  next: kpifs detect {path} -o detection.fits")
+
+
+def _print_angles(pa, source):
+    """The frames' detector position angles in one line (a range, and how many unknown)."""
+    if pa is None:
+        print("  detector position angle: unknown")
+        return
+    pa = np.ravel(np.asarray(pa, float))
+    known = pa[np.isfinite(pa)]
+    text = "unknown" if known.size == 0 else (
+        f"{known[0]:.2f} deg" if np.ptp(known) == 0 else
+        f"{known.min():.2f} to {known.max():.2f} deg")
+    if 0 < known.size < pa.size:
+        text += f" ({pa.size - known.size} frame(s) unknown)"
+    print(f"  detector position angle: {text} ({source})")
 
 
 def _injection(path):
@@ -198,17 +203,7 @@ def _kpfits_headers(path, hdul):
     print(f"  covariance: {cov}")
     pa = (np.ravel(np.asarray(hdul["DETPA"].data, float)) if "DETPA" in names
           and hdul["DETPA"].is_image and hdul["DETPA"].data is not None else None)
-    if pa is None:
-        print("  detector position angle: unknown")
-    else:
-        known = pa[np.isfinite(pa)]
-        text = "unknown" if known.size == 0 else (
-            f"{known[0]:.2f} deg" if np.ptp(known) == 0 else
-            f"{known.min():.2f} to {known.max():.2f} deg")
-        if 0 < known.size < pa.size:
-            text += f" ({pa.size - known.size} frame(s) unknown)"
-        src = hdul["DETPA"].header.get("PASRC", "file")
-        print(f"  detector position angle: {text} ({src})")
+    _print_angles(pa, None if pa is None else hdul["DETPA"].header.get("PASRC", "file"))
     return True
 
 

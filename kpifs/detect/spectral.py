@@ -37,7 +37,7 @@ from .limits import _lhs_normal, _order_quantile, spectrum_shape
 __all__ = ["DEFAULT_RANK", "smooth_basis", "blackbody_contrasts", "template_basis",
            "read_spectra", "subspace_weights", "subspace_sign", "subspace_spectrum",
            "spectral_basis",
-           "limit_subspace"]
+           "limit_subspace", "parse_spectrum"]
 
 log = logging.getLogger(__name__)
 
@@ -177,6 +177,31 @@ def read_spectra(path, wavelengths):
     if not np.all(np.isfinite(out)):
         raise KpifsError(f"{path}: non-finite spectrum values")
     return out
+
+
+def parse_spectrum(value, n_channels=None):
+    """A companion spectrum shape from 'flat'/None, a sequence, a comma list or a text file.
+
+    Examples
+    --------
+    >>> from kpifs.detect.spectral import parse_spectrum
+    >>> parse_spectrum("1.3,1.0,0.7", 3)
+    array([1.3, 1. , 0.7])
+    """
+    if value is None or (isinstance(value, str) and value == "flat"):
+        return None
+    if isinstance(value, (str, Path)) and Path(value).is_file():
+        try:
+            return np.loadtxt(value, ndmin=1)
+        except ValueError as exc:
+            raise KpifsError(f"{value}: cannot read a spectrum: {exc}") from None
+    if isinstance(value, str):
+        try:
+            return np.array([float(v) for v in value.split(",")])
+        except ValueError:
+            raise KpifsError(f"spectrum: expected 'flat', comma-separated values or a file, "
+                             f"got {value!r}") from None
+    return np.asarray(value, float)
 
 
 def spectral_basis(spec, wavelengths):
