@@ -416,7 +416,8 @@ def _read_detection(path):
     wl = [hdr[f"WAVE{i}"] for i in range(1, nwave + 1)] * u.um
     energy = {"statistic": hdr["ESTAT"], "dof": hdr["EDOF"], "pfa": hdr["EPFA"],
               "threshold": hdr.get("ETHRESH", np.nan), "pd": hdr["PD"]}
-    for key, card in (("raw", "ERAW"), ("map_noise", "MAPNOISE"), ("noise_scale", "NOISESC")):
+    for key, card in (("raw", "ERAW"), ("map_noise", "MAPNOISE"), ("noise_scale", "NOISESC"),
+                      ("subspace_noise", "SUBNOISE")):
         if card in hdr:
             energy[key] = hdr[card]
     meta = {"test": hdr["TEST"], "pfa": hdr["PFA"], "pd": hdr["PD"], "n_draws": hdr["NDRAWS"],

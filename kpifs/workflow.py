@@ -131,10 +131,10 @@ class DetectOptions:
     --------
     >>> from kpifs.workflow import DetectOptions
     >>> DetectOptions(pfa=1e-4).test
-    'B'
+    'auto'
     """
 
-    test: str = "B"
+    test: str = "auto"
     pfa: float = 1e-3
     pd: float = 0.5
     max_sep: object = None
@@ -154,8 +154,8 @@ class DetectOptions:
     def validate(self):
         """Refuse options no search can run with (before any work); return self."""
         TESTS, check_probability = _stats.TESTS, _stats.check_probability
-        if self.test not in TESTS:
-            raise KpifsError(f"unknown test {self.test!r}: use one of {TESTS}")
+        if self.test not in TESTS + ("auto",):
+            raise KpifsError(f"unknown test {self.test!r}: use one of {TESTS} or 'auto'")
         check_probability(self.pfa, "P_FA")
         check_probability(self.pd, "P_D")
         _null.check_draws(self.draws)
@@ -384,7 +384,7 @@ def detect_observation(kpd, options=None, *, calibrators=(), progress=False):
     --------
     >>> from kpifs.detect.pipeline import _example_result
     >>> _example_result().test                           # made by detect()
-    'B'
+    'S'
     """
     detect, default_grid = _pipeline.detect, _pipeline.default_grid
     options = (options or DetectOptions()).validate()

@@ -262,7 +262,7 @@ def test_detect_cli_products(calibrated, tmp_path, capsys):
                     "CANDIDATES"):
             assert ext in names
         hdr = h[0].header
-        assert hdr["TEST"] == "B" and hdr["PFA"] == 1e-3 and hdr["PD"] == 0.5
+        assert hdr["TEST"] == "S" and hdr["PFA"] == 1e-3 and hdr["PD"] == 0.5
         assert hdr["KPIFSVER"] and hdr["KPCAL1"].endswith("c.fits")
         assert h["CONTRAST"].data.shape[0] == 3
         from astropy.wcs import WCS

@@ -176,11 +176,12 @@ def _extraction_options(p):
 
 def _search_options(p, *, draws=5000):
     g = p.add_argument_group("search")
-    g.add_argument("--test", default="B", choices=TESTS,
-                   help="B: GLR sum max(z,0)^2; B-paper: the paper's sum max(z,0); S: "
-                        "spectral model (GLR for a spectrum in --basis, the channels' "
-                        "correlation weighed); NP: matched filter for --spectrum; E: energy "
-                        "detector (default %(default)s)")
+    g.add_argument("--test", default="auto", choices=("auto",) + TESTS,
+                   help="auto: S with several channels, B with one; B: GLR sum "
+                        "max(z,0)^2; B-paper: the paper's sum max(z,0); S: spectral model "
+                        "(GLR for a spectrum in --basis, the channels' correlation "
+                        "weighed); NP: matched filter for --spectrum; E: energy detector "
+                        "(default %(default)s)")
     g.add_argument("--pfa", type=float, default=1e-3,
                    help="global false-alarm probability of the search (default %(default)s)")
     g.add_argument("--pd", type=float, default=0.5,

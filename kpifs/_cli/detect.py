@@ -55,7 +55,7 @@ def run(args):
                              progress=not args.quiet)
     res.write(args.output, inputs=[args.kp] + list(args.calibrator or []),
               overwrite=args.overwrite)
-    print(f"{args.test} search, global P_FA {args.pfa:g}: {len(res.candidates)} candidate(s) "
+    print(f"{res.test} search, global P_FA {args.pfa:g}: {len(res.candidates)} candidate(s) "
           f"-> {args.output}")
     e = res.energy
     if e.get("dof"):

@@ -15,7 +15,8 @@ from ._laws import norm_isf
 from .limits import limit_energy_correlated
 
 __all__ = ["whiten_weights", "channel_shrinkage", "SHRINKAGE_GRID", "np_correlated",
-           "energy_spread", "noise_scale", "map_noise", "combined_scale", "NOISE_CONFIDENCE",
+           "energy_spread", "noise_scale", "map_noise", "combined_scale",
+           "subspace_scale", "annulus_noise", "ring_noise", "NOISE_CONFIDENCE",
            "MIN_SCALE",
            "energy_null", "correlated_inputs", "scale_block_rows"]
 
@@ -173,11 +174,16 @@ def noise_scale(kappa, spread):
     return float(min(1.0, kappa / low))
 
 
-def map_noise(model, y):
+def map_noise(model, y, *, subspace=False):
     """Mean square of the normalised projections ``z_i`` of whitened data *y* over the
     grid and channels: 1 on average when the error model describes the data, more
     when a residual the model misses projects on companions' signatures (the
     map's own noise, as imaging pipelines judge a detection by).
+
+    With *subspace*, the mean square ``||U^T z||^2 / r`` of the subspace test's
+    projections (`DetectionModel.subspace <kpifs.detect.DetectionModel.subspace>`):
+    a residual that is smooth across wavelength, as a static aberration's is,
+    concentrates there while it is diluted among all the channels' ``z_i``.
 
     Examples
     --------
@@ -194,8 +200,132 @@ def map_noise(model, y):
     True
     """
     z = model.z_maps(y)[..., model.grid.valid]
+    if subspace:
+        sub = model.subspace[..., model.grid.valid]                     # (r, q, nvalid)
+        z = np.einsum("rqk,qk->rk", sub, np.nan_to_num(z))
     z = z[np.isfinite(z)]
     return float(np.mean(z ** 2)) if z.size else float("nan")
+
+
+def _map_power(model, y, subspace):
+    """Per valid position: the map's square ``sum z_i^2`` (or ``||U^T z||^2``) and its
+    expectation under the error model."""
+    v = model.grid.valid
+    z = np.nan_to_num(model.z_maps(y)[..., v])                         # (q, nvalid)
+    corr = model.__dict__.get("_channel_corr")
+    corr = None if corr is None else np.nan_to_num(corr[v])          # (nvalid, q, q)
+    if subspace:
+        sub = model.subspace[..., v]                                    # (r, q, nvalid)
+        num = np.sum(np.einsum("rqk,qk->rk", sub, z) ** 2, axis=0)
+        expect = np.sum(sub ** 2, axis=(0, 1)) if corr is None else \
+            np.einsum("rqk,kqp,rpk->k", sub, corr, sub)
+    else:
+        num = np.sum(z ** 2, axis=0)
+        expect = np.full(num.shape, float(len(z))) if corr is None else \
+            np.einsum("kqq->k", corr)
+    return num, expect
+
+
+def annulus_noise(model, y, *, width, subspace=False):
+    """Ratio, per annulus of the grid, of the map's mean square to its model
+    expectation, as a map (ny, nx; NaN off the grid).
+
+    The map is the normalised projections ``z_i`` of whitened data *y* (or,
+    with *subspace*, the subspace test's ``U^T z``); their expectation comes
+    from the channels' correlation (`DetectionModel.correlate
+    <kpifs.detect.DetectionModel.correlate>`) when known. Annuli are *width*
+    (mas) wide from the grid's inner edge. A residual the error model misses
+    rarely spreads evenly: a static aberration's lives at small separations,
+    as the speckles of an image do.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.data import DetectionGrid
+    >>> from kpifs.detect import DetectionModel
+    >>> from kpifs.detect.channels import annulus_noise
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    >>> dm = DetectionModel(km, [1.6] * u.um, np.eye(km.n_kp)[None], grid)
+    >>> y = np.random.default_rng(0).standard_normal((200, 1, km.n_kp))
+    >>> ratios = [np.nanmean(annulus_noise(dm, 2 * yy, width=40)) for yy in y]
+    >>> bool(abs(np.mean(ratios) - 4) < 0.2)
+    True
+    """
+    grid = model.grid
+    v = grid.valid
+    ratio = np.full(grid.shape, np.nan)
+    if not v.any():
+        return ratio
+    num, expect = _map_power(model, y, subspace)
+    sep = grid.sep[v]
+    ring = np.floor((sep - sep.min()) / max(float(width), 1e-9)).astype(int)
+    top = np.bincount(ring, num)
+    bottom = np.bincount(ring, expect)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio[v] = (top / bottom)[ring]
+    return ratio
+
+
+def ring_noise(model, y, peak, *, width, radius, subspace=False, min_positions=20):
+    """The `annulus_noise` ratio around a candidate at *peak* ``(x, y)`` (mas): over
+    the positions within *width* of its separation, leaving out those within
+    *radius* of it and of its mirror ``(-x, -y)`` (where the odd kernel phases see
+    its signal, sign reversed), so that it is judged by the noise around it and
+    not by its own signal. The band widens until it holds *min_positions*.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.data import DetectionGrid
+    >>> from kpifs.detect import DetectionModel
+    >>> from kpifs.detect.channels import ring_noise
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    >>> dm = DetectionModel(km, [1.6] * u.um, np.eye(km.n_kp)[None], grid)
+    >>> y = np.random.default_rng(0).standard_normal((1, km.n_kp))
+    >>> bool(0.5 < ring_noise(dm, y, (60.0, 0.0), width=20, radius=30) < 1.5)
+    True
+    """
+    grid = model.grid
+    v = grid.valid
+    if not v.any():
+        return float("nan")
+    num, expect = _map_power(model, y, subspace)
+    x, yy, sep = grid.X[v], grid.Y[v], grid.sep[v]
+    away = (np.hypot(x - peak[0], yy - peak[1]) > radius) \
+        & (np.hypot(x + peak[0], yy + peak[1]) > radius)
+    if not away.any():
+        return float("nan")
+    d = np.abs(sep - np.hypot(*peak))
+    band = float(width)
+    while True:
+        keep = away & (d <= band)
+        if keep.sum() >= min(min_positions, away.sum()):
+            break
+        band *= 1.5
+    return float(np.sum(num[keep]) / np.sum(expect[keep]))
+
+
+def subspace_scale(scale, kappa_sub, draws):
+    """Noise scale of the subspace test: the common *scale*, or more when the mean
+    square of its own projections (`map_noise` with ``subspace=True``) is above what
+    the null's *draws* of it (`~kpifs.detect.null.NullCalibration.noise_draws`
+    ``'G2'``) give on average.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.channels import subspace_scale
+    >>> subspace_scale(1.1, 1.5, np.full(100, 1.0)), subspace_scale(1.1, 0.9, np.ones(9))
+    (1.5, 1.1)
+    """
+    ref = float(np.mean(draws)) if len(draws) else float("nan")
+    if not (np.isfinite(kappa_sub) and np.isfinite(ref) and ref > 0):
+        return float(scale)
+    return float(max(scale, kappa_sub / ref))
 
 
 def combined_scale(kappa, spread, kappa_map, map_low):

@@ -215,7 +215,8 @@ class NullCalibration:
             flat_rows = None if rows is None else rows.reshape(len(rows), -1).astype(np.float32)
             # ... or eps (all channels) @ the stacked signatures
             channel_sum = unit.transpose(0, 2, 1).reshape(q * p, -1) if mirrored else None
-        maxima = {f: np.empty(self.n_draws) for f in forms + ("Z2",)}
+        extra = ("Z2", "G2") if "S" in forms else ("Z2",)
+        maxima = {f: np.empty(self.n_draws) for f in forms + extra}
         npos = len(positions)
 
         def one(job):
@@ -257,6 +258,8 @@ class NullCalibration:
             out = {"Z2": z2 / (q * npos)}
             if proj_s is not None:
                 t_s = np.einsum("jnk,jnk->nk", proj_s, proj_s)
+                # the subspace map's mean square (per coefficient): `noise_draws('G2')`
+                out["G2"] = t_s.mean(axis=1) / r
                 if not mirrored:    # the mirror carries the other sign: max over both is t_s
                     t_s *= np.einsum("jk,jnk->nk", sgn, proj_s) > 0
                 out["S"] = t_s.max(axis=1)
@@ -287,10 +290,12 @@ class NullCalibration:
             maxima[f].sort()
         return maxima
 
-    def noise_draws(self):
-        """Sorted draws, under H0, of the map's mean square ``mean z_i^2`` over the grid
-        and channels (1 on average): the law of `~kpifs.detect.channels.map_noise`."""
-        key = self._key("Z2")
+    def noise_draws(self, kind="Z2"):
+        """Sorted draws, under H0, of the map's mean square: ``mean z_i^2`` over the grid
+        and channels (``'Z2'``, 1 on average: the law of
+        `~kpifs.detect.channels.map_noise`), or ``mean ||U^T z||^2 / r`` of the subspace
+        test's projections (``'G2'``, drawn with the binary forms)."""
+        key = self._key(kind)
         if key not in _CACHE:
             _CACHE.pop(self._key(), None)
             self.draws
@@ -405,9 +410,9 @@ class CombinedNull:
         """Largest threshold of the nulls at global false-alarm *pfa*."""
         return max(n.threshold(pfa) for n in self.nulls)
 
-    def noise_draws(self):
+    def noise_draws(self, kind="Z2"):
         """The first null's `NullCalibration.noise_draws`."""
-        return self.nulls[0].noise_draws()
+        return self.nulls[0].noise_draws(kind)
 
     def pfa(self, t, *, return_method=False):
         """Largest global false-alarm probability of *t* (with *return_method*, True

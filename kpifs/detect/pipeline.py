@@ -21,7 +21,8 @@ from .limits import (energy_lambda, limit_binary, limit_binary_correlated_forms,
 from .maps import DetectionModel
 from .null import DEFAULT_DRAWS, check_draws, search_null
 from .channels import (NOISE_CONFIDENCE, combined_scale, correlated_inputs, energy_null,
-                       energy_spread, map_noise, np_correlated, scale_block_rows)
+                       energy_spread, map_noise, np_correlated, scale_block_rows,
+                       subspace_scale, annulus_noise, ring_noise)
 from .quality import add_spectrum_model, flag_candidates, resolution_mas
 from .spectral import limit_subspace
 from .stats import TESTS, check_probability, energy_threshold
@@ -107,7 +108,7 @@ def _prepare(kpd, shrinkage, allow_uncalibrated):
     return kpd.kp[0], kpd.covariance, kpd
 
 
-def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=None,
+def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=None,
            n_draws=DEFAULT_DRAWS, seed=0, shrinkage="auto", fit=True, max_candidates=20,
            allow_uncalibrated=False, frame="auto", limits=True, null="auto", progress=False):
     """Search calibrated kernel phases for a companion.
@@ -119,10 +120,12 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=N
         `~kpifs.calibrate.calibrate`). Uncalibrated data are refused unless
         *allow_uncalibrated* (the frames' mean is then searched, with a
         warning).
-    test : {'B', 'B-paper', 'S', 'NP', 'E'}
-        ``'B'``: the GLR binary test ``sum_i max(z_i, 0)^2``; ``'B-paper'``: the
-        seed paper's ``sum_i max(z_i, 0)``; ``'S'``: the spectral-model
-        (subspace) test, the GLR for a contrast spectrum in the span of *basis*
+    test : {'auto', 'B', 'B-paper', 'S', 'NP', 'E'}
+        ``'auto'`` (default): ``'S'`` on data with several channels, ``'B'`` on
+        one channel (where the two are the same test). ``'B'``: the GLR binary
+        test ``sum_i max(z_i, 0)^2``; ``'B-paper'``: the seed paper's
+        ``sum_i max(z_i, 0)``; ``'S'``: the spectral-model (subspace) test, the
+        GLR for a contrast spectrum in the span of *basis*
         (`kpifs.detect.spectral`); ``'NP'``: the matched filter for the
         given *spectrum* shape; these give the detection map. ``'E'``: the
         energy detector (a single statistic for the whole data set, reported in
@@ -182,16 +185,18 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=N
     --------
     >>> from kpifs.detect.pipeline import _example_result
     >>> res = _example_result()          # detect() on a simulated calibrated data set
-    >>> len(res.candidates), res.test
-    (1, 'B')
+    >>> len(res.candidates), res.test      # 'auto': S on the three channels
+    (1, 'S')
     """
-    if test not in TESTS:
-        raise KpifsError(f"unknown test {test!r}: use one of {TESTS}")
+    if test not in TESTS + ("auto",):
+        raise KpifsError(f"unknown test {test!r}: use one of {TESTS} or 'auto'")
     pfa = check_probability(pfa, "P_FA")
     pd = check_probability(pd, "P_D")
     check_draws(n_draws)
     kp, cov, kpd = _prepare(kpd, shrinkage, allow_uncalibrated)
     q, p = kp.shape
+    if test == "auto":     # measured: `docs/user/choosing_test.rst`
+        test = "S" if q > 1 else "B"
     a = spectrum_shape(spectrum, q)
     w, rank = whitening_matrix(cov, return_rank=True, source="covariance of the data")
     rank = np.atleast_1d(rank)
@@ -243,11 +248,27 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=N
 
     def scaler(res, n_par):
         kappa = _chi2_red(res, w, int(rank.sum()), n_par)
-        last["map"] = map_noise(model, whiten(res, w))
-        return kappa, combined_scale(kappa, spread, last["map"], map_low)
+        last["res"] = res
+        yr = whiten(res, w)
+        last["map"] = map_noise(model, yr)
+        last["scale"] = combined_scale(kappa, spread, last["map"], map_low)
+        # the subspace test is judged by its own map's noise too (a smooth residual)
+        last["sub"] = map_noise(model, yr, subspace=True)
+        if form != "S":
+            return kappa, last["scale"]
+        return kappa, subspace_scale(last["scale"], last["sub"], null.noise_draws("G2"))
+    ring_width = resolution_mas(kpd.kernel_model, kpd.wavelengths)
+
+    def ring(res, peak, subspace=form == "S"):
+        if peak is None:
+            return annulus_noise(model, whiten(res, w), width=ring_width, subspace=subspace)
+        return float(np.nan_to_num(ring_noise(model, whiten(res, w), peak, width=ring_width,
+                                              radius=1.5 * ring_width, subspace=subspace),
+                                   nan=1.0))
     cands, kappa, scale = _sequential_search(
         model, kp, w, kpd, threshold=threshold, null=null, spectrum=spectrum, fit=fit,
-        max_candidates=max_candidates, scaler=scaler, poses=poses, characterise=characterise)
+        max_candidates=max_candidates, scaler=scaler, ring=ring, poses=poses,
+        characterise=characterise)
     if frame == "sky":
         sky_search_columns(cands, poses)
     else:
@@ -266,8 +287,10 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=N
     # the noise level the data show against the model (the residual after the candidates,
     # in all its modes and on the map): statistics, errors and limits are scaled by it
     t, c, cerr = model.maps(y, form, spectrum)
-    t = t / scale ** _POWER[form]
-    cerr = cerr * np.sqrt(scale)
+    # per annulus, the map's own noise where it exceeds the scale (`annulus_noise`)
+    smap = np.fmax(scale, np.nan_to_num(ring(last["res"], None), nan=0.0))
+    t = t / smap ** _POWER[form]
+    cerr = cerr * np.sqrt(last["scale"])
     valid = grid.valid
     pglob = np.where(valid, null.pfa(t), np.nan)
     ploc = np.where(valid, model.local_pfa(t, form), np.nan)
@@ -276,10 +299,13 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=N
     t_e = float(np.sum(y ** 2))
     # the raw energy is the error model's diagnostic (dof when it is calibrated); its P_FA,
     # like every test's, is judged with the noise scale the search applies
-    t_es = t_e / scale
+    # the search's scale may keep a subtracted peak's share (`_sequential_search`)
+    common = scale if form != "S" else last["scale"]
+    t_es = t_e / common
     energy = {"statistic": t_es, "raw": t_e, "dof": dof, "pfa": float(chi2_sf(t_es, dof)),
               "threshold": float(energy_threshold(pfa, dof)), "pd": pd,
-              "noise_scale": scale, "map_noise": last["map"]}
+              "noise_scale": common, "map_noise": last["map"],
+              "subspace_noise": last.get("sub")}
     te = None
     if not limits:
         return _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, {}, cands, threshold,
@@ -318,10 +344,18 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=N
     if corr is not None and model.half_positions()[1]:
         for f in ("E", "B", "B-paper", "S"):
             limits[f] = mirror_half_map(limits[f])
-    limits = {k: np.where(valid, v * np.sqrt(scale), np.nan) for k, v in limits.items()}
+    scales = {k: common for k in limits}
+    scales["S"] = subspace_scale(common, last["sub"], make_null("S")[0].noise_draws("G2"))
+    if form == "S":
+        scales["S"] = max(scales["S"], scale)
+    zmap = np.nan_to_num(ring(last["res"], None, subspace=False), nan=0.0)
+    gmap = np.nan_to_num(ring(last["res"], None, subspace=True), nan=0.0)
+    limits = {k: np.where(valid, v * np.sqrt(np.fmax(scales[k], gmap if k == "S" else zmap)),
+                          np.nan) for k, v in limits.items()}
     curves = radial_curves(limits, grid)
     meta = {"test": test, "pfa": pfa, "pd": pd, "n_draws": n_draws, "seed": seed,
-            "chi2_red": kappa, "noise_scale": scale, "error_model": kpd.meta.get("error_model"),
+            "chi2_red": kappa, "noise_scale": scale, "noise_scale_common": common,
+            "noise_scale_S": scales["S"], "error_model": kpd.meta.get("error_model"),
             "energy_spread": spread, "map_noise_low": map_low,
             "calibrators": kpd.meta.get("calibrators", []),
             "source": kpd.meta.get("source", ""), "spectrum": a.tolist(),
@@ -364,7 +398,7 @@ def _chi2_red(residual, w, dof, n_par):
 
 
 def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max_candidates,
-                       scaler, poses=None, characterise=None):
+                       scaler, ring, poses=None, characterise=None):
     """Strongest peak above threshold, fitted and subtracted, until none is left.
 
     Each peak is judged on its statistic scaled by the reduced chi-square of
@@ -409,6 +443,13 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
                                                         c * att, kpd.wavelengths, *poses)
         after = residual - model_kp
         kappa, scale = scaler(after, n_par * (len(rows) + 1))
+        # judged against its annulus's noise too, once subtracted (a bright companion's
+        # side lobes gone), away from the peak and its mirror (what its fit absorbed)
+        peak = (float(row["x"][0].to_value(u.mas)), float(row["y"][0].to_value(u.mas)))
+        around = ring(after, peak)
+        log.debug("peak %.2f: noise scale %.2f after its subtraction, %.2f in its annulus",
+                  float(row["statistic"][0]), scale, around)
+        scale = max(scale, around)
         stat = float(row["statistic"][0]) / scale ** _POWER[form]
         if stat < threshold:
             log.info("peak at (%.1f, %.1f) mas: statistic %.2f / chi2_red %.2f is below the "

@@ -60,6 +60,9 @@ def detection_hdulist(result, *, header=None, inputs=()):
     if result.energy.get("map_noise") is not None:
         hdr["MAPNOISE"] = (round(float(result.energy["map_noise"]), 6),
                            "mean square of the residual map")
+    if result.energy.get("subspace_noise") is not None:
+        hdr["SUBNOISE"] = (round(float(result.energy["subspace_noise"]), 6),
+                           "same, of the spectral-model test's map")
     hdr["EDOF"] = (result.energy.get("dof", 0), "energy-detector degrees of freedom")
     hdr["EPFA"] = (result.energy.get("pfa", np.nan), "energy-detector P_FA of the data")
     hdr["ETHRESH"] = (result.energy.get("threshold", np.nan),
@@ -139,7 +142,7 @@ NULL_CARDS = {"threshold_gaussian": ("THRGAUS", "Gaussian Monte-Carlo"),
 # products' own cards come in one order however often a result is written
 _PRODUCT_CARDS = {"KPIFSVER", "CONTENT", "TEST", "MAPTEST", "PFA", "PD", "THRESH", "NDRAWS",
                   "PFAFLOOR", "MCSEED", "NCAND", "ESTAT", "EDOF", "EPFA", "ETHRESH", "GRIDFRM",
-                  "ERAW", "MAPNOISE",
+                  "ERAW", "MAPNOISE", "SUBNOISE",
                   "GRIDMIN", "GRIDMAX",
                   "NULLCHAN", "CALIB", "CHI2RED", "NOISESC", "DETPA", "NULLMETH",
                   *(name for name, _ in NULL_CARDS.values())}
