@@ -189,13 +189,13 @@ def test_jwst_pupil_geometry():
     step = 0.05
     g = (np.arange(-70, 71) * step)
     x, y = np.meshgrid(g, g)
-    from kpifs.pupil import TELESCOPES
+    from kpifs.pupil import MASKS, TELESCOPES
     area = TELESCOPES["jwst"].transmission(x, y).sum() * step ** 2
     hexes = 18 * np.sqrt(3) / 2 * 1.32 ** 2
     struts = 0.11 * 3.3 + 2 * 0.12 * 3.0                    # along the segments they cross
     assert area == pytest.approx(hexes - struts, rel=0.03)
     # NRM holes: centres over segments, 21 distinct baselines up to ~5.3 m
-    holes = np.array(TELESCOPES["niriss_nrm"].holes)
+    holes = np.array(MASKS["niriss_nrm"].holes)
     b = np.hypot(*(holes[:, None] - holes[None]).reshape(-1, 2).T)
     assert b.max() == pytest.approx(np.hypot(2.28631 * 2, 2.64), rel=1e-6)
 

@@ -273,7 +273,7 @@ def test_companion_free_honest(tmp_path):
 
 
 # --- writing ------------------------------------------------------------------------
-def _mask_kpd(mask="niriss-nrm", wl=(3.8, 4.3, 4.8), detpa=25.0, corr=True):
+def _mask_kpd(mask="niriss_nrm", wl=(3.8, 4.3, 4.8), detpa=25.0, corr=True):
     km = KernelModel.from_pupil(make_pupil(mask))
     wl = np.asarray(wl) * u.um
     rng = np.random.default_rng(3)
@@ -397,7 +397,7 @@ def test_sphere_sam_ifs_sequence(tmp_path, capsys):
     out = tmp_path / "cal.oifits"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", KpifsWarning)     # detector angle unknown: 0
-        rc = main(["extract", str(files["target"][0]), "--pupil", "sphere-sam7",
+        rc = main(["extract", str(files["target"][0]), "--pupil", "sphere_sam7",
                    "--calibrator", str(files["calibrator"][0]), "-o", str(out), "--quiet"])
     assert rc == 0
     kpd = KernelPhaseData.read(out)

@@ -130,7 +130,8 @@ def jwst_mode(header, *, source="JWST file"):
 
 
 def jwst_pupil(header):
-    """The built-in pupil (a `~kpifs.pupil.TELESCOPES` key) for a JWST header, or None.
+    """The built-in pupil (a `~kpifs.pupil.TELESCOPES` or `~kpifs.pupil.MASKS` key) for a
+    JWST header, or None.
 
     Examples
     --------

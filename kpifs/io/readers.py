@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 from astropy import units as u
 
+from ..apertures import canonical_name
 from ..exceptions import KpifsError, KpifsWarning
 from .charis import is_charis, read_charis
 from .cube import FrameStack, IFSCube, open_fits, read_generic, refuse_kpfits
@@ -184,7 +185,7 @@ def check_pupil_header(pupil, header, *, source="cube"):
     True
     """
     expected = header_pupil(header) if header is not None else None
-    key = str(pupil).lower()
+    key = canonical_name(pupil) if isinstance(pupil, str) else str(pupil).lower()
     if expected is None or key.endswith((".fits", ".fit", ".fits.gz")):
         return
     family = next((f for f in _PUPIL_FAMILIES if expected in f), {expected})
