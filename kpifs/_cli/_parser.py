@@ -370,8 +370,9 @@ def _simulate(command):
 
 def _detect(command):
     p = command("detect", "search kernel phases for companions", EPILOG_DETECT)
-    p.add_argument("kp", metavar="KP.fits", help="kernel-phase data (KPFITS, from kpifs "
-                                                 "extract) or closure phases (OIFITS)")
+    p.add_argument("kp", metavar="KP.fits", nargs="+",
+                   help="kernel-phase data (KPFITS, from kpifs extract) or closure phases "
+                        "(OIFITS; several OIFITS files of one target are searched together)")
     p.add_argument("--calibrator", nargs="+", metavar="CAL_KP.fits",
                    help="kernel phases of calibrator(s), if KP.fits is not calibrated "
                         "(default: none)")
