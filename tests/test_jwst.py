@@ -344,3 +344,76 @@ def test_err_propagated_to_kernel_phase_errors(tmp_path):
     back = KernelPhaseData.read(out)
     assert back.kp_err == pytest.approx(kpd.kp_err, rel=1e-6)
     assert back.header["KPPIXNOI"] == "ERR"
+
+
+# --- filters as channels (issue 27, item 3) ---------------------------------------------
+def _nircam_pair(d, contrasts, *, nf=20, detpa=(250.0, 250.0)):
+    """F150W (31 mas) and F480M (63 mas) of one target and its calibrator, W0336-like:
+    84 mas at PA 295 deg."""
+    t, c = [], []
+    for (wl, ps, seed), con, pa in zip(((1.5106, 31.0, 1), (4.8213, 63.0, 2)), contrasts,
+                                       detpa):
+        obs = simulate_scene("nircam", wavelengths=[wl] * u.um, pixscale=ps * u.mas,
+                             contrasts=[con], n_frames=nf, seed=seed, detpa=[pa])
+        f = write_observation(obs, d / f"{ps:.0f}", layout="jwst")
+        t += [str(x) for x in f["target"]]
+        c += [str(x) for x in f["calibrator"]]
+    return t, c
+
+
+@pytest.mark.slow
+def test_nircam_two_filters_one_product(tmp_path, capsys):
+    """F150W + F480M become one product of 2 channels sharing the 117 kernel phases both
+    sample (uv <= 5.03 m); the binary (0.076, 0.19) is fitted at 83.9 mas, 294.9 deg,
+    contrasts -0.8 % and +1.1 % (within 3 mas, 2 deg, 10 %)."""
+    t, c = _nircam_pair(tmp_path, (0.076, 0.19))
+    out = tmp_path / "kp.fits"
+    assert main(["extract", *t, "--calibrator", *c, "-o", str(out)]) == 0
+    assert "filters F150W, F480M share one kernel: 218 of 656 uv points" in \
+        capsys.readouterr().err
+    kpd = KernelPhaseData.read(out)
+    assert kpd.n_wave == 2 and kpd.n_kp == 117 and kpd.header["KPFILTER"] == "F150W+F480M"
+    assert kpd.wavelengths.to_value(u.um) == pytest.approx([1.5106, 4.8213])
+    assert kpd.pixscale.to_value(u.mas) == 31.0 and kpd.window.radius == pytest.approx(25.6)
+    det = tmp_path / "det.fits"
+    assert main(["detect", str(out), "-o", str(det), "--draws", "1000", "--quiet"]) == 0
+    cands = DetectionResult.read(det).candidates
+    assert len(cands) == 1
+    row = cands[0]
+    assert abs(row["fit_separation"].to_value(u.mas) - 84.0) < 3
+    assert abs(row["fit_pa_sky"].to_value(u.deg) - 295.0) < 2
+    assert np.asarray(row["fit_contrast"]) == pytest.approx([0.076, 0.19], rel=0.1)
+
+
+@pytest.mark.slow
+def test_two_filters_go_deeper(tmp_path):
+    """A flat 8e-4 companion: found in the two-filter product (P_FA 1e-13 at 88 mas, PA
+    302 deg), in neither filter alone; median B limits at 60-120 mas 4.0e-4 against
+    1.5e-3 (F150W) and 9.3e-3 (F480M, its full 335-kernel model)."""
+    from kpifs.detect import detect
+    from kpifs.filters import extract_filters
+    from kpifs.workflow import ExtractOptions, calibrate_observation, extract_observation
+    t, c = _nircam_pair(tmp_path, (8e-4, 8e-4))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", KpifsWarning)
+        both = extract_filters(t, [c], ExtractOptions())
+        alone = [calibrate_observation(extract_observation([a]), [extract_observation([b])])
+                 for a, b in zip(t, c)]
+        found = [detect(k, pfa=1e-3, n_draws=1000, seed=0, limits=False).candidates
+                 for k in alone + [both]]
+    assert [len(f) for f in found] == [0, 0, 1]
+    assert abs(found[2][0]["fit_separation"].to_value(u.mas) - 84.0) < 10
+
+
+def test_filters_refusals(tmp_path, capsys):
+    """A calibrator without one of the target's filters, and filters at different
+    detector angles (field rotation between filters needs blocks): rc 2, one line."""
+    t, c = _nircam_pair(tmp_path, (0.0, 0.0), nf=4, detpa=(250.0, 262.0))
+    assert main(["extract", *t, "--calibrator", c[0], "-o", str(tmp_path / "a.fits")]) == 2
+    assert f"calibrator {c[0]}: no files in filter(s) F480M" in _one_error(capsys)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", KpifsWarning)
+        assert main(["extract", *t, "--calibrator", *c, "-o", str(tmp_path / "b.fits")]) == 2
+    line = _one_error(capsys)
+    assert "filters at different detector angles" in line and f"F480M 262.0 deg in {t[1]}" in line
+    assert not (tmp_path / "b.fits").exists()

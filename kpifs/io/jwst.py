@@ -401,8 +401,8 @@ def read_jwst(paths, *, wavelengths=None, pixscale=None, dq_bits=DO_NOT_USE):
             raise KpifsError(
                 "files in different filters: " + ", ".join(f"{p} ({f})" for p, f in
                                                            zip(paths, filters))
-                + ": filters as the channels of one product are not supported yet; "
-                "extract each filter separately")
+                + ": one cube is one filter; kpifs extract makes filters the channels of "
+                "one calibrated product (give the calibrator's files with --calibrator)")
         if len(cubes) == 1:
             return cubes[0]
         return _join(cubes)
