@@ -11,9 +11,10 @@ baseline phases and stack as channels, each with its own wavelength.
 - Each filter is extracted with that model and a window of the same
   *angular* radius (its pixel radius scaled by the pixel scales), then
   calibrated by the same filter's calibrator frames (`~kpifs.workflow`).
-- The product carries the coarsest pixel scale and that filter's window: the
+- The product carries the finest pixel scale and that filter's window: the
   window's attenuation of a companion, a function of angle, is then right in
-  every channel.
+  every channel, and its gain is computed on a grid where every filter's PSF
+  is sampled.
 - The filters are independent: covariances block-diagonal across channels
   (the error-model rows of each filter are zero in the others').
 - Refused: one filter without calibrator frames, files of different targets,
@@ -180,7 +181,7 @@ def stack_filters(products, names):
     ...                        meta={"calibrated": True}) for w, ps in ((1.5, 31), (4.8, 63))]
     >>> kpd = stack_filters(one, ["F150W", "F480M"])
     >>> kpd.shape, kpd.covariance_rows.shape, kpd.pixscale
-    ((1, 2, 15), (30, 2, 15), <Quantity 63. mas>)
+    ((1, 2, 15), (30, 2, 15), <Quantity 31. mas>)
     """
     km = products[0].kernel_model
     for p, name in zip(products, names):
