@@ -26,6 +26,7 @@ What this loses: a filter's long baselines beyond another's sampling limit
 """
 import logging
 import warnings
+from dataclasses import replace
 
 import numpy as np
 from astropy import units as u
@@ -36,6 +37,7 @@ from .exceptions import KpifsError, KpifsWarning
 from .io.jwst import JWST_FILTERS, JWST_PIXSCALES, jwst_mode
 from .kernel import nyquist_usable
 from .window import DEFAULT_WINDOW_RADIUS, ExtractionWindow
+from .workflow import calibrate_observation, extract_observation, kernel_model_for
 
 __all__ = ["jwst_filters", "extract_filters", "stack_filters"]
 
@@ -110,8 +112,6 @@ def extract_filters(targets, calibrators, options, *, progress=False):
     >>> kpd.n_wave, kpd.meta["filters"]
     (2, ['F150W', 'F480M'])
     """
-    from .workflow import calibrate_observation, extract_observation, kernel_model_for
-
     groups = jwst_filters(targets)
     if len(groups) < 2:
         raise KpifsError(f"{targets[0] if targets else 'no files'}: filters as channels need "
@@ -161,7 +161,6 @@ def extract_filters(targets, calibrators, options, *, progress=False):
 
 
 def _with_window(options, radius_mas, pixscale):
-    from dataclasses import replace
     if radius_mas is None:
         return options
     return replace(options, window_radius=radius_mas / pixscale)
