@@ -37,8 +37,10 @@ class _Writer(registry.UnifiedReadWrite):
 def _identified(rw, origin, args, kwargs):
     """The one format whose identifier claims the file (an OIFITS name or content), else
     the class's own."""
-    if args and isinstance(args[0], (str, os.PathLike)):
-        found = rw.registry.identify_format(origin, rw._cls, str(args[0]), None, args[1:],
+    first = args[0][0] if args and isinstance(args[0], (list, tuple)) and args[0] else \
+        (args[0] if args else None)                  # several files: the first one's format
+    if isinstance(first, (str, os.PathLike)):
+        found = rw.registry.identify_format(origin, rw._cls, str(first), None, args[1:],
                                             kwargs)
         if len(found) == 1:
             return found[0]

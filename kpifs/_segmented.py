@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["SegmentedAperture", "HoleMask", "JWST_SEGMENTS", "SEGMENTED_TELESCOPES"]
+__all__ = ["SegmentedAperture", "MaskGeometry", "JWST_SEGMENTS", "SEGMENTED_TELESCOPES"]
 
 #: Centre-to-centre distance of adjacent JWST segments (m).
 JWST_PITCH = 1.3235
@@ -113,29 +113,44 @@ class SegmentedAperture:
 
 
 @dataclass(frozen=True)
-class HoleMask:
-    """A non-redundant mask: holes (circles or flat-topped hexagons) at given centres.
+class MaskGeometry:
+    """A non-redundant aperture mask: holes (circles or flat-topped hexagons) projected
+    on the primary mirror.
 
-    Its discrete model is one sub-aperture per hole (`kpifs.pupil.make_pupil`
-    with no step), so that its kernel phases are closure phases.
+    Its discrete model is one sub-aperture per hole (`kpifs.pupil.make_pupil`),
+    so that its kernel phases are closure phases. The built-in masks are in
+    `kpifs.pupil.MASKS`.
+
+    Parameters
+    ----------
+    holes : tuple of (x, y)
+        Hole centres (m, on the primary).
+    hole_diameter : float
+        Hole diameter (m; flat to flat for hexagons).
+    shape : {'circle', 'hex'}
+        Hole shape (what the simulator draws; the model is the centres).
+    name, source : str
 
     Examples
     --------
-    >>> from kpifs.pupil import TELESCOPES
-    >>> nrm = TELESCOPES["niriss_nrm"]
-    >>> len(nrm.holes), nrm.transmission([0.0], [-2.64]).tolist()
-    (7, [1.0])
+    >>> from kpifs.pupil import MASKS
+    >>> m = MASKS["niriss_nrm"]
+    >>> len(m.holes), m.shape, m.transmission([0.0, 0.0], [-2.64, 0.0]).tolist()
+    (7, 'hex', [1.0, 0.0])
     """
 
     holes: tuple
-    hole_size: float
+    hole_diameter: float
     shape: str = "circle"
     name: str = "mask"
+    source: str = ""
 
     @property
     def diameter(self):
+        """Diameter (m) of the smallest centred circle holding every hole."""
         h = np.asarray(self.holes, float)
-        return float(2 * np.hypot(h[:, 0], h[:, 1]).max() + 2 * self.hole_size)
+        reach = self.hole_diameter * (2 / np.sqrt(3) if self.shape == "hex" else 1.0)
+        return float(2 * np.hypot(h[:, 0], h[:, 1]).max() + reach)
 
     @property
     def obstruction(self):
@@ -143,8 +158,9 @@ class HoleMask:
 
     @property
     def area(self):
-        one = (np.sqrt(3) / 2 * self.hole_size ** 2 if self.shape == "hex"
-               else np.pi / 4 * self.hole_size ** 2)
+        """Collecting area (m^2) of the holes."""
+        one = (np.sqrt(3) / 2 * self.hole_diameter ** 2 if self.shape == "hex"
+               else np.pi / 4 * self.hole_diameter ** 2)
         return float(len(self.holes) * one)
 
     def transmission(self, x, y):
@@ -152,10 +168,10 @@ class HoleMask:
         x = np.asarray(x, float)
         y = np.asarray(y, float)
         if self.shape == "hex":
-            return _in_hexagons(x, y, self.holes, self.hole_size).astype(float)
+            return _in_hexagons(x, y, self.holes, self.hole_diameter).astype(float)
         inside = np.zeros(np.broadcast(x, y).shape, bool)
         for cx, cy in self.holes:
-            inside |= (x - cx) ** 2 + (y - cy) ** 2 <= (self.hole_size / 2) ** 2
+            inside |= (x - cx) ** 2 + (y - cy) ** 2 <= (self.hole_diameter / 2) ** 2
         return inside.astype(float)
 
 
@@ -181,9 +197,5 @@ SEGMENTED_TELESCOPES = {
         _SEGS, JWST_SEGMENT, 6.603464, _STRUTS, disc=(0.026, 0.013, 1.02),
         disc_vanes=tuple((0.0, 0.0, a, 0.33) for a in (90.0, 240.0, -60.0)), area=22.2,
         name="JWST/NIRISS CLEARP"),
-    "niriss_nrm": HoleMask(NIRISS_NRM_HOLES, 0.82, shape="hex", name="JWST/NIRISS NRM"),
-    "gpi_nrm": HoleMask(tuple((x * GPI_MASK_MAGNIFICATION / 1000, y * GPI_MASK_MAGNIFICATION
-                               / 1000) for x, y in GPI_NRM_HOLES_MM),
-                        0.920 * GPI_MASK_MAGNIFICATION / 1000, name="GPI NRM g10s40"),
 }
 SEGMENTED_TELESCOPES["nircam_clear"] = SEGMENTED_TELESCOPES["jwst"]

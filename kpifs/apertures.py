@@ -10,10 +10,45 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._segmented import SEGMENTED_TELESCOPES
+from ._segmented import (GPI_MASK_MAGNIFICATION, GPI_NRM_HOLES_MM, NIRISS_NRM_HOLES,
+                         SEGMENTED_TELESCOPES, MaskGeometry)
 
 __all__ = ["ApertureGeometry", "TELESCOPES", "ModelDefaults", "MODEL_DEFAULTS",
            "BINARY_MIN_TRANSMISSION", "model_defaults"]
+
+
+def canonical_name(name):
+    """The canonical spelling of a built-in pupil or mask name: lower case, ``_`` for ``-``.
+
+    Both spellings are accepted everywhere (``'niriss-nrm'`` is ``'niriss_nrm'``).
+
+    Examples
+    --------
+    >>> from kpifs.pupil import canonical_name
+    >>> canonical_name("SPHERE-SAM7")
+    'sphere_sam7'
+    """
+    return str(name).strip().lower().replace("-", "_")
+
+
+class _Names(dict):
+    """A dict of built-in names that looks keys up in either spelling (`canonical_name`)."""
+
+    def __getitem__(self, key):
+        return super().__getitem__(canonical_name(key))
+
+    def __contains__(self, key):
+        return super().__contains__(canonical_name(key))
+
+    def get(self, key, default=None):
+        return super().get(canonical_name(key), default)
+
+    def __setitem__(self, key, value):
+        super().__setitem__(canonical_name(key), value)
+
+    def update(self, other=(), **kw):
+        for k, v in dict(other, **kw).items():
+            self[k] = v
 
 
 @dataclass(frozen=True)
@@ -73,7 +108,7 @@ def _four_vanes(offset, angle, width):
 
 #: Published pupil geometries (FORMATS.md): Subaru/SCExAO, VLT UT3/SPHERE and
 #: the Palomar PHARO "med" cross Lyot mask.
-TELESCOPES = {
+TELESCOPES = _Names({
     "subaru": ApertureGeometry(diameter=7.92, obstruction=2.3,
                                vanes=_four_vanes(1.0, 51.75, 0.22), name="Subaru/SCExAO"),
     "vlt": ApertureGeometry(diameter=8.0, obstruction=1.116,
@@ -82,7 +117,7 @@ TELESCOPES = {
         diameter=4.646, obstruction=2.293,
         vanes=tuple((0.0, 0.0, a, 0.25) for a in (-2.0, 88.0, 178.0, 268.0)),
         name="Palomar/PHARO med cross"),
-}
+})
 TELESCOPES["scexao"] = TELESCOPES["subaru"]
 TELESCOPES["charis"] = TELESCOPES["subaru"]
 TELESCOPES["sphere"] = TELESCOPES["vlt"]
@@ -140,7 +175,7 @@ _GREY_SOURCE = ("grey, cut 0.2, uv points of redundancy >= 0.5: on simulations t
 
 #: Per-pupil defaults of `make_pupil` (keys as `TELESCOPES`; ``'generic'`` for
 #: circular/annular apertures and pupil images).
-MODEL_DEFAULTS = {
+MODEL_DEFAULTS = _Names({
     "subaru": ModelDefaults(
         0.38, source="step: seed paper (Subaru in ~300 sub-apertures, ~300 kernel phases); "
         + _GREY_SOURCE),
@@ -152,7 +187,7 @@ MODEL_DEFAULTS = {
         "PHARO data); spider arms at -2 deg in the geometry (Hayward et al. 2001); "
         + _GREY_SOURCE),
     "generic": ModelDefaults(0.38, source="kpifs: as Subaru; " + _GREY_SOURCE),
-}
+})
 for _alias, _key in (("scexao", "subaru"), ("charis", "subaru"), ("sphere", "vlt")):
     MODEL_DEFAULTS[_alias] = MODEL_DEFAULTS[_key]
 
@@ -167,86 +202,42 @@ def model_defaults(pupil):
     >>> d.step, d.grey, d.min_transmission
     (0.16, True, 0.2)
     """
-    if isinstance(pupil, ApertureGeometry):
+    if isinstance(pupil, MaskGeometry):
+        return MODEL_DEFAULTS["niriss_nrm"]
+    if not isinstance(pupil, str):
         return MODEL_DEFAULTS["generic"]
-    return MODEL_DEFAULTS.get(str(pupil).lower(), MODEL_DEFAULTS["generic"])
+    return MODEL_DEFAULTS.get(pupil, MODEL_DEFAULTS["generic"])
 
 
-# --- non-redundant masks (issue 28) --------------------------------------------------
-@dataclass(frozen=True)
-class MaskGeometry:
-    """A non-redundant aperture mask: circular holes projected on the primary mirror.
-
-    Parameters
-    ----------
-    holes : tuple of (x, y)
-        Hole centres (m, on the primary).
-    hole_diameter : float
-        Hole diameter (m).
-    name, source : str
-
-    Examples
-    --------
-    >>> from kpifs.apertures import MASKS
-    >>> m = MASKS["niriss-nrm"]
-    >>> len(m.holes), m.transmission([0.0, 0.0], [-2.64, 0.0]).tolist()
-    (7, [1.0, 0.0])
-    """
-
-    holes: tuple
-    hole_diameter: float
-    name: str = "mask"
-    source: str = ""
-
-    @property
-    def diameter(self):
-        """Diameter (m) of the smallest centred circle holding every hole."""
-        c = np.asarray(self.holes, float)
-        return float(2 * np.hypot(c[:, 0], c[:, 1]).max() + self.hole_diameter)
-
-    @property
-    def obstruction(self):
-        return 0.0
-
-    @property
-    def area(self):
-        """Collecting area (m^2) of the holes."""
-        return float(len(self.holes) * np.pi / 4 * self.hole_diameter ** 2)
-
-    def transmission(self, x, y):
-        """Return 1 inside a hole and 0 elsewhere, at points ``(x, y)`` in metres."""
-        x = np.asarray(x, float)
-        y = np.asarray(y, float)
-        inside = np.zeros(np.broadcast(x, y).shape, bool)
-        r2 = (self.hole_diameter / 2) ** 2
-        for hx, hy in self.holes:
-            inside |= (x - hx) ** 2 + (y - hy) ** 2 <= r2
-        return inside.astype(float)
-
-
-#: Built-in non-redundant masks, hole centres in m on the primary. NIRISS: the
-#: as-designed centres of the JWST g7s6 mask (M. Beaulieu, as in ImPlaneIA and
-#: AMICAL), hexagonal holes of 0.82 m flat to flat taken as circles. SPHERE:
-#: the 7-hole SAM mask as the IFS sees it (AMICAL's SPHERE-IFS g7 centres), holes
-#: of about 1.2 m. GPI: the g10s40 mask projected on the primary (Greenbaum et
-#: al. 2015, the G10S40 table of ImPlaneIA's mask definitions), holes of 0.596 m.
-MASKS = {
-    "niriss-nrm": MaskGeometry(
-        ((0.0, -2.64), (-2.28631, 0.0), (2.28631, -1.32), (-2.28631, 1.32),
-         (-1.14315, 1.98), (2.28631, 1.32), (1.14315, 1.98)), 0.82, "niriss-nrm",
-        "JWST NIRISS AMI g7s6 mask, as designed (Beaulieu; ImPlaneIA, AMICAL)"),
-    "sphere-sam7": MaskGeometry(
+# --- non-redundant masks (issues 27 and 28) ------------------------------------------
+#: Built-in non-redundant masks (`MaskGeometry`, hole centres in m on the primary,
+#: x along the detector columns, y along its rows), one model per mask.
+#: NIRISS: the g7s6 mask as built (the as-designed centres with V2 reversed, as
+#: ImPlaneIA's and jwst ``ami``'s live centres before their Fourier-convention turn;
+#: the as-designed set is its mirror image), hexagonal holes of 0.82 m flat to flat
+#: over segments B4, C2, B5, B2, C1, B6, C6. SPHERE: the 7-hole SAM mask as the IFS
+#: sees it (AMICAL's SPHERE-IFS g7 centres), holes of about 1.2 m. GPI: the g10s40
+#: mask's centres at the mask times 647.62 (FORMATS.md), holes of 0.596 m; its turn
+#: on the detector differs between tools (gpipsfs, ImPlaneIA): measure it with
+#: ``kpifs model-check``.
+MASKS = _Names({
+    "niriss_nrm": MaskGeometry(
+        NIRISS_NRM_HOLES, 0.82, shape="hex", name="niriss_nrm",
+        source="JWST NIRISS AMI g7s6 mask as built (V2-reversed as-designed centres; "
+               "ImPlaneIA, jwst ami)"),
+    "sphere_sam7": MaskGeometry(
         ((-2.07, 2.71), (0.98, 3.27), (-3.11, -0.2), (-1.43, -0.81), (-2.79, -1.96),
-         (3.3, -0.85), (0.58, -3.17)), 1.2, "sphere-sam7",
-        "VLT SPHERE 7-hole SAM mask as seen by the IFS (AMICAL 'SPHERE-IFS' g7); "
-        "hole diameter approximate"),
-    "gpi-nrm": MaskGeometry(
-        ((-0.687, 2.514), (-0.252, 3.362), (1.822, 0.157), (2.342, -0.644),
-         (-2.862, -1.733), (-0.869, -3.288), (-3.026, 1.568), (2.692, 1.855),
-         (3.297, -0.596), (1.036, -3.192)), 0.596, "gpi-nrm",
-        "Gemini GPI g10s40 10-hole mask on the primary (Greenbaum et al. 2015; ImPlaneIA)"),
-}
-__all__ += ["MaskGeometry", "MASKS"]
+         (3.3, -0.85), (0.58, -3.17)), 1.2, name="sphere_sam7",
+        source="VLT SPHERE 7-hole SAM mask as seen by the IFS (AMICAL 'SPHERE-IFS' g7); "
+               "hole diameter approximate"),
+    "gpi_nrm": MaskGeometry(
+        tuple((x * GPI_MASK_MAGNIFICATION / 1000, y * GPI_MASK_MAGNIFICATION / 1000)
+              for x, y in GPI_NRM_HOLES_MM), 0.920 * GPI_MASK_MAGNIFICATION / 1000,
+        name="gpi_nrm",
+        source="Gemini GPI g10s40 10-hole mask on the primary (FORMATS.md; Greenbaum et "
+               "al. 2015); turn on the detector to be measured"),
+})
+__all__ += ["MaskGeometry", "MASKS", "canonical_name"]
 
 
 # --- JWST and Gemini/GPI (issue 27) ---------------------------------------------------
@@ -268,9 +259,13 @@ def _register_segmented():
     MODEL_DEFAULTS["niriss_clearp"] = ModelDefaults(0.3, source=jw)
     MODEL_DEFAULTS["nircam_clear"] = MODEL_DEFAULTS["jwst"]
     MODEL_DEFAULTS["gemini_south"] = ModelDefaults(
-        0.38, source="step: as Subaru (7.77 m, 14.16 mas); " + _GREY_SOURCE)
+        0.8, source="step 0.8 m (60 kernel phases per channel, not 314 at 0.38 m): GPI "
+        "sequences are a few 60 s exposures, and on 8-exposure simulations the frames' "
+        "(Ledoit-Wolf) covariance of 314 kernel phases gave 2 and 7 false candidates in "
+        "companion-free sequences, that of 60 none in 10 (and found the companion in 5 of "
+        "5); " + _GREY_SOURCE)
     MODEL_DEFAULTS["gpi"] = MODEL_DEFAULTS["gemini_south"]
-    for key in ("niriss_nrm", "gpi_nrm"):
+    for key in MASKS:
         MODEL_DEFAULTS[key] = ModelDefaults(
             0.0, grey=False, min_redundancy=0.0, offset=(0.0, 0.0),
             source="one sub-aperture per hole (no grid): kernel phases = closure phases")

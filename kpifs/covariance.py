@@ -25,7 +25,7 @@ from .exceptions import KpifsError, KpifsWarning
 from .prepare import cut_out
 
 __all__ = ["empirical_covariance", "ledoit_wolf", "hartlap_factor", "propagated_covariance",
-           "whitening_matrix", "whiten", "calibrated_covariance"]
+           "whitening_matrix", "whiten", "calibrated_covariance", "kernel_jacobian"]
 
 log = logging.getLogger(__name__)
 
@@ -341,15 +341,35 @@ def propagated_covariance(images, variance, kernel_model, *, wavelengths, pixsca
         var = np.nan_to_num(variance[i:i + 1], nan=0.0, posinf=0.0)
         cut, delta = cut_out(img, centres[i:i + 1], ws)
         vcut, _ = cut_out(var, centres[i:i + 1], ws)
-        w = window.weights(delta)[0].ravel()
-        mat = km.dft_matrix(wl[i], ps, (ws, ws))
-        iw = cut[0].ravel() * w
-        ri = mat @ iw
-        re, im = ri[:km.n_uv], ri[km.n_uv:]
-        amp2 = re ** 2 + im ** 2
-        # d(phase) = (re dIm - im dRe) / |V|^2, and dV = M (w dI)
-        jac = (re[:, None] * mat[km.n_uv:] - im[:, None] * mat[:km.n_uv]) * w[None, :]
-        jac /= amp2[:, None]
-        jk = km.kernel @ jac
+        jk = kernel_jacobian(cut[0], window.weights(delta)[0],
+                             km.dft_matrix(wl[i], ps, (ws, ws)), km)
         out[i] = (jk * vcut[0].ravel()[None, :]) @ jk.T
     return out
+
+
+def kernel_jacobian(cut, weights, mat, kernel_model):
+    """``d k / d I``: the kernel phases' derivatives with respect to a cut-out's pixels.
+
+    ``dphi_b = Im(dV_b / V_b) = (Re V dIm V - Im V dRe V) / |V|^2`` with ``dV = M (w dI)``,
+    then ``dk = K dphi``. *mat* is the model's stacked real/imaginary DFT matrix
+    (`~kpifs.kernel.KernelModel.dft_matrix`), *weights* the window over the cut-out.
+    Returns ``(nkp, npix)``.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.covariance import kernel_jacobian
+    >>> km = KernelModel.from_pupil(make_pupil("niriss_nrm"))
+    >>> psf = np.zeros((16, 16)); psf[8, 8] = 1.0               # a point source at the origin
+    >>> mat = km.dft_matrix(4.8 * u.um, 65.55 * u.mas, (16, 16))
+    >>> kernel_jacobian(psf + 1e-3, np.ones((16, 16)), mat, km).shape
+    (15, 256)
+    """
+    km = kernel_model
+    w = np.asarray(weights, float).ravel()
+    ri = mat @ (np.asarray(cut, float).ravel() * w)
+    re, im = ri[:km.n_uv], ri[km.n_uv:]
+    jac = (re[:, None] * mat[km.n_uv:] - im[:, None] * mat[:km.n_uv]) * w[None, :]
+    jac /= (re ** 2 + im ** 2)[:, None]
+    return km.kernel @ jac

@@ -22,7 +22,8 @@ from ._registry import io_methods, register
 from ._utils import to_quantity
 from .exceptions import KpifsError
 from .io.kpfits import is_kpfits, read_kpfits_parts, write_kpfits
-from .io.oifits import is_oifits, read_oifits_parts
+from .io.oifits import is_oifits
+from .io.oifits_combine import read_oifits
 from .io.oifits_write import write_oifits
 from .io.products import NULL_CARDS, is_detection, read_detection_parts, write_detection
 from .io.wavelengths import check_wavelengths
@@ -224,8 +225,9 @@ register(KernelPhaseData, "kpfits", reader=_read_kpd, writer=write_kpfits,
 
 
 def _read_oifits(path, *, insname=None):
-    """Closure phases of an OIFITS file (`kpifs.io.oifits`): one frame, the sky frame."""
-    parts = read_oifits_parts(path, insname=insname)
+    """Closure phases of OIFITS file(s) of one target (`kpifs.io.oifits`,
+    `kpifs.io.oifits_combine`): one frame, the sky frame."""
+    parts = read_oifits(path, insname=insname)
     m = parts.pop("model")
     pupil = PupilModel(m["xy"], step=m["step"], name=m["name"],
                        meta={"closure_phases": True})

@@ -21,15 +21,15 @@ from astropy import units as u
 from astropy.io import fits
 
 from ._utils import to_quantity
-from .apertures import (BINARY_MIN_TRANSMISSION, MODEL_DEFAULTS, TELESCOPES,  # noqa: F401
-                        ApertureGeometry, ModelDefaults, model_defaults)
-from .apertures import MASKS, MaskGeometry  # noqa: F401  (issue 28: masks)
+from .apertures import (BINARY_MIN_TRANSMISSION, MASKS, MODEL_DEFAULTS,  # noqa: F401
+                        TELESCOPES, ApertureGeometry, MaskGeometry, ModelDefaults,
+                        canonical_name, model_defaults)
 from .exceptions import KpifsError
 
 __all__ = ["PupilModel", "ApertureGeometry", "TELESCOPES", "ModelDefaults", "MODEL_DEFAULTS",
            "model_defaults", "make_pupil", "pupil_image", "read_pupil_fits"]
 
-__all__ += ["MASKS", "MaskGeometry"]   # issue 28: non-redundant masks
+__all__ += ["MASKS", "MaskGeometry", "canonical_name"]   # non-redundant masks
 
 log = logging.getLogger(__name__)
 
@@ -234,11 +234,9 @@ def _resolve_aperture(pupil, *, diameter=None, obstruction=None, pupil_scale=Non
     if isinstance(pupil, (ApertureGeometry, MaskGeometry)):
         return pupil.transmission, pupil.diameter / 2, pupil.name
     key = str(pupil).lower()
-    if key in MASKS:
-        return MASKS[key].transmission, MASKS[key].diameter / 2, key
-    if key in TELESCOPES:
-        geo = TELESCOPES[key]
-        return geo.transmission, geo.diameter / 2, key
+    if key in MASKS or key in TELESCOPES:
+        geo = MASKS.get(key) or TELESCOPES[key]
+        return geo.transmission, geo.diameter / 2, canonical_name(key)
     if key in ("circular", "annular", "disk"):
         if diameter is None:
             raise KpifsError(f"pupil {pupil!r} needs a diameter")
@@ -251,8 +249,9 @@ def _resolve_aperture(pupil, *, diameter=None, obstruction=None, pupil_scale=Non
         image, scale = read_pupil_fits(pupil, pupil_scale=pupil_scale)
         fn, radius = _image_transmission_fn(image, scale)
         return fn, radius, str(pupil)
-    raise KpifsError(f"unknown pupil {pupil!r}: use one of {sorted(TELESCOPES)}, "
-                     f"'circular'/'annular' with a diameter, or a FITS pupil image")
+    raise KpifsError(f"unknown pupil {pupil!r}: use one of {sorted(TELESCOPES)}, a mask "
+                     f"({', '.join(sorted(MASKS))}), 'circular'/'annular' with a diameter, "
+                     f"or a FITS pupil image")
 
 
 def make_pupil(pupil="subaru", *, step=None, offset=None, min_transmission=None, grey=None,
@@ -262,9 +261,12 @@ def make_pupil(pupil="subaru", *, step=None, offset=None, min_transmission=None,
 
     Parameters
     ----------
-    pupil : str or `ApertureGeometry`
-        A telescope name (``'subaru'``, ``'vlt'``, ``'pharo'``; ``'scexao'``,
-        ``'charis'`` and ``'sphere'`` are aliases), ``'circular'`` or
+    pupil : str, `ApertureGeometry` or `MaskGeometry`
+        A telescope name (``'subaru'``, ``'vlt'``, ``'pharo'``, ``'jwst'``,
+        ``'niriss_clearp'``, ``'gpi'``; ``'scexao'``, ``'charis'``, ``'sphere'``,
+        ``'nircam_clear'`` and ``'gemini_south'`` are aliases), a mask
+        (`MASKS`: ``'niriss_nrm'``, ``'sphere_sam7'``, ``'gpi_nrm'``; one
+        sub-aperture per hole unless a *step* is given), ``'circular'`` or
         ``'annular'`` (with *diameter* and *obstruction*), or the path of a FITS
         pupil image whose pixel size (m) is in keyword ``PUPSCALE`` or
         *pupil_scale*.
@@ -312,8 +314,11 @@ def make_pupil(pupil="subaru", *, step=None, offset=None, min_transmission=None,
     ...            grey=False)
     <PupilModel 'annular': 38 binary sub-apertures, step=1.000 m>
     """
-    mask = pupil if isinstance(pupil, MaskGeometry) else MASKS.get(str(pupil).lower())
-    if mask is not None:
+    mask = pupil if isinstance(pupil, MaskGeometry) else (
+        MASKS.get(pupil) if isinstance(pupil, str) else None)
+    if mask is not None and (step is None or to_quantity(step, u.m, name="step").value == 0):
+        # one sub-aperture per hole (step 0 m, its default, says the same); a step
+        # discretises the holes on a grid instead
         return _mask_pupil(mask, rotation)
     defaults = model_defaults(pupil)
     grey = defaults.grey if grey is None else bool(grey)
@@ -323,12 +328,6 @@ def make_pupil(pupil="subaru", *, step=None, offset=None, min_transmission=None,
         min_redundancy = defaults.min_redundancy if grey else 0.0
     if not (np.isfinite(min_redundancy) and min_redundancy >= 0):
         raise KpifsError(f"min_redundancy must be >= 0, got {min_redundancy}")
-    holes = getattr(TELESCOPES.get(str(pupil).lower()) if isinstance(pupil, str) else pupil,
-                    "holes", None)
-    if holes is not None and (step is None or to_quantity(step, u.m, name="step").value == 0):
-        # a hole mask: one sub-aperture per hole (step 0 m, its default, says the same)
-        return _hole_model(pupil, holes, rotation if rotation is not None
-                           else defaults.rotation * u.deg)
     step = defaults.step * u.m if step is None else step
     offset = defaults.offset * u.m if offset is None else offset
     rotation = defaults.rotation * u.deg if rotation is None else rotation
@@ -357,16 +356,17 @@ def make_pupil(pupil="subaru", *, step=None, offset=None, min_transmission=None,
 
 def _mask_pupil(mask, rotation=None):
     """One sub-aperture per hole of a non-redundant mask (its kernel phases: closure
-    phases); the grid options do not apply. The step is half the hole diameter, so that
-    the default search and the aliasing guard (``lambda / (2 step)``) reach ``lambda /
-    D_hole``, about the holes' primary-beam FWHM."""
+    phases); the grid options (step, offset, cut, grey) do not apply. The step is half
+    the hole diameter, so that the default search and the aliasing guard (``lambda / (2
+    step)``) reach ``lambda / D_hole``, about the holes' primary-beam FWHM."""
     xy = np.asarray(mask.holes, float)
     rot = 0.0 if rotation is None else to_quantity(rotation, u.deg, name="rotation").value
     if rot:
         c, s = np.cos(np.deg2rad(rot)), np.sin(np.deg2rad(rot))
         xy = xy @ np.array([[c, -s], [s, c]]).T
     meta = {"hole_diameter_m": mask.hole_diameter, "mask": mask.name, "rotation_deg": rot,
-            "diameter_m": mask.diameter, "source": mask.source}
+            "diameter_m": mask.diameter, "source": mask.source, "holes": True,
+            "step_m": mask.hole_diameter / 2, "grey": False, "min_redundancy": 0.0}
     return PupilModel(xy, step=mask.hole_diameter / 2 * u.m, name=mask.name, meta=meta)
 
 
@@ -401,18 +401,3 @@ def pupil_image(pupil="subaru", *, npix=256, pixel_size=None, rotation=0 * u.deg
     if ss > 1:
         img = img.reshape(npix, ss, npix, ss).mean(axis=(1, 3))
     return img, dx
-
-
-def _hole_model(pupil, holes, rotation):
-    """The model of a non-redundant mask: its hole centres, each of transmission 1."""
-    xy = np.array(holes, float)
-    rot = to_quantity(rotation, u.deg, name="rotation").value
-    if rot:
-        c, s = np.cos(np.deg2rad(rot)), np.sin(np.deg2rad(rot))
-        xy = xy @ np.array([[c, -s], [s, c]]).T
-    geo = TELESCOPES[str(pupil).lower()] if isinstance(pupil, str) else pupil
-    name = str(pupil).lower() if isinstance(pupil, str) else geo.name
-    meta = {"step_m": float(geo.hole_size), "offset_m": (0.0, 0.0), "min_transmission": 1.0,
-            "grey": False, "min_redundancy": 0.0, "hexagonal": False, "rotation_deg": rot,
-            "diameter_m": geo.diameter, "holes": True}
-    return PupilModel(xy, np.ones(len(xy)), step=geo.hole_size * u.m, name=name, meta=meta)

@@ -471,7 +471,7 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
 
 # issue 28: SPHERE's 7-hole SAM mask behind the IFS (39 YJ channels of 7.46 mas, 50 nm
 # of residual wavefront), a companion of 2 % brighter in the blue at (60, -40) mas
-PRESETS["sphere-sam"] = dict(telescope="sphere-sam7",
+PRESETS["sphere-sam"] = dict(telescope="sphere_sam7",
                              wavelengths=np.linspace(0.957, 1.329, 39) * u.um,
                              pixscale=7.46 * u.mas, shape=(64, 64), n_frames=20,
                              wavefront_rms=50 * u.nm,

@@ -7,12 +7,11 @@ are searched). The steps are functions that every interface calls:
 
 - `kernel_model_for`: the pupil/kernel model the options ask for;
 - `extract_observation`: read cube file(s) and extract kernel phases;
-- `calibrate_observation`: the one place where a calibrator is subtracted
-  (or, without one, the frames' own covariance is attached);
+- `calibrate_observation`: the one place a calibrator is subtracted (else the covariance);
 - `detect_observation`: the search, maps, candidates and limits;
-- `process_observation`: all of them for one target and its calibrators,
-  writing ``calibrated_kp.fits`` and ``detection.fits`` exactly as the two
-  commands ``kpifs extract … --calibrator …`` and ``kpifs detect`` would.
+- `process_observation`: all of them for one target and its calibrators, writing
+  ``calibrated_kp.fits`` and ``detection.fits`` as ``kpifs extract … --calibrator …``
+  and ``kpifs detect`` would.
 """
 import dataclasses
 import json
@@ -36,6 +35,7 @@ from .io.angles import frame_detpa, parse_angles
 from .io.readers import check_pupil_header, header_pupil, read_cube
 from .io.wavelengths import parse_wavelengths
 from .kernel import load_kernel_model
+from .pixelnoise import attach_pixel_noise
 from .provenance import (combined_digest, inputs_digest, observation_digest, options_record,
                          products_digest)
 from .window import ExtractionWindow
@@ -86,6 +86,7 @@ class ExtractOptions:
     wavelengths: object = None
     pixscale: object = None
     pa: object = None
+    dq_bits: object = None          # JWST: DQ flags read as bad (`kpifs.io.jwst.parse_dq_bits`)
     # pupil and kernel model (pupil None: the instrument's telescope)
     pupil: object = None
     pupil_scale: object = None
@@ -273,13 +274,11 @@ def extract_observation(files, options=None, *, model=None, progress=False):
     files = [str(files)] if isinstance(files, (str, Path)) else [str(f) for f in files]
     _checks.check_inputs(files)
     pa = parse_angles(options.pa, source="--pa")
-    with read_cube(files, instrument=options.instrument,
-                   wavelengths=parse_wavelengths(options.wavelengths,
-                                                 source="--wavelengths"),
+    with read_cube(files, instrument=options.instrument, dq_bits=options.dq_bits,
+                   wavelengths=parse_wavelengths(options.wavelengths, source="--wavelengths"),
                    pixscale=_pixscale(options)) as cube:
         log.info("%s read as %s: %s", cube.name, cube.instrument, cube.shape)
-        km = model if model is not None else kernel_model_for(options, cube.instrument,
-                                                              cube.header)
+        km = model or kernel_model_for(options, cube.instrument, cube.header)
         try:
             window = options.window_for(cube.shape)
         except KpifsError as exc:
@@ -292,6 +291,7 @@ def extract_observation(files, options=None, *, model=None, progress=False):
             bad_pixels=options.bad_pixels, bad_frames=options.bad_frames,
             on_nyquist=options.on_nyquist, precision=options.precision,
             header=cube.header, source=cube.name, detpa=detpa, progress=progress)
+        attach_pixel_noise(kpd, cube)
     kpd.meta["instrument"] = cube.instrument
     kpd.meta["detpa_source"] = pa_source
     kpd.header["KPXOPTS"] = (json.dumps(options_record(options), sort_keys=True),

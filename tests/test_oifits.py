@@ -273,7 +273,7 @@ def test_companion_free_honest(tmp_path):
 
 
 # --- writing ------------------------------------------------------------------------
-def _mask_kpd(mask="niriss-nrm", wl=(3.8, 4.3, 4.8), detpa=25.0, corr=True):
+def _mask_kpd(mask="niriss_nrm", wl=(3.8, 4.3, 4.8), detpa=25.0, corr=True):
     km = KernelModel.from_pupil(make_pupil(mask))
     wl = np.asarray(wl) * u.um
     rng = np.random.default_rng(3)
@@ -397,7 +397,7 @@ def test_sphere_sam_ifs_sequence(tmp_path, capsys):
     out = tmp_path / "cal.oifits"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", KpifsWarning)     # detector angle unknown: 0
-        rc = main(["extract", str(files["target"][0]), "--pupil", "sphere-sam7",
+        rc = main(["extract", str(files["target"][0]), "--pupil", "sphere_sam7",
                    "--calibrator", str(files["calibrator"][0]), "-o", str(out), "--quiet"])
     assert rc == 0
     kpd = KernelPhaseData.read(out)
@@ -428,3 +428,117 @@ def test_sphere_sam_ifs_sequence(tmp_path, capsys):
                               meta={"calibrated": True, "detpa_source": "given"})
         single.append(detect(one, grid=grid, n_draws=1000, seed=0).limits["B"][iy, ix])
     assert multi < 0.7 * min(single)
+
+
+# --- several files, several grids (issue 28's "several files of one target combine") ----
+def _two_grids(path, a, b):
+    """One file holding *a*'s and *b*'s tables under INSNAMEs 'A' and 'B' (two grids)."""
+    with fits.open(a) as ha, fits.open(b) as hb:
+        hdus = [fits.PrimaryHDU(header=ha[0].header)]
+        for h, ins in ((ha, "A"), (hb, "B")):
+            for x in h[1:]:
+                if x.name == "OI_ARRAY" and ins == "B":
+                    continue
+                x = x.copy()
+                if x.name in ("OI_WAVELENGTH", "OI_T3"):
+                    x.header["INSNAME"] = ins
+                hdus.append(x)
+        fits.HDUList(hdus).writeto(path)
+    return path
+
+
+def _turned(deg):
+    t = np.deg2rad(deg)
+    return np.asarray(NIRISS) @ np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]).T
+
+
+def _epoch_files(tmp_path, f, seed):
+    """Two files of one target, the second with the mask turned by 30 deg (a roll)."""
+    files = [tmp_path / f"e{e}_{seed}.oifits" for e in range(2)]
+    for e, p in enumerate(files):
+        t = standin(p, stations=_turned(30.0 * e), sep=150.0, pa=60.0, f=f, sigma_deg=0.15,
+                    seed=seed + 7 * e, primary=True)
+    return files, t
+
+
+def test_several_files_combine(tmp_path, capsys):
+    """Two epochs of one target in two files: 30 closure phases, energies adding up; one
+    epoch's hexagonal uv lattice leaves an alias at 879 mas (the second file alone picks
+    it), the two together find the companion within 3 mas, 1 deg and 10 %."""
+    files, t = _epoch_files(tmp_path, 0.01, 4)
+    both = KernelPhaseData.read(files)
+    one = [KernelPhaseData.read(f) for f in files]
+    assert both.n_kp == 30 and both.meta["n_reads"] == 2 and not both.meta["achromatic"]
+    assert both.kernel_model.n_uv == 42 and both.kp[0, 0] == pytest.approx(
+        np.concatenate([k.kp[0, 0] for k in one]))
+    energy = [float(k.kp[0, 0] @ np.linalg.solve(k.covariance[0], k.kp[0, 0])) for k in one]
+    assert float(both.kp[0, 0] @ np.linalg.solve(both.covariance[0], both.kp[0, 0])) \
+        == pytest.approx(sum(energy), rel=1e-9)
+    alone = detect(one[1], pfa=1e-3, n_draws=1000, seed=0, limits=False).candidates
+    assert abs(alone[0]["fit_separation"].to_value(u.mas) - t["sep"]) > 100      # the alias
+    out = tmp_path / "det.fits"
+    assert main(["detect", str(files[0]), str(files[1]), "-o", str(out), "--draws", "1000",
+                 "--quiet"]) == 0
+    c = DetectionResult.read(out).candidates
+    assert len(c) == 1
+    assert abs(c[0]["fit_separation"].to_value(u.mas) - t["sep"]) < 3
+    assert abs(c[0]["fit_pa_sky"].to_value(u.deg) - t["pa"]) < 1
+    assert abs(float(np.ravel(c[0]["fit_contrast"])[0]) / t["f"] - 1) < 0.1
+
+
+def test_several_files_go_deeper(tmp_path):
+    """A faint companion (f = 0.0015, 0.15 deg errors, seed 6) that neither file shows at
+    P_FA 1e-3 is found in the two together, near its position."""
+    files, t = _epoch_files(tmp_path, 0.0015, 6)
+    found = [detect(KernelPhaseData.read(f), pfa=1e-3, n_draws=1000, seed=0,
+                    limits=False).candidates for f in files]
+    assert [len(c) for c in found] == [0, 0]
+    c = detect(KernelPhaseData.read(files), pfa=1e-3, n_draws=1000, seed=0,
+               limits=False).candidates
+    assert len(c) == 1
+    assert abs(c[0]["fit_separation"].to_value(u.mas) - t["sep"]) < 20
+    assert abs(c[0]["fit_pa_sky"].to_value(u.deg) - t["pa"]) < 2
+
+
+def test_different_grids_read_as_one_achromatic_channel(tmp_path):
+    """Tables on different wavelength grids (once refused): one channel at the shortest
+    wavelength, baselines scaled by lambda_0 / lambda; a grey companion found there."""
+    a, b = tmp_path / "a.oifits", tmp_path / "b.oifits"
+    t = standin(a, wl=(3.8e-6, 4.3e-6), sep=150.0, pa=60.0, f=0.03, sigma_deg=0.2, seed=2,
+                primary=True, corr=True)
+    standin(b, wl=(4.8e-6,), sep=150.0, pa=60.0, f=0.03, sigma_deg=0.2, seed=3, primary=True)
+    mixed = _two_grids(tmp_path / "mixed.oifits", a, b)
+    with pytest.warns(KpifsWarning, match="different wavelength grids"):
+        kpd = KernelPhaseData.read(mixed)
+    assert kpd.meta["achromatic"] and kpd.n_wave == 1 and kpd.n_kp == 45
+    assert kpd.wavelengths.to_value(u.um) == pytest.approx([3.8])
+    # the model reproduces the files' closure phases: the 4.8 um table's baselines x 3.8/4.8
+    km = kpd.kernel_model
+    model = km.binary_kernel_phases([-t["dra"], t["ddec"]] * u.mas, t["f"], kpd.wavelengths)
+    resid = (kpd.kp[0, 0] - model[0]) / np.sqrt(np.diag(kpd.covariance[0]))
+    assert np.sqrt(np.mean(resid ** 2)) < 1.5
+    with pytest.warns(KpifsWarning, match="different wavelength grids"):
+        also = KernelPhaseData.read([a, b])          # the same as two files
+    assert also.kp == pytest.approx(kpd.kp)
+    one = KernelPhaseData.read(mixed, insname="A")   # one grid keeps its channels
+    assert one.n_wave == 2 and one.n_kp == 15
+    res = detect(kpd, pfa=1e-3, n_draws=1000, seed=0, limits=False)
+    c = res.candidates[0]
+    assert abs(c["fit_separation"].to_value(u.mas) - t["sep"]) < 3
+    assert abs(float(np.ravel(c["fit_contrast"])[0]) / t["f"] - 1) < 0.1
+
+
+def test_several_files_refused(tmp_path, capsys):
+    a, b = tmp_path / "a.oifits", tmp_path / "b.oifits"
+    standin(a, primary=True)
+    standin(b, primary=True, seed=1)
+    with fits.open(b, mode="update") as h:
+        h[0].header["OBJECT"] = "HD 2"
+    assert main(["detect", str(a), str(b), "-o", str(tmp_path / "d.fits")]) == 2
+    err = capsys.readouterr().err
+    assert "OIFITS files of different targets" in err and "HD 2" in err
+    kp = _mask_kpd(wl=(4.8,)).write(tmp_path / "kp.fits")
+    assert main(["detect", str(a), str(kp), "-o", str(tmp_path / "d.fits")]) == 2
+    assert "only OIFITS files combine" in capsys.readouterr().err
+    assert main(["detect", str(a), str(a), "-o", str(tmp_path / "d.fits")]) == 2
+    assert "given twice" in capsys.readouterr().err

@@ -130,3 +130,49 @@ def test_supersampled_pupil_turns_smoothly():
 def test_bad_pupil_input(kwargs, match):
     with pytest.raises(KpifsError, match=match):
         make_pupil(**kwargs)
+
+
+@pytest.mark.parametrize("canonical, other, n_holes, n_kp", [
+    ("niriss_nrm", "NIRISS-NRM", 7, 15), ("sphere_sam7", "sphere-sam7", 7, 15),
+    ("gpi_nrm", "gpi-nrm", 10, 36)])
+def test_one_model_per_mask_in_either_spelling(canonical, other, n_holes, n_kp):
+    """Issues 27 and 28 named the masks twice: one `MaskGeometry` each, both spellings."""
+    from kpifs.pupil import MASKS, MaskGeometry
+    assert MASKS[other] is MASKS[canonical] and isinstance(MASKS[canonical], MaskGeometry)
+    a, b = make_pupil(canonical), make_pupil(other, step=0 * u.m, offset=(1, 1) * u.m)
+    assert a.name == b.name == canonical
+    np.testing.assert_array_equal(a.xy.value, b.xy.value)      # grid options ignored
+    grid = make_pupil(other, step=0.1 * u.m)                   # a step discretises the holes
+    assert grid.name == canonical and grid.n_sub > 20 * n_holes
+    km = KernelModel.from_pupil(a)
+    assert (a.n_sub, km.n_uv, km.n_kp) == (n_holes, n_holes * (n_holes - 1) // 2,
+                                           (n_holes - 1) * (n_holes - 2) // 2)
+    assert km.n_kp == n_kp
+    # the step is half a hole: the search reaches lambda / D_hole
+    assert a.step.to_value(u.m) == pytest.approx(MASKS[canonical].hole_diameter / 2)
+    assert model_defaults(other) is MODEL_DEFAULTS[canonical]
+    img, _ = pupil_image(other, npix=64)
+    assert img.sum() > 0
+
+
+def test_mask_geometry_published_numbers():
+    """NIRISS: the as-built g7s6 holes (V2 reversed), hexagons of 0.82 m; GPI: the g10s40
+    centres times 647.62 (FORMATS.md), 45 baselines from 0.95 to 6.68 m."""
+    from kpifs.pupil import MASKS
+    nrm = MASKS["niriss_nrm"]
+    assert nrm.shape == "hex" and nrm.hole_diameter == 0.82
+    assert (2.28631, 0.0) in nrm.holes and (-2.28631, 0.0) not in nrm.holes   # C2 open
+    assert nrm.area == pytest.approx(7 * np.sqrt(3) / 2 * 0.82 ** 2)
+    # the hexagon's corners are inside its circumscribed circle: 0.82 m * 2 / sqrt(3)
+    assert nrm.diameter == pytest.approx(2 * 2.64 + 0.82 * 2 / np.sqrt(3))
+    gpi = np.asarray(MASKS["gpi_nrm"].holes)
+    b = np.hypot(*(gpi[:, None] - gpi[None]).reshape(-1, 2).T)
+    b = np.unique(np.round(b[b > 0], 6))
+    assert len(b) == 45 and b.min() == pytest.approx(0.95, abs=0.01)
+    assert b.max() == pytest.approx(6.68, abs=0.01)
+    assert MASKS["gpi_nrm"].hole_diameter == pytest.approx(0.596, abs=1e-3)
+
+
+def test_unknown_pupil_lists_the_masks():
+    with pytest.raises(KpifsError, match="gpi_nrm, niriss_nrm, sphere_sam7"):
+        make_pupil("niriss_nmr")

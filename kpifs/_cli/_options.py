@@ -8,7 +8,7 @@ def extract_options(args):
     """`~kpifs.workflow.ExtractOptions` from the options the command has (the rest default)."""
     get = {k: getattr(args, a) for k, a in (
         ("instrument", "instrument"), ("wavelengths", "wavelengths"), ("pixscale", "pixscale"),
-        ("pa", "pa"),
+        ("pa", "pa"), ("dq_bits", "dq_bits"),
         ("pupil", "pupil"), ("pupil_scale", "pupil_scale"), ("step", "step"),
         ("offset", "offset"), ("min_transmission", "min_transmission"), ("grey", "grey"),
         ("rotation", "rotation"), ("min_redundancy", "min_redundancy"),

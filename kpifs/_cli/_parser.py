@@ -109,14 +109,19 @@ def _cube_options(p):
     g.add_argument("--pixscale", help="pixel scale, mas if no unit, e.g. 10.42mas; default: "
                                       "from the header or the instrument (CHARIS 16.2mas, "
                                       "SPHERE 7.46mas)")
+    g.add_argument("--dq-bits", metavar="FLAGS",
+                   help="JWST: DQ flags read as bad pixels besides DO_NOT_USE, by name or "
+                        "value, e.g. SATURATED,JUMP_DET or 6 (default: DO_NOT_USE only)")
 
 
 def _pupil_options(p, *, model_files=True):
     g = p.add_argument_group("pupil model")
     files = " or a kernel-model FITS" if model_files else ""
     g.add_argument("--pupil", default=None,
-                   help="telescope: subaru (aliases scexao, charis), vlt (alias sphere) or "
-                        "pharo; or a pupil image FITS (pixel size in PUPSCALE or "
+                   help="telescope: subaru (aliases scexao, charis), vlt (alias sphere), "
+                        "pharo, jwst (alias nircam_clear), niriss_clearp, gpi (alias "
+                        "gemini_south); a mask: niriss_nrm, sphere_sam7, gpi_nrm ('-' for "
+                        "'_' accepted); or a pupil image FITS (pixel size in PUPSCALE or "
                         f"--pupil-scale){files}. Circular and annular apertures (a diameter "
                         "and a central obstruction) are built from Python "
                         "(kpifs.make_pupil('annular', diameter=..., obstruction=...)); "
@@ -366,8 +371,9 @@ def _simulate(command):
 
 def _detect(command):
     p = command("detect", "search kernel phases for companions", EPILOG_DETECT)
-    p.add_argument("kp", metavar="KP.fits", help="kernel-phase data (KPFITS, from kpifs "
-                                                 "extract) or closure phases (OIFITS)")
+    p.add_argument("kp", metavar="KP.fits", nargs="+",
+                   help="kernel-phase data (KPFITS, from kpifs extract) or closure phases "
+                        "(OIFITS; several OIFITS files of one target are searched together)")
     p.add_argument("--calibrator", nargs="+", metavar="CAL_KP.fits",
                    help="kernel phases of calibrator(s), if KP.fits is not calibrated "
                         "(default: none)")

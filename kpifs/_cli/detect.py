@@ -4,7 +4,7 @@ import warnings
 
 from astropy import units as u
 
-from .._checks import preflight_detect
+from .._checks import check_inputs, preflight_detect
 from .._utils import check_output_dir, check_output_path
 from ..data import KernelPhaseData
 from ..exceptions import KpifsError, KpifsWarning
@@ -28,10 +28,17 @@ def _grid_step(args):
     args.grid_step = args.deprecated_step
 
 
-def _check_kernel_phases(path):
-    """Refuse, with the command that makes them, a file that holds no kernel phases."""
+def _check_kernel_phases(path, *, several=False):
+    """Refuse, with the command that makes them, a file that holds no kernel phases (and,
+    among several files, one that is not OIFITS: KPFITS products are one per search)."""
     with open_fits(path) as hdul:
-        if "KP-DATA" in hdul or "OI_T3" in hdul:      # kernel or closure phases
+        if "OI_T3" in hdul:                            # closure phases
+            return
+        if "KP-DATA" in hdul:                          # kernel phases
+            if several:
+                raise KpifsError(f"{path}: KPFITS kernel phases: only OIFITS files combine "
+                                 f"in one search; give the frames of one star to kpifs "
+                                 f"extract together instead")
             return
         what = ("detection products" if hdul[0].header.get("CONTENT") == "KPIFS-DETECTION"
                 else "no KP-DATA extension (no kernel phases)")
@@ -44,16 +51,18 @@ def run(args):
     _grid_step(args)
     options = detect_options(args).validate()
     check_output_path(args.output, overwrite=args.overwrite)
-    preflight_detect(args.kp, args.calibrator, args.output, options)
+    paths = list(args.kp)
+    check_inputs(paths, outputs=[args.output])
+    preflight_detect(paths[0], args.calibrator, args.output, options)
     if args.plots:
         check_output_dir(args.plots)
-    for path in [args.kp] + list(args.calibrator or []):
-        _check_kernel_phases(path)
-    kpd = KernelPhaseData.read(args.kp)
+    for path in paths + list(args.calibrator or []):
+        _check_kernel_phases(path, several=len(paths) > 1)
+    kpd = KernelPhaseData.read(paths if len(paths) > 1 else paths[0])
     cals = [KernelPhaseData.read(c) for c in (args.calibrator or [])]
     res = detect_observation(kpd, options, calibrators=cals,
                              progress=not args.quiet)
-    res.write(args.output, inputs=[args.kp] + list(args.calibrator or []),
+    res.write(args.output, inputs=paths + list(args.calibrator or []),
               overwrite=args.overwrite)
     print(f"{res.test} search, global P_FA {args.pfa:g}: {len(res.candidates)} candidate(s) "
           f"-> {args.output}")

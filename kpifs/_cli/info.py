@@ -222,7 +222,7 @@ def _raw(path, why):
 def _cube(path, args):
     opts = extract_options(args)
     try:
-        cube = read_cube([path], instrument=opts.instrument,
+        cube = read_cube([path], instrument=opts.instrument, dq_bits=opts.dq_bits,
                          wavelengths=parse_wavelengths(opts.wavelengths, source="--wavelengths"),
                          pixscale=opts.pixscale)
     except MissingInformation as exc:
@@ -242,6 +242,8 @@ def _cube(path, args):
             text = ("unknown" if not np.any(np.isfinite(pa)) else
                     f"{np.nanmin(pa):.2f}-{np.nanmax(pa):.2f} deg")
             print(f"  detector position angle: {text} ({cube.detpa_source})")
+        if cube.variance is not None:
+            print(f"  per-pixel noise: {cube.variance_source} (-> kernel-phase errors)")
         for key in ("OBJECT", "TELESCOP", "EXPTIME", "KPSIMX", "KPSIMY"):
             if key in cube.header:
                 print(f"  {key}: {cube.header[key]}")
@@ -267,9 +269,9 @@ def _cube(path, args):
 def _given(args, opts, pupil):
     """The reading options this call was given and every model option, as the next
     command should repeat them (the model's options all shape the kernel phases)."""
-    given = [f"--{opt} {getattr(args, opt)}" for opt in ("instrument", "wavelengths",
-                                                         "pixscale")
-             if getattr(args, opt) not in (None, "auto")]
+    given = [f"--{opt.replace('_', '-')} {getattr(args, opt)}" for opt in (
+        "instrument", "wavelengths", "pixscale", "dq_bits")
+        if getattr(args, opt, None) not in (None, "auto")]
     given.append(f"--pupil {pupil}")
     for name in _MODEL_OPTIONS:
         value = getattr(args, name)

@@ -21,7 +21,7 @@ def _floats(text, name):
 
 
 def _read(files, args):
-    with read_cube(files, instrument=args.instrument,
+    with read_cube(files, instrument=args.instrument, dq_bits=args.dq_bits,
                    wavelengths=parse_wavelengths(args.wavelengths, source="--wavelengths"),
                    pixscale=None if args.pixscale is None
                    else to_quantity(args.pixscale, u.mas, name="pixel scale")) as cube:

@@ -43,6 +43,12 @@ class IFSCube:
     instrument : str
     source : list of str
         Input file names.
+    variance : array-like or None
+        Per-pixel noise variance of each frame, shape of *data* (read lazily;
+        JWST ``ERR**2``), propagated to the kernel phases' errors
+        (`kpifs.pixelnoise`).
+    variance_source : str or None
+        Where *variance* came from.
 
     Examples
     --------
@@ -63,6 +69,8 @@ class IFSCube:
     detpa_source: str = None
     instrument: str = "generic"
     source: list = field(default_factory=list)
+    variance: object = None
+    variance_source: str = None
     _files: list = field(default_factory=list, repr=False)
 
     def __post_init__(self):

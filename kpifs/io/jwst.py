@@ -21,7 +21,11 @@ integration is a frame of one channel.
   under the same names), the relation jwst-kpi writes; the same for every
   integration.
 - Bad pixels: NaN, and ``DQ`` with any of *dq_bits* set (default
-  ``DO_NOT_USE``, bit 0, as jwst-kpi and the jwst ``ami`` step).
+  ``DO_NOT_USE``, bit 0, as jwst-kpi and the jwst ``ami`` step; ``--dq-bits``
+  adds others, `parse_dq_bits`).
+- Per-pixel noise: ``ERR`` squared, or ``VAR_POISSON + VAR_RNOISE + VAR_FLAT``
+  without it, as ``cube.variance`` (read lazily): the extraction propagates it
+  to the kernel phases' errors (`kpifs.pixelnoise`).
 - Pupil: `jwst_pupil` (NIRISS ``NRM`` -> ``niriss_nrm``, ``CLEARP`` ->
   ``niriss_clearp``, a pupil-wheel filter or NIRCam -> ``jwst``).
 """
@@ -37,12 +41,63 @@ from ..exceptions import KpifsError, KpifsWarning
 from .cube import FrameStack, IFSCube, open_fits
 
 __all__ = ["read_jwst", "is_jwst", "jwst_mode", "jwst_pupil", "jwst_detpa", "JWST_FILTERS",
-           "JWST_PIXSCALES", "SUPPORTED_EXP_TYPES", "DO_NOT_USE"]
+           "JWST_PIXSCALES", "SUPPORTED_EXP_TYPES", "DO_NOT_USE", "DQ_FLAGS", "parse_dq_bits"]
 
 log = logging.getLogger(__name__)
 
 #: DQ bit value of DO_NOT_USE (jwst ``dqflags``).
 DO_NOT_USE = 1
+
+#: DQ flag values by name (jwst ``dqflags``; FORMATS.md). Bits 7, 8 and 28 were renamed
+#: between versions: give them by value.
+DQ_FLAGS = {name: 1 << bit for bit, name in (
+    (0, "DO_NOT_USE"), (1, "SATURATED"), (2, "JUMP_DET"), (3, "DROPOUT"), (4, "OUTLIER"),
+    (5, "PERSISTENCE"), (6, "AD_FLOOR"), (9, "NON_SCIENCE"), (10, "DEAD"), (11, "HOT"),
+    (12, "WARM"), (13, "LOW_QE"), (14, "RC"), (15, "TELEGRAPH"), (16, "NONLINEAR"),
+    (17, "BAD_REF_PIXEL"), (18, "NO_FLAT_FIELD"), (19, "NO_GAIN_VALUE"), (20, "NO_LIN_CORR"),
+    (21, "NO_SAT_CHECK"), (22, "UNRELIABLE_BIAS"), (23, "UNRELIABLE_DARK"),
+    (24, "UNRELIABLE_SLOPE"), (25, "UNRELIABLE_FLAT"), (26, "OPEN"), (27, "ADJ_OPEN"),
+    (29, "MSA_FAILED_OPEN"), (30, "OTHER_BAD_PIXEL"), (31, "REFERENCE_PIXEL"))}
+
+
+def parse_dq_bits(value, *, source="--dq-bits"):
+    """The DQ mask of bad pixels from an integer or a list of flag names and values.
+
+    *value*: None (``DO_NOT_USE`` alone), an int, or a string of names of
+    `DQ_FLAGS` and integer values (decimal or ``0x`` hex) separated by ``,``,
+    ``|`` or ``+``. ``DO_NOT_USE`` is always included: the pipeline marks with
+    it the pixels it could not calibrate.
+
+    Examples
+    --------
+    >>> from kpifs.io.jwst import parse_dq_bits
+    >>> parse_dq_bits(None), parse_dq_bits("saturated,JUMP_DET"), parse_dq_bits("0x800|4096")
+    (1, 7, 6145)
+    """
+    if value is None:
+        return DO_NOT_USE
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        tokens = [int(value)]
+    else:
+        tokens = [t.strip() for t in str(value).replace("|", ",").replace("+", ",").split(",")
+                  if t.strip()]
+    mask = DO_NOT_USE
+    for t in tokens:
+        if isinstance(t, int):
+            v = t
+        elif t.upper() in DQ_FLAGS:
+            v = DQ_FLAGS[t.upper()]
+        else:
+            try:
+                v = int(t, 0)
+            except ValueError:
+                raise KpifsError(f"{source}: {t!r} is neither a DQ flag name (e.g. SATURATED, "
+                                 f"JUMP_DET) nor an integer") from None
+        if not 0 <= v < 2 ** 32:
+            raise KpifsError(f"{source}: {v} is not a 32-bit DQ value")
+        mask |= v
+    return mask
+
 
 #: EXP_TYPEs read (imaging with a full or masked pupil).
 SUPPORTED_EXP_TYPES = ("NIS_AMI", "NIS_IMAGE", "NRC_IMAGE")
@@ -130,7 +185,8 @@ def jwst_mode(header, *, source="JWST file"):
 
 
 def jwst_pupil(header):
-    """The built-in pupil (a `~kpifs.pupil.TELESCOPES` key) for a JWST header, or None.
+    """The built-in pupil (a `~kpifs.pupil.TELESCOPES` or `~kpifs.pupil.MASKS` key) for a
+    JWST header, or None.
 
     Examples
     --------
@@ -192,6 +248,39 @@ def _dq_bad(path, shape, dq_bits):
         raise KpifsError(f"{path}: DQ of shape {dq.shape} does not match SCI") from None
 
 
+class _Variance:
+    """Per-pixel variance of the frames, read lazily: ``ERR**2`` or the sum of ``VAR_*``."""
+
+    def __init__(self, arrays, square):
+        self.arrays, self.square = arrays, square
+        self.shape = arrays[0].shape
+
+    def __getitem__(self, key):
+        if self.square:
+            return np.square(np.asarray(self.arrays[0][key], float))
+        return sum(np.asarray(a[key], float) for a in self.arrays)
+
+
+def _variance(hdul, path, shape):
+    """``cube.variance`` part of one file (nints, 1, ny, nx), or None without ERR/VAR_*."""
+    def view(name):
+        hdu = hdul[name] if name in hdul else None
+        if hdu is None or hdu.data is None:
+            return None
+        d = hdu.data
+        d = d[None, None] if d.ndim == 2 else (d[:, None] if d.ndim == 3 else d)
+        if d.shape != shape:
+            raise KpifsError(f"{path}: {name} of shape {hdu.data.shape} does not match SCI")
+        return d
+    err = view("ERR")
+    if err is not None:
+        return _Variance([err], square=True), "ERR"
+    parts = [v for v in map(view, ("VAR_POISSON", "VAR_RNOISE", "VAR_FLAT")) if v is not None]
+    if parts:
+        return _Variance(parts, square=False), "VAR_*"
+    return None, None
+
+
 def _pixscale(path, inst, hdr, sci_hdr, pixscale):
     channel = _card(hdr, "CHANNEL") if inst == "NIRCAM" else None
     if (inst, channel) not in JWST_PIXSCALES:
@@ -228,6 +317,7 @@ def _read_one(path, wavelengths, pixscale, dq_bits):
                              f"{None if data is None else data.shape}")
         view = data[None, None] if data.ndim == 2 else data[:, None]
         bad = _dq_bad(path, view.shape, dq_bits)
+        var, var_from = _variance(hdul, path, view.shape)
         wl = (wavelengths if wavelengths is not None
               else [JWST_FILTERS[(inst, filt)][0]] * u.um)
         ps = _pixscale(path, inst, hdr, sci.header, pixscale)
@@ -246,10 +336,13 @@ def _read_one(path, wavelengths, pixscale, dq_bits):
             pa, where = np.full(nint, np.nan), "none (unknown)"
         else:
             pa = np.full(nint, detpa)
+        header["KPDQBITS"] = (int(dq_bits), "DQ bits read as bad pixels")
         stack = FrameStack([view], None if bad is None else [bad])
         cube = IFSCube(data=stack, wavelengths=wl, pixscale=ps, header=header,
                        detpa=pa * u.deg, detpa_source=where, instrument="jwst",
-                       source=[str(path)], _files=[hdul])
+                       source=[str(path)], _files=[hdul],
+                       variance=None if var is None else FrameStack([var]),
+                       variance_source=var_from)
     except BaseException:
         hdul.close()
         raise
@@ -270,9 +363,10 @@ def read_jwst(paths, *, wavelengths=None, pixscale=None, dq_bits=DO_NOT_USE):
         Replaces the filter table's mean wavelength.
     pixscale : `~astropy.units.Quantity`, optional
         Replaces the table's pixel scale.
-    dq_bits : int
-        DQ bits that make a pixel bad (default ``DO_NOT_USE`` = 1; e.g.
-        ``1 | 2 | 4`` adds SATURATED and JUMP_DET). NaN pixels are always bad.
+    dq_bits : int or str
+        DQ bits that make a pixel bad (`parse_dq_bits`: default ``DO_NOT_USE``
+        = 1; e.g. ``1 | 2 | 4`` or ``'SATURATED,JUMP_DET'`` add SATURATED and
+        JUMP_DET). NaN pixels are always bad.
 
     Examples
     --------
@@ -291,6 +385,7 @@ def read_jwst(paths, *, wavelengths=None, pixscale=None, dq_bits=DO_NOT_USE):
     paths = [str(p) for p in paths]
     if not paths:
         raise KpifsError("no JWST files given")
+    dq_bits = parse_dq_bits(dq_bits, source="dq_bits")
     cubes, filters = [], []
     try:
         for p in paths:
@@ -306,8 +401,8 @@ def read_jwst(paths, *, wavelengths=None, pixscale=None, dq_bits=DO_NOT_USE):
             raise KpifsError(
                 "files in different filters: " + ", ".join(f"{p} ({f})" for p, f in
                                                            zip(paths, filters))
-                + ": filters as the channels of one product are not supported yet; "
-                "extract each filter separately")
+                + ": one cube is one filter; kpifs extract makes filters the channels of "
+                "one calibrated product (give the calibrator's files with --calibrator)")
         if len(cubes) == 1:
             return cubes[0]
         return _join(cubes)
@@ -328,4 +423,7 @@ def _join(cubes):
                    pixscale=first.pixscale, header=first.header, detpa=detpa,
                    detpa_source=first.detpa_source, instrument="jwst",
                    source=[s for c in cubes for s in c.source],
-                   _files=[f for c in cubes for f in c._files])
+                   _files=[f for c in cubes for f in c._files],
+                   variance=(FrameStack([c.variance for c in cubes])
+                             if all(c.variance is not None for c in cubes) else None),
+                   variance_source=first.variance_source)

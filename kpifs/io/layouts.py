@@ -21,6 +21,7 @@ from astropy.io import fits
 
 from .._meta import VERSION
 from .._utils import check_output_path, write_hdulist
+from ..apertures import canonical_name
 from ..exceptions import KpifsError
 from .layouts_instruments import write_gpi_exposures, write_jwst_calints
 
@@ -197,16 +198,17 @@ def write_observation(obs, outdir, *, layout="plain", overwrite=False):
 def _write_instrument(layout, obs, role, cube, var, outdir, common):
     """The JWST and GPI layouts (`kpifs.io.layouts_instruments`)."""
     p = obs.params
+    telescope = canonical_name(p.telescope)
     if layout == "gpi":
         (outdir / role).mkdir(exist_ok=True)
-        mode = "NRM_H" if p.telescope == "gpi_nrm" else "H_direct"
+        mode = "NRM_H" if telescope == "gpi_nrm" else "H_direct"
         return write_gpi_exposures(outdir / role, cube, var, p.wavelengths, p.pixscale,
                                    detpa=p.detpa, obsmode=mode, **common)
     if len(p.wavelengths) != 1:
         raise KpifsError("the JWST layout writes one filter per file: simulate one "
                          "wavelength")
     inst = "NIRCAM" if "nircam" in str(p.instrument).lower() else "NIRISS"
-    pupil = "NRM" if p.telescope == "niriss_nrm" else None
+    pupil = "NRM" if telescope == "niriss_nrm" else None
     tag = {"target": "00001", "calibrator": "00002"}[role]
     det = "nis" if inst == "NIRISS" else ("nrca1" if p.pixscale.to_value(u.mas) < 45
                                           else "nrcalong")

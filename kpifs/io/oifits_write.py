@@ -47,7 +47,7 @@ def closure_triangles(kernel_model, *, source="data"):
     >>> import astropy.units as u
     >>> from kpifs import KernelModel, make_pupil
     >>> from kpifs.io.oifits_write import closure_triangles
-    >>> sta, c = closure_triangles(KernelModel.from_pupil(make_pupil("sphere-sam7")))
+    >>> sta, c = closure_triangles(KernelModel.from_pupil(make_pupil("sphere_sam7")))
     >>> sta.shape, c.shape
     ((35, 3), (35, 21))
     """
@@ -329,7 +329,7 @@ def write_oifits(kpd, path, *, overwrite=False, inputs=(), history=(), target=No
     --------
     >>> import tempfile, numpy as np, astropy.units as u
     >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
-    >>> km = KernelModel.from_pupil(make_pupil("niriss-nrm"))
+    >>> km = KernelModel.from_pupil(make_pupil("niriss_nrm"))
     >>> kpd = KernelPhaseData(np.zeros((1, 1, km.n_kp)), [4.8] * u.um, 65.6 * u.mas, km,
     ...                       covariance=np.eye(km.n_kp)[None] * 1e-4, detpa=[0.0])
     >>> path = kpd.write(tempfile.mkdtemp() + "/x.oifits")

@@ -6,11 +6,12 @@ from pathlib import Path
 import numpy as np
 from astropy import units as u
 
+from ..apertures import canonical_name
 from ..exceptions import KpifsError, KpifsWarning
 from .charis import is_charis, read_charis
 from .cube import FrameStack, IFSCube, open_fits, read_generic, refuse_kpfits
 from .gpi import gpi_pupil, is_gpi, read_gpi
-from .jwst import is_jwst, jwst_pupil, read_jwst
+from .jwst import is_jwst, jwst_pupil, parse_dq_bits, read_jwst
 from .sphere import is_sphere, read_sphere
 from .wavelengths import parse_wavelengths
 
@@ -55,7 +56,8 @@ def detect_instrument(path):
         hdul.close()
 
 
-def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angles=None):
+def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angles=None,
+              dq_bits=None):
     """Read one or several cube files as an `~kpifs.io.IFSCube`.
 
     Parameters
@@ -74,6 +76,9 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
         supplies what it lacks.
     pixscale, angles
         Passed to the reader (override the header, or supply what it lacks).
+    dq_bits : int or str, optional
+        JWST: the DQ flags read as bad pixels (`~kpifs.io.jwst.parse_dq_bits`;
+        default ``DO_NOT_USE``). Ignored by the other readers.
 
     Examples
     --------
@@ -94,6 +99,7 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
     if instrument not in INSTRUMENTS:
         raise KpifsError(f"unknown instrument {instrument!r}: use one of {INSTRUMENTS}")
     wavelengths = parse_wavelengths(wavelengths)     # once, whatever the number of files
+    dq_bits = parse_dq_bits(dq_bits)
     if instrument == "auto":
         kinds = {p: detect_instrument(p) for p in paths}
         if len(set(kinds.values())) > 1:
@@ -105,7 +111,8 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
     if instrument == "charis":
         return read_charis(paths, wavelengths=wavelengths, pixscale=pixscale)
     if instrument == "jwst":
-        return read_jwst(paths, wavelengths=wavelengths, pixscale=pixscale)
+        return read_jwst(paths, wavelengths=wavelengths, pixscale=pixscale,
+                         dq_bits=dq_bits)
     if instrument == "gpi":
         return read_gpi(paths, wavelengths=wavelengths, pixscale=pixscale)
     readers = {"sphere": lambda p: read_sphere(p, wavelengths=wavelengths, pixscale=pixscale,
@@ -184,7 +191,7 @@ def check_pupil_header(pupil, header, *, source="cube"):
     True
     """
     expected = header_pupil(header) if header is not None else None
-    key = str(pupil).lower()
+    key = canonical_name(pupil) if isinstance(pupil, str) else str(pupil).lower()
     if expected is None or key.endswith((".fits", ".fit", ".fits.gz")):
         return
     family = next((f for f in _PUPIL_FAMILIES if expected in f), {expected})
