@@ -249,10 +249,9 @@ def test_calibrated_jwstkpi_file_is_searched(sim, tmp_path):
         kpd = KernelPhaseData.read(path)
         assert kpd.meta["calibrated"] is True and kpd.n_frame == 1
         out.append(detect(kpd, n_draws=1000, fit=False, seed=1))
-    # the maps before the noise scale, whose downward bound comes from the null's own
-    # (Monte-Carlo) draws of the map's mean square
-    raw = [o.statistic * o.meta["noise_scale"] for o in out]
-    np.testing.assert_allclose(raw[1], raw[0], rtol=1e-6, atol=1e-9)
+    # the maps: the same but for the noise scale's downward bound, read from the null's
+    # own (Monte-Carlo) draws of the map's mean square, where no annulus's noise is higher
+    np.testing.assert_allclose(out[1].statistic, out[0].statistic, rtol=2e-2, atol=1e-8)
     np.testing.assert_allclose(out[1].contrast, out[0].contrast, rtol=1e-6, atol=1e-12)
 
 

@@ -16,7 +16,7 @@ from .limits import limit_energy_correlated
 
 __all__ = ["whiten_weights", "channel_shrinkage", "SHRINKAGE_GRID", "np_correlated",
            "energy_spread", "noise_scale", "map_noise", "combined_scale",
-           "subspace_scale", "annulus_noise", "ring_noise", "NOISE_CONFIDENCE",
+           "subspace_scale", "annulus_noise", "ring_noise", "grid_rings", "NOISE_CONFIDENCE",
            "MIN_SCALE",
            "energy_null", "correlated_inputs", "scale_block_rows"]
 
@@ -207,6 +207,33 @@ def map_noise(model, y, *, subspace=False):
     return float(np.mean(z ** 2)) if z.size else float("nan")
 
 
+def grid_rings(model):
+    """Annulus index of every grid position (flat), one resolution element
+    (`~kpifs.detect.quality.resolution_mas`) wide from the grid's inner edge.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.data import DetectionGrid
+    >>> from kpifs.detect import DetectionModel
+    >>> from kpifs.detect.channels import grid_rings
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    >>> dm = DetectionModel(km, [1.6] * u.um, np.eye(km.n_kp)[None], grid)
+    >>> int(grid_rings(dm).max())     # lambda / B_max = 43 mas: 20-100 mas in three
+    2
+    """
+    from .quality import resolution_mas
+    if "_rings" not in model.__dict__:
+        grid = model.grid
+        sep = grid.sep.ravel()
+        inner = sep[grid.valid.ravel()].min() if grid.valid.any() else 0.0
+        width = resolution_mas(model.kernel_model, model.wavelengths)
+        model._rings = np.clip(np.floor((sep - inner) / width), 0, None).astype(int)
+    return model._rings
+
+
 def _map_power(model, y, subspace):
     """Per valid position: the map's square ``sum z_i^2`` (or ``||U^T z||^2``) and its
     expectation under the error model."""
@@ -226,15 +253,15 @@ def _map_power(model, y, subspace):
     return num, expect
 
 
-def annulus_noise(model, y, *, width, subspace=False):
+def annulus_noise(model, y, *, subspace=False):
     """Ratio, per annulus of the grid, of the map's mean square to its model
     expectation, as a map (ny, nx; NaN off the grid).
 
     The map is the normalised projections ``z_i`` of whitened data *y* (or,
     with *subspace*, the subspace test's ``U^T z``); their expectation comes
     from the channels' correlation (`DetectionModel.correlate
-    <kpifs.detect.DetectionModel.correlate>`) when known. Annuli are *width*
-    (mas) wide from the grid's inner edge. A residual the error model misses
+    <kpifs.detect.DetectionModel.correlate>`) when known; the annuli are
+    `grid_rings`. A residual the error model misses
     rarely spreads evenly: a static aberration's lives at small separations,
     as the speckles of an image do.
 
@@ -249,7 +276,7 @@ def annulus_noise(model, y, *, width, subspace=False):
     >>> grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
     >>> dm = DetectionModel(km, [1.6] * u.um, np.eye(km.n_kp)[None], grid)
     >>> y = np.random.default_rng(0).standard_normal((200, 1, km.n_kp))
-    >>> ratios = [np.nanmean(annulus_noise(dm, 2 * yy, width=40)) for yy in y]
+    >>> ratios = [np.nanmean(annulus_noise(dm, 2 * yy)) for yy in y]
     >>> bool(abs(np.mean(ratios) - 4) < 0.2)
     True
     """
@@ -259,8 +286,7 @@ def annulus_noise(model, y, *, width, subspace=False):
     if not v.any():
         return ratio
     num, expect = _map_power(model, y, subspace)
-    sep = grid.sep[v]
-    ring = np.floor((sep - sep.min()) / max(float(width), 1e-9)).astype(int)
+    ring = grid_rings(model)[v.ravel()]
     top = np.bincount(ring, num)
     bottom = np.bincount(ring, expect)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -273,7 +299,9 @@ def ring_noise(model, y, peak, *, width, radius, subspace=False, min_positions=2
     the positions within *width* of its separation, leaving out those within
     *radius* of it and of its mirror ``(-x, -y)`` (where the odd kernel phases see
     its signal, sign reversed), so that it is judged by the noise around it and
-    not by its own signal. The band widens until it holds *min_positions*.
+    not by its own signal. The band widens until it holds *min_positions* and
+    the exclusion leaves at least half of it; NaN when it never does (a grid
+    a few resolution elements wide).
 
     Examples
     --------
@@ -302,9 +330,13 @@ def ring_noise(model, y, peak, *, width, radius, subspace=False, min_positions=2
     d = np.abs(sep - np.hypot(*peak))
     band = float(width)
     while True:
-        keep = away & (d <= band)
-        if keep.sum() >= min(min_positions, away.sum()):
+        inside = d <= band
+        keep = away & inside
+        # most of the band, not a corner the exclusion left: else a wider band
+        if keep.sum() >= min_positions and keep.sum() >= 0.5 * inside.sum():
             break
+        if inside.all():
+            return float("nan")
         band *= 1.5
     return float(np.sum(num[keep]) / np.sum(expect[keep]))
 

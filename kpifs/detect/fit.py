@@ -241,10 +241,17 @@ def refine_candidates(cands, kp, w, kpd, noise_rows=None, poses=None, dof=None,
     for row in cands:
         kw = {} if poses is None else dict(detpa=poses[0], detpa_weights=poses[1])
         pre = "fit_" if from_fit else ""
-        r = fit_binary(kp, w, kpd.kernel_model, kpd.wavelengths,
-                       (row[pre + "x"].to_value(u.mas), row[pre + "y"].to_value(u.mas)),
-                       np.asarray(row[pre + "contrast"]), pixscale=kpd.pixscale,
-                       window=kpd.window, bounds_mas=step, noise_rows=noise_rows, **kw)
+        start = (row[pre + "x"].to_value(u.mas), row[pre + "y"].to_value(u.mas))
+        c0 = np.asarray(row[pre + "contrast"])
+        for _ in range(4):
+            r = fit_binary(kp, w, kpd.kernel_model, kpd.wavelengths, start, c0,
+                           pixscale=kpd.pixscale, window=kpd.window, bounds_mas=step,
+                           noise_rows=noise_rows, **kw)
+            # a fit stopped by its box walks on from there (a grid peak off the optimum,
+            # as a spectral-model test's can be near the grid's edge)
+            if max(abs(r["x"] - start[0]), abs(r["y"] - start[1])) < 0.95 * step:
+                break
+            start, c0 = (r["x"], r["y"]), np.asarray(r["contrast"])
         k = 1.0
         if dof is not None:
             chi2_red = r["chi2"] / max(dof - (q + 2), 1)

@@ -260,8 +260,9 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     ring_width = resolution_mas(kpd.kernel_model, kpd.wavelengths)
 
     def ring(res, peak, subspace=form == "S"):
+        # only ever up (an annulus's chance excess errs on the safe side)
         if peak is None:
-            return annulus_noise(model, whiten(res, w), width=ring_width, subspace=subspace)
+            return annulus_noise(model, whiten(res, w), subspace=subspace)
         return float(np.nan_to_num(ring_noise(model, whiten(res, w), peak, width=ring_width,
                                               radius=1.5 * ring_width, subspace=subspace),
                                    nan=1.0))
