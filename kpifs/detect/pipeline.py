@@ -18,6 +18,7 @@ from .sky import (add_sky_columns, data_angles, pa_bins, rotated_binary_kernel_p
 from .skyfit import refit_on_sky
 from .limits import (energy_lambda, limit_binary, limit_binary_correlated_forms, limit_energy,
                      limit_np, mirror_half_map, radial_curves, spectrum_shape)
+from .blocks import block_stack
 from .maps import DetectionModel
 from .null import DEFAULT_DRAWS, check_draws, search_null
 from .channels import (NOISE_CONFIDENCE, combined_scale, correlated_inputs, energy_null,
@@ -109,7 +110,8 @@ def _prepare(kpd, shrinkage, allow_uncalibrated):
 
 def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=None,
            n_draws=DEFAULT_DRAWS, seed=0, shrinkage="auto", fit=True, max_candidates=20,
-           allow_uncalibrated=False, frame="auto", limits=True, null="auto", progress=False):
+           allow_uncalibrated=False, frame="auto", limits=True, null="auto", progress=False,
+           blocks="auto"):
     """Search calibrated kernel phases for a companion.
 
     Parameters
@@ -170,6 +172,12 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=N
         the more conservative of the two (``'both'``, what ``'auto'`` picks when
         the data carry block rows). Both thresholds are reported
         (``result.meta['null']``).
+    blocks : {'auto', 'rotation', 'angular-differential'}
+        Data carrying the time blocks of a rotating sequence (`kpifs.rotation`)
+        are searched on the sky block by block (`kpifs.detect.blocks`): the
+        calibrated mean and the blocks' departures from it (``'rotation'``), or
+        the departures alone (``'angular-differential'``: no calibrator, nothing
+        fixed on the detector). ``'auto'``: the data's own choice.
     limits : bool
         Compute the detection limits (default). Without (as the injection
         curves do, which only need the candidates) ``result.limits`` is empty.
@@ -200,18 +208,26 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=N
     if grid is None:
         grid = default_grid(kpd, frame=frame)
     window = kpd.window
-    model = DetectionModel(kpd.kernel_model, kpd.wavelengths, w, grid, pixscale=kpd.pixscale,
-                           window=window, dof=rank, detpa=search_poses, basis=basis)
+    # issue 29: a rotating sequence's time blocks, stacked (None: the one mean, as before)
+    stack = block_stack(kpd, kp, w, rank, frame=frame, mode=blocks)
+    cov_rows, blk_rows, fit_rows = kpd.covariance_rows, kpd.block_rows, kpd.fit_covariance_rows
+    if stack is not None:
+        kp, w, rank, y = stack.kp, stack.whitening, stack.rank, stack.kp
+        cov_rows, blk_rows, fit_rows = stack.rows, stack.block_rows, None
+        model = stack.detection_model(grid, basis=basis)
+    else:
+        model = DetectionModel(kpd.kernel_model, kpd.wavelengths, w, grid, pixscale=kpd.pixscale,
+                               window=window, dof=rank, detpa=search_poses, basis=basis)
     form = "B" if test == "E" else test
     rows = None
-    if kpd.covariance_rows is not None:
-        rows = whiten(kpd.covariance_rows, w)
+    if cov_rows is not None:
+        rows = whiten(cov_rows, w)
         model.correlate(rows)
     else:
         log.info("no covariance rows: channels taken as independent in the null model")
     blocks, block_energy = None, None
-    if kpd.block_rows is not None:       # the empirical null: its scale from the error model
-        blocks, block_energy = scale_block_rows(whiten(kpd.block_rows, w), rank)
+    if blk_rows is not None:       # the empirical null: its scale from the error model
+        blocks, block_energy = scale_block_rows(whiten(blk_rows, w), rank)
     null_method = null
 
     def make_null(f):
@@ -231,10 +247,10 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=N
                  null_info["threshold_empirical"])
     spread = energy_spread(rows, int(rank.sum()))
     characterise = None
-    if fit and kpd.covariance_rows is not None and kpd.fit_covariance_rows is not None:
+    if fit and cov_rows is not None and fit_rows is not None:
         # positions and contrasts from the error model with more modes (calibrate's
         # fit_modes), whose rows also carry its channel correlations
-        fr = kpd.fit_covariance_rows
+        fr = fit_rows
         fcov = np.matmul(fr.transpose(1, 2, 0), fr.transpose(1, 0, 2))       # (q, p, p)
         fw, frank = whitening_matrix(fcov, return_rank=True, source="characterisation covariance")
         characterise = (fw, whiten(fr, fw), int(np.sum(frank)))
@@ -247,7 +263,8 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=N
         return kappa, combined_scale(kappa, spread, last["map"], map_low)
     cands, kappa, scale = _sequential_search(
         model, kp, w, kpd, threshold=threshold, null=null, spectrum=spectrum, fit=fit,
-        max_candidates=max_candidates, scaler=scaler, poses=poses, characterise=characterise)
+        max_candidates=max_candidates, scaler=scaler, poses=poses, characterise=characterise,
+        stack=stack)
     if frame == "sky":
         sky_search_columns(cands, poses)
     else:
@@ -364,7 +381,7 @@ def _chi2_red(residual, w, dof, n_par):
 
 
 def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max_candidates,
-                       scaler, poses=None, characterise=None):
+                       scaler, poses=None, characterise=None, stack=None):
     """Strongest peak above threshold, fitted and subtracted, until none is left.
 
     Each peak is judged on its statistic scaled by the reduced chi-square of
@@ -385,7 +402,11 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
         if not len(tab):
             break
         row = tab[:1]
-        if fit:
+        if fit and stack is not None:
+            model_kp = stack.refine(row, residual, null.noise_rows)[0]
+            r = row[0]
+            x, y = r["fit_x"].to_value(u.mas), r["fit_y"].to_value(u.mas)
+        elif fit:
             model_kp = refine_candidates(row, residual, w, kpd, null.noise_rows, poses)[0]
             if characterise is not None:
                 # from the search model's optimum (the robust start), the characterisation
@@ -401,7 +422,9 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
             x, y, c = r["x"].to_value(u.mas), r["y"].to_value(u.mas), np.asarray(r["contrast"])
             att = 1.0 if kpd.window is None else \
                 float(kpd.window.at(np.hypot(x, y), kpd.pixscale))
-            if poses is None:
+            if stack is not None:
+                model_kp = stack.model_kp((x, y), c * att)
+            elif poses is None:
                 model_kp = kpd.kernel_model.binary_kernel_phases([x, y] * u.mas, c * att,
                                                                  kpd.wavelengths)
             else:

@@ -1,0 +1,384 @@
+"""Searching a rotating sequence block by block (issue 29; DESIGN.md section 6).
+
+The calibrated product of a pupil-tracking sequence keeps its time blocks
+(`kpifs.rotation`). The search stacks, channel by channel, two parts of the
+whitened data (in the coordinates of the mean's whitening ``C``, which keeps
+the error model's modes only):
+
+- the calibrated mean ``C d`` (the error model's covariance: calibrator and
+  residual included), whose signature is the frame-weighted mean of the
+  blocks' ``C K sin(theta_b)``;
+- the block contrasts ``sqrt(n_b / s) C (d_b - d)`` (``s``: the frames' noise
+  in units of the mean's), free of the calibrator and of every aberration
+  fixed on the detector, whose signature ``sqrt(n_b / s) C K (sin(theta_b) -
+  mean)`` is what survives of a companion turning with the sky (its
+  self-subtraction).
+
+Tests, limits, fits and the null see one whitened vector per channel, of
+dimension ``r (B + 1)`` (``r`` modes, ``B`` blocks): the correlations of the
+blocks add up instead of those of a smeared mean. Without the mean part (the
+angular-differential mode) only what turns is searched: neither a calibrator
+nor a static residual enters. A map costs one projection per block, as the
+rotating mean's did per PA bin.
+"""
+import hashlib
+import logging
+
+import numpy as np
+from astropy import units as u
+
+from .._lazy import lazy_module
+from .._utils import thread_map
+from ..exceptions import KpifsError
+from .maps import DetectionModel, _unit
+from .sky import rotated_binary_kernel_phases
+from .spectral import spectral_basis
+
+optimize = lazy_module("scipy.optimize")
+
+__all__ = ["BlockModel", "BlockStack", "block_stack", "MODES"]
+
+log = logging.getLogger(__name__)
+
+#: Block searches: the mean and the blocks' contrasts, the contrasts only, or the mean only
+#: (the blocks ignored: the model averaged over the angles, as before issue 29).
+MODES = ("rotation", "angular-differential", "mean")
+
+
+class BlockModel(DetectionModel):
+    """`~kpifs.detect.DetectionModel` of stacked time blocks (see `kpifs.detect.blocks`).
+
+    Parameters
+    ----------
+    kernel_model, wavelengths, grid, pixscale, window, dof, basis
+        As `~kpifs.detect.DetectionModel` (the grid on the sky).
+    comp : ndarray (q, r, p)
+        The mean's whitening in its modes (rows beyond a channel's rank zero).
+    scale : ndarray (q,)
+        Variance of one frame's whitened noise per mode, in units of the mean's.
+    angles, frames : ndarray (B,)
+        The blocks' detector angles (deg) and frames.
+    mean : bool
+        Include the calibrated mean (False: the angular-differential search).
+    """
+
+    def __init__(self, kernel_model, wavelengths, grid, comp, scale, angles, frames, *,
+                 pixscale=None, window=None, dof=None, basis=None, mean=True):
+        from .._utils import to_quantity
+        self.kernel_model = kernel_model
+        self.wavelengths = np.atleast_1d(to_quantity(wavelengths, u.um, name="wavelengths"))
+        self.basis = spectral_basis(basis, self.wavelengths)
+        self.grid = grid
+        if grid.frame != "sky":
+            raise KpifsError("a block search is on the sky: give a sky grid")
+        self.comp = np.asarray(comp, float)
+        self.scale = np.asarray(scale, float)
+        self.frames = np.asarray(frames, float)
+        self.with_mean = bool(mean)
+        q, r, _ = self.comp.shape
+        self.n_modes = r
+        self.dim = r * (len(self.frames) + int(self.with_mean))
+        self.dof = np.full(q, self.dim) if dof is None else np.asarray(dof, int)
+        self.pixscale = None if pixscale is None else to_quantity(pixscale, u.mas).value
+        self.window = window if (window is not None and pixscale is not None) else None
+        self._poses = [(float(a), 1.0) for a in angles]
+        self.detpa = (np.asarray(angles, float), self.frames / self.frames.sum())
+        self.whitening = None
+        self._check_grid()
+        self._wfac = (np.ones_like(grid.sep) if self.window is None
+                      else self.window.at(grid.sep, self.pixscale))
+        # L_i = K^T C_i^T: the modes' coordinates to uv space
+        self._lift = np.matmul(self.comp, kernel_model.kernel).transpose(0, 2, 1)  # (q, nuv, r)
+        # per channel, the poses' separable factors side by side (float32): a map is two
+        # products over (poses x uv points)
+        self._trig = [_concat(self._axis_trig(lam)) for lam in self.wavelengths.to_value(u.m)]
+        self.norm2 = self._signature_norms()
+
+    def _weights(self, i):
+        """Per block: the mean's weight ``n_b / N`` and the contrasts' ``sqrt(n_b / s_i)``."""
+        n = self.frames
+        return n / n.sum(), np.sqrt(n / self.scale[i])
+
+    def _stacked(self, i, rows):
+        """Stacked signatures ``[m, sqrt(n_b / s)(S_b - m)]`` (npos, dim), unsigned."""
+        nx = self.grid.shape[1]
+        iy, ix = np.divmod(rows, nx)
+        wm, wd = self._weights(i)
+        sx, cx, sy, cy = self._trig[i]
+        nuv = self._lift.shape[1]
+        sin = (sx[ix] * cy[iy] + cx[ix] * sy[iy]).reshape(len(rows), -1, nuv)
+        lift = self._lift[i].astype(np.float32)
+        per = np.matmul(sin.transpose(1, 0, 2), lift).astype(float)      # (B, npos, r)
+        m = np.tensordot(wm, per, axes=(0, 0))
+        parts = ([m] if self.with_mean else []) + list(wd[:, None, None] * (per - m))
+        return np.concatenate(parts, axis=-1)
+
+    def _signature_norms(self):
+        q = len(self.wavelengths)
+        ny, nx = self.grid.shape
+        n = ny * nx
+        keep, mirrored = self.half_positions()
+        if mirrored:
+            pair = np.zeros(n, bool)
+            pair[keep] = pair[n - 1 - keep] = True
+            rest = np.flatnonzero(~pair)
+            rows = np.concatenate([keep, rest[rest <= n - 1 - rest]])
+        else:
+            rows = np.arange(n)
+            keep = np.flatnonzero(self.grid.valid.ravel())
+        from .maps import UNIT_CACHE_BYTES
+        cache = q * len(keep) * self.dim * 4 <= UNIT_CACHE_BYTES
+        at = np.searchsorted(rows, keep) if not mirrored else np.arange(len(keep))
+        unit = np.empty((q, len(keep), self.dim), np.float32) if cache else None
+        wf = self._wfac.ravel()[keep]
+        out = np.zeros((q, n))
+
+        def channel(i):
+            raw = np.empty(len(rows))
+            for a in range(0, len(rows), 1024):
+                s = self._stacked(i, rows[a:a + 1024])
+                raw[a:a + len(s)] = np.einsum("ij,ij->i", s, s)
+                if cache:
+                    sel = (at >= a) & (at < a + len(s))
+                    unit[i, sel] = _unit(s[at[sel] - a], raw[at[sel]], wf[sel])
+            out[i, rows] = raw
+            if mirrored:
+                out[i, n - 1 - rows] = raw
+        thread_map(channel, range(q))
+        if cache:
+            self._unit_cache = (keep, unit)
+        return out.reshape(q, ny, nx) * self._wfac[None] ** 2
+
+    def _unit_signatures(self, rows):
+        if "_unit_cache" in self.__dict__:
+            keep, unit = self._unit_cache
+            at = np.minimum(np.searchsorted(keep, rows), len(keep) - 1)
+            if np.array_equal(keep[at], rows):
+                return unit[:, at]
+        q = len(self.wavelengths)
+        out = np.empty((q, len(rows), self.dim), np.float32)
+        wf = self._wfac.ravel()[rows]
+        for i in range(q):
+            s = self._stacked(i, rows)
+            out[i] = _unit(s, np.einsum("ij,ij->i", s, s), wf)
+        return out
+
+    def dot_maps(self, y):
+        y = np.asarray(y, float)
+        lead = y.shape[:-2]
+        yb = y.reshape((-1,) + y.shape[-2:])
+        m, q = len(yb), len(self.wavelengths)
+        r, nb = self.n_modes, len(self.frames)
+        ny, nx = self.grid.shape
+        v = np.sqrt(self.frames / self.frames.sum())
+        out = np.empty((m, q, ny, nx))
+        for i in range(q):
+            wm, wd = self._weights(i)
+            off = r if self.with_mean else 0
+            yd = yb[:, i, off:].reshape(m, nb, r)
+            yd = yd - v[None, :, None] * np.einsum("mbr,b->mr", yd, v)[:, None, :]
+            h = wd[None, :, None] * yd                                          # (m, B, r)
+            if self.with_mean:
+                h = h + wm[None, :, None] * yb[:, i, None, :r]
+            g = (h @ self._lift[i].T).reshape(m, -1).astype(np.float32)         # (m, B nuv)
+            sx, cx, sy, cy = self._trig[i]
+            k = g.shape[1]
+            acc = (sx[None] * g[:, None, :]).reshape(m * nx, k) @ cy.T
+            acc += (cx[None] * g[:, None, :]).reshape(m * nx, k) @ sy.T
+            out[:, i] = -acc.reshape(m, nx, ny).transpose(0, 2, 1)
+        return (out * self._wfac).reshape(lead + out.shape[1:])
+
+    def key(self):
+        if "_digest" in self.__dict__:
+            return self._digest
+        h = hashlib.sha1(b"blocks")
+        for arr in (self.kernel_model.kernel, self.kernel_model.uv.value, self.comp,
+                    self.scale, self.frames, self.detpa[0], self.wavelengths.value,
+                    self._wfac, self.basis):
+            h.update(np.ascontiguousarray(arr).tobytes())
+        for part in self.grid.key():
+            h.update(repr(part).encode())
+        h.update(f"{self.with_mean}".encode())
+        h.update(self.__dict__.get("_corr_key", "").encode())
+        self._digest = h.hexdigest()
+        return self._digest
+
+
+def _concat(trig):
+    """Per-pose ``(sx, cx, sy, cy, weight)`` side by side along the uv axis, float32."""
+    return tuple(np.ascontiguousarray(np.concatenate([t[j] for t in trig], axis=1),
+                                      np.float32) for j in range(4))
+
+
+def _compress(w, rank):
+    """The whitening operators' kept modes: C (q, r, p) with ``C^T C = W^T W``."""
+    q, p, _ = w.shape
+    r = int(np.max(rank))
+    out = np.zeros((q, r, p))
+    for i in range(q):
+        vals, vecs = np.linalg.eigh(w[i])
+        order = np.argsort(-np.abs(vals))[:int(rank[i])]
+        out[i, :len(order)] = (vecs[:, order] * vals[order]).T
+    return out
+
+
+def _complement(v):
+    """Orthonormal rows (B-1, B) orthogonal to the unit vector *v*."""
+    q, _ = np.linalg.qr(np.column_stack([v, np.eye(len(v))[:, :-1]]))
+    return q[:, 1:].T
+
+
+class BlockStack:
+    """Whitened, stacked data of a block search, its noise rows, models and fits.
+
+    Built by `block_stack`; ``kp`` (q, dim) is already whitened (its whitening
+    is the identity), so that `~kpifs.detect.detect` handles it as any data.
+    """
+
+    def __init__(self, kpd, kp, w, rank, *, mode="rotation"):
+        if mode not in MODES:
+            raise KpifsError(f"unknown block search {mode!r}: use one of {MODES}")
+        rb = kpd.rotation
+        self.kpd, self.mode, self.blocks = kpd, mode, rb
+        self.with_mean = mode == "rotation"
+        rank = np.atleast_1d(rank)
+        self.comp = comp = _compress(w, rank)
+        q, r, p = comp.shape
+        nb = rb.n_blocks
+        ntgt = rb.n_target_noise
+        proj = np.einsum("iap,fip->fia", comp, rb.noise)                     # (m, q, r)
+        dof_t = max(ntgt - nb, 1)
+        self.scale = scale = np.einsum("fia->i", proj[:ntgt] ** 2) / (dof_t * rank)
+        if np.any(scale <= 0) or not np.all(np.isfinite(scale)):
+            raise KpifsError(f"{kpd.name}: the target's frames show no noise within their "
+                             f"time blocks: cannot search the blocks")
+        parts = [proj[:ntgt] / np.sqrt(dof_t * scale)[None, :, None]]
+        if len(proj) > ntgt + 1:
+            cal = proj[ntgt:]
+            sc = np.einsum("fia->i", cal ** 2) / ((len(cal) - 1) * rank)
+            parts.append(cal / np.sqrt((len(cal) - 1) * sc)[None, :, None])
+        noise = np.concatenate(parts) / np.sqrt(len(parts))                    # Gram ~ I
+        v = np.sqrt(rb.frames / rb.frames.sum())
+        hmat = _complement(v)
+        dev_rows = np.einsum("jb,fia->jfiba", hmat, noise).reshape(-1, q, nb * r)
+        dev = np.einsum("iap,bip->bia", comp, rb.contrasts()) / np.sqrt(scale)[None, :, None]
+        dev = dev.transpose(1, 0, 2).reshape(q, nb * r)
+        pieces, rows = [dev], [dev_rows]
+        if self.with_mean:
+            ym = np.einsum("iap,ip->ia", comp, kp)
+            pieces.insert(0, ym)
+            rows = [_pad(_rows(comp, kpd.covariance_rows), nb * r, after=True)] \
+                if kpd.covariance_rows is not None else []
+            rows.append(_pad(dev_rows, r, after=False))
+        self.kp = np.concatenate(pieces, axis=-1)
+        self.dim = self.kp.shape[1]
+        self.rows = np.concatenate(rows)
+        # the empirical null's time blocks would miss the blocks' own part: Gaussian only
+        self.block_rows = None
+        self.whitening = np.broadcast_to(np.eye(self.dim), (q, self.dim, self.dim))
+        self.rank = rank * (nb - 1 + int(self.with_mean))
+        log.info("%s: searched in %d time blocks over %.1f deg (%s), %d modes per channel; "
+                 "block noise %.2f x the mean's per frame", kpd.name, nb, rb.span, mode, r,
+                 float(np.mean(scale)))
+
+    def detection_model(self, grid, *, basis=None):
+        kpd = self.kpd
+        return BlockModel(kpd.kernel_model, kpd.wavelengths, grid, self.comp, self.scale,
+                          self.blocks.angles, self.blocks.frames, pixscale=kpd.pixscale,
+                          window=kpd.window, dof=self.rank, basis=basis, mean=self.with_mean)
+
+    def model_kp(self, sky, contrast):
+        """Whitened stacked model (q, dim) of a companion at *sky* (dRA, dDec; mas)."""
+        kpd, rb = self.kpd, self.blocks
+        per = np.stack([rotated_binary_kernel_phases(kpd.kernel_model, np.asarray(sky) * u.mas,
+                                                     contrast, kpd.wavelengths, [a])
+                        for a in rb.angles])                                   # (B, q, p)
+        n = rb.frames / rb.frames.sum()
+        mean = np.tensordot(n, per, axes=(0, 0))
+        dev = np.sqrt(rb.frames)[:, None, None] * (per - mean)
+        dev = np.einsum("iap,bip->iba", self.comp, dev) / np.sqrt(self.scale)[:, None, None]
+        dev = dev.reshape(len(self.scale), -1)
+        if not self.with_mean:
+            return dev
+        return np.concatenate([np.einsum("iap,ip->ia", self.comp, mean), dev], axis=-1)
+
+    def _attenuation(self, x, y):
+        kpd = self.kpd
+        if kpd.window is None:
+            return 1.0
+        return float(kpd.window.at(np.hypot(x, y), kpd.pixscale))
+
+    def refine(self, cands, residual, noise_rows=None, box=20.0):
+        """Fit each candidate's sky offset and contrasts to the stacked data (in place, as
+        `~kpifs.detect.fit.refine_candidates`); returns the fitted models."""
+        q = residual.shape[0]
+        cols = {k: [] for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err", "fit_contrast",
+                                "fit_contrast_err", "fit_chi2")}
+        models = []
+        for row in cands:
+            x0, y0 = row["x"].to_value(u.mas), row["y"].to_value(u.mas)
+            c0 = np.asarray(row["contrast"], float)
+            scale_c = max(float(np.max(np.abs(c0))), 1e-6)
+
+            def resid(par):
+                c = par[2:] * scale_c * self._attenuation(par[0], par[1])
+                return (residual - self.model_kp(par[:2], c)).ravel()
+
+            start = np.concatenate([[x0, y0], c0 / scale_c])
+            lo = np.concatenate([[x0 - box, y0 - box], np.full(q, -np.inf)])
+            hi = np.concatenate([[x0 + box, y0 + box], np.full(q, np.inf)])
+            res = optimize.least_squares(resid, start, bounds=(lo, hi), jac="2-point",
+                                         diff_step=1e-4)
+            jac = res.jac
+            cov = np.linalg.pinv(jac.T @ jac)
+            if noise_rows is not None:
+                rj = np.asarray(noise_rows, float).reshape(len(noise_rows), -1) @ jac
+                cov = cov @ (rj.T @ rj) @ cov
+            err = np.sqrt(np.clip(np.diag(cov), 0, None))
+            cols["fit_x"].append(res.x[0])
+            cols["fit_y"].append(res.x[1])
+            cols["fit_x_err"].append(err[0])
+            cols["fit_y_err"].append(err[1])
+            cols["fit_contrast"].append(res.x[2:] * scale_c)
+            cols["fit_contrast_err"].append(err[2:] * scale_c)
+            cols["fit_chi2"].append(float(2 * res.cost))
+            att = self._attenuation(res.x[0], res.x[1])
+            models.append(self.model_kp(res.x[:2], res.x[2:] * scale_c * att))
+        for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err"):
+            cands[k] = np.array(cols[k]) * u.mas
+        cands["fit_contrast"] = np.array(cols["fit_contrast"]).reshape(len(cands), q)
+        cands["fit_contrast_err"] = np.array(cols["fit_contrast_err"]).reshape(len(cands), q)
+        cands["fit_chi2"] = np.array(cols["fit_chi2"])
+        return models
+
+
+def _rows(comp, rows):
+    return np.einsum("iap,fip->fia", comp, rows)
+
+
+def _pad(rows, n, *, after):
+    z = np.zeros(rows.shape[:2] + (n,))
+    return np.concatenate([rows, z] if after else [z, rows], axis=-1)
+
+
+def block_stack(kpd, kp, w, rank, *, frame, mode="auto"):
+    """The `BlockStack` of a search, or None for the fast path (one mean, as before).
+
+    Blocks are searched on the sky when the data carry them (``kpd.rotation``,
+    `kpifs.rotation`); *mode* ``'auto'`` takes the data's own
+    (``meta['block_search']``, else ``'rotation'``).
+    """
+    if mode not in MODES + ("auto",):
+        raise KpifsError(f"unknown block search {mode!r}: use one of {MODES} or 'auto'")
+    if getattr(kpd, "rotation", None) is None or frame != "sky":
+        if mode == "angular-differential":
+            raise KpifsError(f"{kpd.name}: an angular-differential search needs the time "
+                             f"blocks of a rotating sequence (kpifs extract "
+                             f"--angular-differential on frames whose angles turn)")
+        return None
+    if mode == "auto":
+        mode = kpd.meta.get("block_search", "rotation")
+    if mode == "mean":
+        return None
+    return BlockStack(kpd, kp, w, rank, mode=mode)
+
