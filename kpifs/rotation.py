@@ -40,6 +40,7 @@ from .exceptions import KpifsError
 MAS = np.pi / 180 / 3600 / 1000      # one mas in radians (as kpifs.kernel.MAS)
 
 __all__ = ["RotationBlocks", "time_blocks", "rotation_blocks", "block_width",
+           "angular_differential", "rotation_needed", "parallactic_angles",
            "rotation_hdus", "rotation_from_hdul", "MIN_BLOCK_FRAMES", "BLOCK_FRACTION",
            "MIN_ROTATION_SPAN"]
 
@@ -76,6 +77,8 @@ class RotationBlocks:
     n_target_noise : int
     calibrated : bool
         Whether a calibrator was subtracted.
+    search : {'rotation', 'angular-differential'}
+        How detection searches the blocks by default (`kpifs.detect.blocks`).
     """
 
     angles: np.ndarray
@@ -84,6 +87,7 @@ class RotationBlocks:
     noise: np.ndarray
     n_target_noise: int
     calibrated: bool = True
+    search: str = "rotation"
 
     @property
     def n_blocks(self):
@@ -222,6 +226,7 @@ def rotation_hdus(kpd):
     h.header["BUNIT"] = "rad"
     h.header["NBLOCK"] = (rb.n_blocks, "time blocks of small rotation")
     h.header["BLKCAL"] = (bool(rb.calibrated), "calibrators' mean subtracted from each block")
+    h.header["BLKSRCH"] = (rb.search, "default search: rotation or angular-differential")
     for b, (ang, n) in enumerate(zip(rb.angles, rb.frames)):
         h.header[f"BLKPA{b}"] = (float(ang), "[deg] mean detector angle of block")
         h.header[f"BLKNF{b}"] = (int(n), "target frames in block")
@@ -250,5 +255,140 @@ def rotation_from_hdul(hdul, source="<file>"):
             or noise.shape[1:] != data.shape[1:]:
         raise KpifsError(f"{source}: {_HDUS[0]} of shape {data.shape} and {_HDUS[1]} of shape "
                          f"{noise.shape} do not match {nb} blocks")
+    search = str(h.header.get("BLKSRCH", "rotation"))
+    if search not in ("rotation", "angular-differential"):
+        raise KpifsError(f"{source}: unknown block search BLKSRCH = {search!r}")
     return RotationBlocks(angles, frames, data, noise, ntgt,
-                          calibrated=bool(h.header.get("BLKCAL", True)))
+                          calibrated=bool(h.header.get("BLKCAL", True)), search=search)
+
+
+#: Modes of the frames' noise kept per channel without a calibrator, as a fraction of the
+#: degrees of freedom within the blocks (the error model's default, `kpifs.errormodel`).
+ADI_MODES = 0.5
+
+
+def rotation_needed(separation, wavelength, diameter, *, fraction=1.0):
+    """Rotation (deg) over which a companion at *separation* moves *fraction* x lambda/D.
+
+    An angular-differential search keeps a companion only in so far as it moves
+    between blocks: over an arc of ``lambda / D`` about half its signal
+    survives the removal of what stays fixed on the detector (the classical ADI
+    rule of thumb; `kpifs.detect.blocks` computes the exact fraction).
+
+    Examples
+    --------
+    >>> import astropy.units as u
+    >>> from kpifs.rotation import rotation_needed
+    >>> round(rotation_needed(150 * u.mas, 1.6 * u.um, 7.92 * u.m), 1)
+    15.9
+    """
+    lam_d = u.Quantity(wavelength, u.m).value / u.Quantity(diameter, u.m).value / MAS
+    return float(np.rad2deg(fraction * lam_d / u.Quantity(separation, u.mas).value))
+
+
+def angular_differential(target, calibrated=None, *, n_modes=ADI_MODES):
+    """A product searched by the blocks' departures only (``kpifs extract
+    --angular-differential``).
+
+    With *calibrated* (the target calibrated by `~kpifs.calibrate.calibrate`) its
+    blocks are marked for the angular-differential search; without, the
+    target's own frames make the product: their mean (searched not at all), a
+    covariance on the leading *n_modes* (fraction of the degrees of freedom
+    within the blocks) modes of the frames' scatter within their blocks, and
+    the blocks. Refused when the target's angles do not turn.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs.rotation import angular_differential
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> rng = np.random.default_rng(0)
+    >>> t = KernelPhaseData(rng.normal(0, 0.1, (24, 1, km.n_kp)), [1.6] * u.um, 10 * u.mas,
+    ...                     km, detpa=np.linspace(0, 60, 24))
+    >>> adi = angular_differential(t)
+    >>> adi.rotation.search, adi.kp.shape, adi.meta["calibrated"]
+    ('angular-differential', (1, 1, 37), False)
+    """
+    from .data import KernelPhaseData
+    name = target.meta.get("source", "target")
+    if calibrated is not None:
+        if calibrated.rotation is None:
+            raise KpifsError(f"{name}: --angular-differential needs frames whose angles turn "
+                             f"(span {_span(target):.1f} deg: no time blocks to compare)")
+        calibrated.rotation.search = "angular-differential"
+        calibrated.meta["block_search"] = "angular-differential"
+        return calibrated
+    rb = rotation_blocks(target, [])
+    if rb is None:
+        raise KpifsError(f"{name}: --angular-differential needs frames whose angles turn "
+                         f"(span {_span(target):.1f} deg: no time blocks to compare)")
+    rb.search = "angular-differential"
+    dev = rb.noise                                            # (N, q, p), within blocks
+    dof = target.n_frame - rb.n_blocks
+    k = max(1, int(round(n_modes * dof)))
+    q, p = target.n_wave, target.n_kp
+    cov = np.empty((q, p, p))
+    labels = time_blocks(target.detpa, width=block_width(target))
+    folds = np.array_split(np.arange(rb.n_blocks), min(rb.n_blocks, 5))
+    for i in range(q):
+        # the leading modes of the scatter within the blocks (what turns is not in it),
+        # with the variance along each rank measured on blocks the modes were not taken
+        # from (in-sample variances along a sample's own leading modes are biased high)
+        _, _, vt = np.linalg.svd(dev[:, i], full_matrices=False)
+        var = np.zeros(k)
+        for fold in folds:
+            out_ = np.isin(labels, fold)
+            _, _, vf = np.linalg.svd(dev[~out_, i], full_matrices=False)
+            var += np.sum((dev[out_, i] @ vf[:k].T) ** 2, axis=0)
+        var /= dof
+        cov[i] = (vt[:k].T * var) @ vt[:k] / target.n_frame
+    meta = dict(target.meta)
+    meta.update(calibrated=False, block_search="angular-differential",
+                n_target_frames=target.n_frame, calibrators=[],
+                detpa_frames=[float(v) for v in target.detpa],
+                error_model={"model": "frames", "adi_modes": k})
+    a = target.detpa
+    pa = float(np.rad2deg(np.arctan2(np.sin(np.deg2rad(a)).mean(), np.cos(np.deg2rad(a)).mean())))
+    out = KernelPhaseData(target.kp.mean(axis=0)[None], target.wavelengths, target.pixscale,
+                          target.kernel_model, window=target.window, covariance=cov,
+                          header=target.header, detpa=[pa], bandwidth=target.bandwidth,
+                          meta=meta)
+    out.rotation = rb
+    out.header["BLKSRCH"] = ("angular-differential", "searched by its time blocks only")
+    log.info("%s: angular-differential product: %d blocks over %.1f deg, %d modes per channel",
+             name, rb.n_blocks, rb.span, k)
+    return out
+
+
+def _span(kpd):
+    if kpd.detpa is None or not np.all(np.isfinite(kpd.detpa)):
+        return 0.0
+    a = np.asarray(kpd.detpa, float)
+    return float(np.ptp(a[0] + np.unwrap(np.deg2rad(a - a[0])) * 180 / np.pi))
+
+
+def parallactic_angles(hour_angle, declination, latitude):
+    """Parallactic angle (deg) of a star at *hour_angle*, *declination*, from *latitude*.
+
+    ``q = atan2(sin H, tan(phi) cos(delta) - sin(delta) cos(H))`` (e.g. Meeus,
+    Astronomical Algorithms, eq. 14.1): the angle at the star from the
+    direction of the celestial pole to that of the zenith, East positive.
+
+    Parameters
+    ----------
+    hour_angle : `~astropy.units.Quantity` (angle or time: 1 h = 15 deg)
+    declination, latitude : `~astropy.units.Quantity` (angle)
+
+    Examples
+    --------
+    >>> import astropy.units as u
+    >>> from kpifs.rotation import parallactic_angles
+    >>> parallactic_angles([-1, 0, 1] * u.hourangle, -20 * u.deg, 19.8 * u.deg).round(1)
+    array([-21.2,   0. ,  21.2])
+    """
+    h = u.Quantity(hour_angle)
+    h = h.to_value(u.h) * np.pi / 12 if h.unit.physical_type == "time" else h.to_value(u.rad)
+    d = u.Quantity(declination, u.deg).to_value(u.rad)
+    phi = u.Quantity(latitude, u.deg).to_value(u.rad)
+    return np.rad2deg(np.arctan2(np.sin(h), np.tan(phi) * np.cos(d) - np.sin(d) * np.cos(h)))

@@ -233,6 +233,10 @@ def _extract(command):
                         "calibrators, whose mean is subtracted (default: none, kernel phases "
                         "of the target alone)")
     _cube_options(p)
+    p.add_argument("--angular-differential", action="store_true",
+                   help="keep the time blocks of a rotating sequence and search only what "
+                        "turns with the sky (what stays on the detector removed: with or "
+                        "without --calibrator; refused when the angles do not turn)")
     p.add_argument("--pa", metavar="DEG|LIST|FILE",
                    help="detector position angle of the target's frames (deg, East of North "
                         "of the detector +y axis): one value, a comma list with one per "

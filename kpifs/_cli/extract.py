@@ -1,6 +1,7 @@
 """``kpifs extract``: kernel phases of cubes, calibrated when calibrators are given."""
 from .._checks import check_inputs
 from .._utils import check_output_path
+from ..rotation import angular_differential
 from ..workflow import calibrate_observation, calibrator_options, extract_observation
 from ._options import extract_options
 
@@ -14,10 +15,14 @@ def run(args):
     cal_files = args.calibrator or []
     cals = [extract_observation(files, calibrator_options(opts), model=kpd.kernel_model,
                                 progress=progress) for files in cal_files]
+    target = kpd
     kpd = calibrate_observation(kpd, cals, opts)
+    if args.angular_differential:               # issue 29
+        kpd = angular_differential(target, kpd if cals else None)
     kpd.write(args.output, overwrite=args.overwrite,
               inputs=list(args.cubes) + [f for files in cal_files for f in files])
     what = "calibrated kernel phases" if cals else \
+        "angular-differential time blocks" if args.angular_differential else \
         f"{kpd.n_frame} frame(s) x {kpd.n_wave} channel(s) x {kpd.n_kp} kernel phases"
     print(f"{kpd.meta.get('instrument', 'cube')}: {what} -> {args.output}")
     return 0

@@ -99,8 +99,9 @@ class BlockModel(DetectionModel):
         n = self.frames
         return n / n.sum(), np.sqrt(n / self.scale[i])
 
-    def _stacked(self, i, rows):
-        """Stacked signatures ``[m, sqrt(n_b / s)(S_b - m)]`` (npos, dim), unsigned."""
+    def _stacked(self, i, rows, free=None):
+        """Stacked signatures ``[m, sqrt(n_b / s)(S_b - m)]`` (npos, dim), unsigned; with
+        *free* (npos,), the squared norm without the mean's removal is written there."""
         nx = self.grid.shape[1]
         iy, ix = np.divmod(rows, nx)
         wm, wd = self._weights(i)
@@ -110,6 +111,10 @@ class BlockModel(DetectionModel):
         lift = self._lift[i].astype(np.float32)
         per = np.matmul(sin.transpose(1, 0, 2), lift).astype(float)      # (B, npos, r)
         m = np.tensordot(wm, per, axes=(0, 0))
+        if free is not None:
+            free[:] = np.einsum("b,bkr,bkr->k", wd ** 2, per, per)
+            if self.with_mean:
+                free += np.einsum("kr,kr->k", m, m)
         parts = ([m] if self.with_mean else []) + list(wd[:, None, None] * (per - m))
         return np.concatenate(parts, axis=-1)
 
@@ -132,11 +137,15 @@ class BlockModel(DetectionModel):
         unit = np.empty((q, len(keep), self.dim), np.float32) if cache else None
         wf = self._wfac.ravel()[keep]
         out = np.zeros((q, n))
+        free = np.zeros((q, n))
 
         def channel(i):
             raw = np.empty(len(rows))
             for a in range(0, len(rows), 1024):
-                s = self._stacked(i, rows[a:a + 1024])
+                chunk = rows[a:a + 1024]
+                fb = np.empty(len(chunk))
+                s = self._stacked(i, chunk, free=fb)
+                free[i, chunk] = fb
                 raw[a:a + len(s)] = np.einsum("ij,ij->i", s, s)
                 if cache:
                     sel = (at >= a) & (at < a + len(s))
@@ -144,10 +153,20 @@ class BlockModel(DetectionModel):
             out[i, rows] = raw
             if mirrored:
                 out[i, n - 1 - rows] = raw
+                free[i, n - 1 - rows] = free[i, rows]
         thread_map(channel, range(q))
         if cache:
             self._unit_cache = (keep, unit)
+        # the blocks' signatures without the removal of their mean: what an arc of
+        # rotation lets survive is norm2 / norm2_free (the self-subtraction)
+        self.norm2_free = free.reshape(q, ny, nx) * self._wfac[None] ** 2
         return out.reshape(q, ny, nx) * self._wfac[None] ** 2
+
+    def retained(self):
+        """Fraction of a companion's squared signal the search keeps (per channel and
+        position): 1 minus the self-subtraction of the angular-differential part."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return self.norm2 / self.norm2_free
 
     def _unit_signatures(self, rows):
         if "_unit_cache" in self.__dict__:
@@ -248,7 +267,12 @@ class BlockStack:
         ntgt = rb.n_target_noise
         proj = np.einsum("iap,fip->fia", comp, rb.noise)                     # (m, q, r)
         dof_t = max(ntgt - nb, 1)
-        self.scale = scale = np.einsum("fia->i", proj[:ntgt] ** 2) / (dof_t * rank)
+        if rb.calibrated:
+            self.scale = scale = np.einsum("fia->i", proj[:ntgt] ** 2) / (dof_t * rank)
+        else:
+            # `kpifs.rotation.angular_differential`: the covariance is that of the mean of
+            # the frames, out of sample: one frame's is N times it
+            self.scale = scale = np.full(q, float(ntgt))
         if np.any(scale <= 0) or not np.all(np.isfinite(scale)):
             raise KpifsError(f"{kpd.name}: the target's frames show no noise within their "
                              f"time blocks: cannot search the blocks")
@@ -282,10 +306,21 @@ class BlockStack:
                  float(np.mean(scale)))
 
     def detection_model(self, grid, *, basis=None):
+        """The `BlockModel` on *grid*; in the angular-differential mode, what the rotation
+        lets survive is measured (``self.info['retained']``, by separation) and too
+        little of it is refused (nothing could be found) or warned about."""
         kpd = self.kpd
-        return BlockModel(kpd.kernel_model, kpd.wavelengths, grid, self.comp, self.scale,
-                          self.blocks.angles, self.blocks.frames, pixscale=kpd.pixscale,
-                          window=kpd.window, dof=self.rank, basis=basis, mean=self.with_mean)
+        model = BlockModel(kpd.kernel_model, kpd.wavelengths, grid, self.comp, self.scale,
+                           self.blocks.angles, self.blocks.frames, pixscale=kpd.pixscale,
+                           window=kpd.window, dof=self.rank, basis=basis,
+                           mean=self.with_mean)
+        self.info = {"mode": self.mode, "n_blocks": int(self.blocks.n_blocks),
+                     "frames": self.blocks.frames.tolist(),
+                     "angles": np.round(self.blocks.angles, 4).tolist(),
+                     "span": self.blocks.span, "block_noise": self.scale.round(4).tolist()}
+        if not self.with_mean:
+            self.info["retained"] = _check_rotation(model, kpd, self.blocks)
+        return model
 
     def model_kp(self, sky, contrast):
         """Whitened stacked model (q, dim) of a companion at *sky* (dRA, dDec; mas)."""
@@ -352,6 +387,50 @@ class BlockStack:
         return models
 
 
+#: An angular-differential search is refused when it keeps less than this fraction of a
+#: companion's squared signal even at the grid's largest separations, and warned about
+#: when it keeps less than `ADI_WARN` at the smallest.
+ADI_REFUSE, ADI_WARN = 0.05, 0.5
+
+
+def _check_rotation(model, kpd, blocks):
+    """The fraction of signal kept by separation (``[[sep, fraction], ...]``, mas), after
+    refusing or warning when the rotation is too small for the grid."""
+    import warnings
+    from ..exceptions import KpifsWarning
+    from ..rotation import rotation_needed
+    g = model.grid
+    num, den = np.nansum(model.norm2, axis=0), np.nansum(model.norm2_free, axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        frac = num / den
+    edges = np.linspace(g.sep[g.valid].min(), g.sep[g.valid].max(), 6)
+    curve = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        sel = g.valid & (g.sep >= a) & (g.sep <= b) & np.isfinite(frac)
+        if sel.any():
+            curve.append([round(float(0.5 * (a + b)), 1), round(float(np.median(frac[sel])), 4)])
+    diam = float(np.max(np.hypot(*kpd.kernel_model.uv.value.T)))
+    lam = kpd.wavelengths.max()
+    need = rotation_needed(curve[0][0] * u.mas, lam, diam * u.m)
+    if curve[-1][1] < ADI_REFUSE:
+        raise KpifsError(
+            f"{kpd.name}: {blocks.span:.1f} deg of rotation keep {100 * curve[-1][1]:.1f} % of a "
+            f"companion's signal even at {curve[-1][0]:.0f} mas: an angular-differential search "
+            f"cannot find anything (a companion must move about lambda/D between blocks: "
+            f"{rotation_needed(curve[-1][0] * u.mas, lam, diam * u.m):.0f} deg at "
+            f"{curve[-1][0]:.0f} mas); search with the calibrator instead")
+    if curve[0][1] < ADI_WARN:
+        inner = next((c[0] for c in curve if c[1] >= ADI_WARN), None)
+        warnings.warn(
+            f"{kpd.name}: {blocks.span:.1f} deg of rotation keep {100 * curve[0][1]:.0f} % of a "
+            f"companion's signal at {curve[0][0]:.0f} mas in the angular-differential search "
+            f"(self-subtraction; half of it " + (f"from {inner:.0f} mas" if inner else
+                                                   "nowhere on the grid") +
+            f"); about {need:.0f} deg are needed there: limits and contrasts account for it",
+            KpifsWarning, stacklevel=4)
+    return curve
+
+
 def _rows(comp, rows):
     return np.einsum("iap,fip->fia", comp, rows)
 
@@ -377,7 +456,7 @@ def block_stack(kpd, kp, w, rank, *, frame, mode="auto"):
                              f"--angular-differential on frames whose angles turn)")
         return None
     if mode == "auto":
-        mode = kpd.meta.get("block_search", "rotation")
+        mode = kpd.rotation.search
     if mode == "mean":
         return None
     return BlockStack(kpd, kp, w, rank, mode=mode)

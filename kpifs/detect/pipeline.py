@@ -89,7 +89,8 @@ def _frame_and_poses(kpd, frame, grid):
 
 
 def _prepare(kpd, shrinkage, allow_uncalibrated):
-    if not kpd.meta.get("calibrated"):
+    adi = getattr(kpd.rotation, "search", None) == "angular-differential"
+    if not kpd.meta.get("calibrated") and not adi:     # ADI: only what turns is searched
         if not allow_uncalibrated:
             raise KpifsError(f"{kpd.name}: not calibrated (no calibrator star subtracted): "
                              f"give its calibrator (--calibrator CAL_KP.fits), or "
@@ -348,7 +349,8 @@ def detect(kpd, *, test="B", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=N
             "frame": frame,
             "pa_bins": None if poses is None else [np.asarray(p).tolist() for p in poses],
             "pa_bins_search": None if search_poses is None
-            else [np.asarray(p).tolist() for p in search_poses]}
+            else [np.asarray(p).tolist() for p in search_poses],
+            "blocks": None if stack is None else stack.info}
     log.info("detect: %d candidate(s) above the %s threshold %.3f (global P_FA %.1e)",
              len(cands), form, threshold, pfa)
     return _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands,
