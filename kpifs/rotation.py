@@ -40,7 +40,8 @@ from .exceptions import KpifsError
 MAS = np.pi / 180 / 3600 / 1000      # one mas in radians (as kpifs.kernel.MAS)
 
 __all__ = ["RotationBlocks", "time_blocks", "rotation_blocks", "block_width",
-           "angular_differential", "rotation_needed", "parallactic_angles",
+           "angular_differential", "rotation_needed", "parallactic_angles", "sequence_angles",
+           "SITES",
            "rotation_hdus", "rotation_from_hdul", "MIN_BLOCK_FRAMES", "BLOCK_FRACTION",
            "MIN_ROTATION_SPAN"]
 
@@ -392,3 +393,52 @@ def parallactic_angles(hour_angle, declination, latitude):
     d = u.Quantity(declination, u.deg).to_value(u.rad)
     phi = u.Quantity(latitude, u.deg).to_value(u.rad)
     return np.rad2deg(np.arctan2(np.sin(h), np.tan(phi) * np.cos(d) - np.sin(d) * np.cos(h)))
+
+
+#: Latitudes (deg) of observatories (for `sequence_angles`): Maunakea (Subaru: CHARIS),
+#: Cerro Paranal (VLT: SPHERE), Cerro Pachon (Gemini South: GPI), Palomar (PHARO).
+SITES = {"maunakea": 19.8255, "paranal": -24.6272, "pachon": -30.2407, "palomar": 33.3563}
+
+
+def sequence_angles(n_frames, *, span=None, hour_angle=None, declination=None,
+                    latitude=None, start=0.0):
+    """Detector angles (deg) of a pupil-tracking sequence of *n_frames*.
+
+    Either a plain *span* (deg) from *start*, or the parallactic angles from
+    *hour_angle* = (start, end) (`~astropy.units.Quantity`, e.g. ``[-1, 1] * u.hourangle``)
+    of a star at *declination* seen from *latitude* (a Quantity or a name in
+    `SITES`), plus *start* (the instrument's offset: the detector angle at
+    parallactic angle 0).
+
+    Examples
+    --------
+    >>> import astropy.units as u
+    >>> from kpifs.rotation import sequence_angles
+    >>> sequence_angles(3, span=40.0, start=100.0).tolist()
+    [100.0, 120.0, 140.0]
+    >>> sequence_angles(3, hour_angle=[-0.5, 0.5] * u.hourangle, declination=-20 * u.deg,
+    ...                 latitude="maunakea").round(1).tolist()
+    [-10.9, 0.0, 10.9]
+    """
+    if n_frames < 1:
+        raise KpifsError("a sequence needs at least one frame")
+    if (span is None) == (hour_angle is None):
+        raise KpifsError("give either a rotation span or hour angles (with a declination "
+                         "and a site)")
+    if span is not None:
+        return start + np.linspace(0.0, u.Quantity(span, u.deg).value, n_frames)
+    if declination is None or latitude is None:
+        raise KpifsError("parallactic angles need the star's declination and the site's "
+                         "latitude")
+    if isinstance(latitude, str):
+        if latitude.lower() not in SITES:
+            raise KpifsError(f"unknown site {latitude!r}: use one of {sorted(SITES)} or a "
+                             f"latitude")
+        latitude = SITES[latitude.lower()] * u.deg
+    h = u.Quantity(hour_angle)
+    if h.shape != (2,):
+        raise KpifsError(f"hour angles: give the start and the end, got {hour_angle!r}")
+    h = h.to(u.hourangle) if h.unit.physical_type != "time" else h.to_value(u.h) * u.hourangle
+    q = parallactic_angles(np.linspace(h[0], h[1], n_frames), declination, latitude)
+    q = q[0] + np.unwrap(np.deg2rad(q - q[0])) * 180 / np.pi        # continuous through 180
+    return start + q
