@@ -40,15 +40,21 @@ from .exceptions import KpifsError
 MAS = np.pi / 180 / 3600 / 1000      # one mas in radians (as kpifs.kernel.MAS)
 
 __all__ = ["RotationBlocks", "time_blocks", "rotation_blocks", "block_width",
-           "angular_differential", "rotation_needed", "parallactic_angles", "sequence_angles",
+           "rotation_needed", "parallactic_angles", "sequence_angles", "noise_whitening",
+           "NOISE_MODES",
            "SITES",
-           "rotation_hdus", "rotation_from_hdul", "MIN_BLOCK_FRAMES", "BLOCK_FRACTION",
+           "rotation_hdus", "rotation_from_hdul", "MIN_BLOCK_FRAMES", "MAX_BLOCKS",
+           "BLOCK_FRACTION",
            "MIN_ROTATION_SPAN"]
 
 log = logging.getLogger(__name__)
 
 #: Fewest frames in a time block: a block's own frames show its noise.
 MIN_BLOCK_FRAMES = 2
+
+#: Most time blocks: the search's dimension, and its null's cost, grow with their number
+#: (longer sequences get longer blocks).
+MAX_BLOCKS = 10
 
 #: Largest motion of a companion within one block at the largest separation searched,
 #: in finest fringes (``lambda_min / B_max``): its signature loses < 10 % at that edge
@@ -195,6 +201,7 @@ def rotation_blocks(target, calibrators=(), *, width=None, min_frames=MIN_BLOCK_
     if np.ptp(a) < MIN_ROTATION_SPAN or target.n_frame < 2 * min_frames:
         return None
     width = block_width(target) if width is None else float(width)
+    min_frames = max(min_frames, int(np.ceil(target.n_frame / MAX_BLOCKS)))
     labels = time_blocks(a, width=width, min_frames=min_frames)
     nb = labels.max() + 1
     if nb < 2:
@@ -212,6 +219,64 @@ def rotation_blocks(target, calibrators=(), *, width=None, min_frames=MIN_BLOCK_
                           calibrated=bool(calibrators))
 
 
+#: Modes of the frames' noise that whiten the blocks, as a fraction of its degrees of
+#: freedom (the error model's default, `kpifs.errormodel`).
+NOISE_MODES = 0.5
+
+#: Folds of the cross-validated variances of `noise_whitening`.
+NOISE_FOLDS = 5
+
+
+def noise_whitening(blocks, *, fraction=NOISE_MODES):
+    """Whitening of one frame's noise in its leading modes, per channel: (q, K, p).
+
+    The modes are the leading ones of the frames' deviations (``blocks.noise``:
+    the target's within its blocks, which hold none of a companion's turning,
+    then the calibrators'); *fraction* of their degrees of freedom are kept.
+    The variance along each mode is cross-validated: measured on frames the
+    modes were not taken from (held-out time blocks), since a sample's own
+    leading modes overstate its variance along them. Row ``k`` of channel
+    ``i`` is ``v_k / sqrt(var_k)``: ``sqrt(n_b) C (d_b - d)`` has unit variance.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.rotation import RotationBlocks, noise_whitening
+    >>> rng = np.random.default_rng(0)
+    >>> rb = RotationBlocks(np.arange(6.0), np.full(6, 4), np.zeros((6, 1, 30)),
+    ...                     rng.normal(0, 2.0, (24, 1, 30)), 24)
+    >>> c = noise_whitening(rb)
+    >>> c.shape, bool(0.3 < np.mean(np.linalg.norm(c, axis=-1)) < 0.7)   # 1 / sigma
+    ((1, 9, 30), True)
+    """
+    noise = np.asarray(blocks.noise, float)
+    nt = blocks.n_target_noise
+    labels = np.repeat(np.arange(blocks.n_blocks), blocks.frames.astype(int))
+    if labels.size != nt:
+        raise KpifsError(f"{blocks.frames.sum()} frames in the blocks, {nt} target noise rows")
+    ncal = len(noise) - nt
+    # time groups: the target's blocks, then the calibrators' frames in runs of ~ a block
+    groups = np.concatenate([labels, blocks.n_blocks + np.arange(ncal) // max(
+        1, int(np.ceil(ncal / max(blocks.n_blocks, 1))))])
+    dof = (nt - blocks.n_blocks) + max(ncal - 1, 0)
+    k = max(1, min(int(round(fraction * dof)), noise.shape[2]))
+    uniq = np.unique(groups)
+    folds = np.array_split(uniq, min(NOISE_FOLDS, uniq.size))
+    q, p = noise.shape[1:]
+    out = np.zeros((q, k, p))
+    for i in range(q):
+        _, _, vt = np.linalg.svd(noise[:, i], full_matrices=False)
+        var = np.zeros(k)
+        for fold in folds:
+            held = np.isin(groups, fold)
+            _, _, vf = np.linalg.svd(noise[~held, i], full_matrices=False)
+            var += np.sum((noise[held, i] @ vf[:k].T) ** 2, axis=0)
+        var = var / max(dof, 1)
+        good = var > 1e-12 * max(var.max(), 1e-300)
+        out[i, good] = vt[:k][good] / np.sqrt(var[good])[:, None]
+    return out
+
+
 _HDUS = ("KP-ROTBLK", "KP-ROTNOISE")
 
 
@@ -226,11 +291,11 @@ def rotation_hdus(kpd):
     h = fits.ImageHDU(np.asarray(rb.data, float), name=_HDUS[0])
     h.header["BUNIT"] = "rad"
     h.header["NBLOCK"] = (rb.n_blocks, "time blocks of small rotation")
-    h.header["BLKCAL"] = (bool(rb.calibrated), "calibrators' mean subtracted from each block")
-    h.header["BLKSRCH"] = (rb.search, "default search: rotation or angular-differential")
+    h.header["BLKCAL"] = (bool(rb.calibrated), "calibrators' mean subtracted")
+    h.header["BLKSRCH"] = (rb.search, "how the blocks are searched")
     for b, (ang, n) in enumerate(zip(rb.angles, rb.frames)):
-        h.header[f"BLKPA{b}"] = (float(ang), "[deg] mean detector angle of block")
-        h.header[f"BLKNF{b}"] = (int(n), "target frames in block")
+        h.header[f"BLKPA{b}"] = (round(float(ang), 6), "[deg] detector angle")
+        h.header[f"BLKNF{b}"] = (int(n), "target frames")
     h.header["COMMENT"] = "calibrated time-block means (nblock, nwave, nkp)"
     hn = fits.ImageHDU(np.asarray(rb.noise, float), name=_HDUS[1])
     hn.header["BUNIT"] = "rad"
@@ -263,11 +328,6 @@ def rotation_from_hdul(hdul, source="<file>"):
                           calibrated=bool(h.header.get("BLKCAL", True)), search=search)
 
 
-#: Modes of the frames' noise kept per channel without a calibrator, as a fraction of the
-#: degrees of freedom within the blocks (the error model's default, `kpifs.errormodel`).
-ADI_MODES = 0.5
-
-
 def rotation_needed(separation, wavelength, diameter, *, fraction=1.0):
     """Rotation (deg) over which a companion at *separation* moves *fraction* x lambda/D.
 
@@ -285,88 +345,6 @@ def rotation_needed(separation, wavelength, diameter, *, fraction=1.0):
     """
     lam_d = u.Quantity(wavelength, u.m).value / u.Quantity(diameter, u.m).value / MAS
     return float(np.rad2deg(fraction * lam_d / u.Quantity(separation, u.mas).value))
-
-
-def angular_differential(target, calibrated=None, *, n_modes=ADI_MODES):
-    """A product searched by the blocks' departures only (``kpifs extract
-    --angular-differential``).
-
-    With *calibrated* (the target calibrated by `~kpifs.calibrate.calibrate`) its
-    blocks are marked for the angular-differential search; without, the
-    target's own frames make the product: their mean (searched not at all), a
-    covariance on the leading *n_modes* (fraction of the degrees of freedom
-    within the blocks) modes of the frames' scatter within their blocks, and
-    the blocks. Refused when the target's angles do not turn.
-
-    Examples
-    --------
-    >>> import numpy as np, astropy.units as u
-    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
-    >>> from kpifs.rotation import angular_differential
-    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
-    >>> rng = np.random.default_rng(0)
-    >>> t = KernelPhaseData(rng.normal(0, 0.1, (24, 1, km.n_kp)), [1.6] * u.um, 10 * u.mas,
-    ...                     km, detpa=np.linspace(0, 60, 24))
-    >>> adi = angular_differential(t)
-    >>> adi.rotation.search, adi.kp.shape, adi.meta["calibrated"]
-    ('angular-differential', (1, 1, 37), False)
-    """
-    from .data import KernelPhaseData
-    name = target.meta.get("source", "target")
-    if calibrated is not None:
-        if calibrated.rotation is None:
-            raise KpifsError(f"{name}: --angular-differential needs frames whose angles turn "
-                             f"(span {_span(target):.1f} deg: no time blocks to compare)")
-        calibrated.rotation.search = "angular-differential"
-        calibrated.meta["block_search"] = "angular-differential"
-        return calibrated
-    rb = rotation_blocks(target, [])
-    if rb is None:
-        raise KpifsError(f"{name}: --angular-differential needs frames whose angles turn "
-                         f"(span {_span(target):.1f} deg: no time blocks to compare)")
-    rb.search = "angular-differential"
-    dev = rb.noise                                            # (N, q, p), within blocks
-    dof = target.n_frame - rb.n_blocks
-    k = max(1, int(round(n_modes * dof)))
-    q, p = target.n_wave, target.n_kp
-    cov = np.empty((q, p, p))
-    labels = time_blocks(target.detpa, width=block_width(target))
-    folds = np.array_split(np.arange(rb.n_blocks), min(rb.n_blocks, 5))
-    for i in range(q):
-        # the leading modes of the scatter within the blocks (what turns is not in it),
-        # with the variance along each rank measured on blocks the modes were not taken
-        # from (in-sample variances along a sample's own leading modes are biased high)
-        _, _, vt = np.linalg.svd(dev[:, i], full_matrices=False)
-        var = np.zeros(k)
-        for fold in folds:
-            out_ = np.isin(labels, fold)
-            _, _, vf = np.linalg.svd(dev[~out_, i], full_matrices=False)
-            var += np.sum((dev[out_, i] @ vf[:k].T) ** 2, axis=0)
-        var /= dof
-        cov[i] = (vt[:k].T * var) @ vt[:k] / target.n_frame
-    meta = dict(target.meta)
-    meta.update(calibrated=False, block_search="angular-differential",
-                n_target_frames=target.n_frame, calibrators=[],
-                detpa_frames=[float(v) for v in target.detpa],
-                error_model={"model": "frames", "adi_modes": k})
-    a = target.detpa
-    pa = float(np.rad2deg(np.arctan2(np.sin(np.deg2rad(a)).mean(), np.cos(np.deg2rad(a)).mean())))
-    out = KernelPhaseData(target.kp.mean(axis=0)[None], target.wavelengths, target.pixscale,
-                          target.kernel_model, window=target.window, covariance=cov,
-                          header=target.header, detpa=[pa], bandwidth=target.bandwidth,
-                          meta=meta)
-    out.rotation = rb
-    out.header["BLKSRCH"] = ("angular-differential", "searched by its time blocks only")
-    log.info("%s: angular-differential product: %d blocks over %.1f deg, %d modes per channel",
-             name, rb.n_blocks, rb.span, k)
-    return out
-
-
-def _span(kpd):
-    if kpd.detpa is None or not np.all(np.isfinite(kpd.detpa)):
-        return 0.0
-    a = np.asarray(kpd.detpa, float)
-    return float(np.ptp(a[0] + np.unwrap(np.deg2rad(a - a[0])) * 180 / np.pi))
 
 
 def parallactic_angles(hour_angle, declination, latitude):
@@ -442,3 +420,11 @@ def sequence_angles(n_frames, *, span=None, hour_angle=None, declination=None,
     q = parallactic_angles(np.linspace(h[0], h[1], n_frames), declination, latitude)
     q = q[0] + np.unwrap(np.deg2rad(q - q[0])) * 180 / np.pi        # continuous through 180
     return start + q
+
+
+def _span(kpd):
+    """Span (deg) of a data set's frame angles, 0 when unknown."""
+    if kpd.detpa is None or not np.all(np.isfinite(kpd.detpa)):
+        return 0.0
+    a = np.asarray(kpd.detpa, float)
+    return float(np.ptp(a[0] + np.unwrap(np.deg2rad(a - a[0])) * 180 / np.pi))

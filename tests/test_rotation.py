@@ -65,36 +65,39 @@ def test_block_model_maps_are_the_stacked_inner_products(km):
     """The fast maps (two products per channel over all blocks) equal the explicit inner
     products of the stacked signatures with the data, and norm2 their squared norms."""
     rng = np.random.default_rng(3)
-    q, r, p = 2, 6, km.n_kp
-    comp = rng.normal(size=(q, r, p))
+    q, rm, rf, p = 2, 4, 6, km.n_kp
+    cm, cf = rng.normal(size=(q, rm, p)), rng.normal(size=(q, rf, p))
     grid = DetectionGrid.from_separation(60 * u.mas, 10 * u.mas, min_sep=10 * u.mas,
                                          frame="sky")
     ang, n = np.array([10.0, 25.0, 47.0]), np.array([2, 3, 2])
-    bm = BlockModel(km, [1.6, 1.7] * u.um, grid, comp, np.array([1.3, 0.8]), ang, n)
+    bm = BlockModel(km, [1.6, 1.7] * u.um, grid, cm, cf, ang, n)
+    assert bm.dim == rm + 3 * rf
     y = rng.normal(size=(q, bm.dim))
     dots = bm.dot_maps(y)
     iy, ix = 3, 9
     flat = np.array([iy * grid.shape[1] + ix])
     unit = bm._unit_signatures(flat)[:, 0].astype(float)              # (q, dim), unit norm
-    # the explicit stack: mean of the blocks' signatures, then sqrt(n_b/s)(S_b - mean)
+    # the explicit stack: the mean's signature, then sqrt(n_b)(S_b - their mean)
     dra, ddec = grid.X[iy, ix], grid.Y[iy, ix]
+    v = np.sqrt(n / n.sum())
     for i, lam in enumerate([1.6e-6, 1.7e-6]):
-        per = []
+        sins = []
         for a in ang:
             x, yy = sky_to_detector(dra, ddec, a)
             th = 2 * np.pi * (x * km.uv.value[:, 0] + yy * km.uv.value[:, 1]) * np.pi / 180 \
                 / 3600e3 / lam
-            per.append(comp[i] @ (km.kernel @ np.sin(-th)))
-        per = np.array(per)
-        m = (n / n.sum()) @ per
-        s = np.concatenate([m] + [np.sqrt(nb / bm.scale[i]) * (pb - m) for nb, pb in zip(n, per)])
+            sins.append(km.kernel @ np.sin(-th))
+        sins = np.array(sins)
+        mean = (n / n.sum()) @ sins
+        per = sins @ cf[i].T
+        dev = [np.sqrt(nb) * (pb - (n / n.sum()) @ per) for nb, pb in zip(n, per)]
+        s = np.concatenate([cm[i] @ mean] + dev)
         assert bm.norm2[i, iy, ix] == pytest.approx(s @ s, rel=1e-5)
         np.testing.assert_allclose(unit[i], s / np.linalg.norm(s), atol=1e-5)
         # the data's block part is projected on the blocks' constraint, as the signature is
-        v = np.sqrt(n / n.sum())
-        yd = y[i, r:].reshape(3, r)
+        yd = y[i, rm:].reshape(3, rf)
         yd = yd - np.outer(v, v @ yd)
-        yp = np.concatenate([y[i, :r], yd.ravel()])
+        yp = np.concatenate([y[i, :rm], yd.ravel()])
         assert dots[i, iy, ix] == pytest.approx(s @ yp, rel=1e-4)
 
 

@@ -369,11 +369,11 @@ def _simulate(command):
     g = p.add_argument_group("field rotation (pupil tracking: the sky turns, the aberrations "
                              "stay on the detector; default: the preset's angles)")
     g.add_argument("--rotation", help="the detector angle turns by this much over the "
-                                      "sequence, deg if no unit, e.g. 40deg")
+                                      "sequence, deg if no unit, e.g. 40deg (default: none)")
     g.add_argument("--hour-angle", help="or: the star's hour angles at the start and the end, "
-                                        "hours, e.g. --hour-angle=-1,1")
+                                        "hours, e.g. --hour-angle=-1,1 (default: none)")
     g.add_argument("--declination", help="the star's declination, deg if no unit (with "
-                                         "--hour-angle)")
+                                         "--hour-angle; default: none)")
     g.add_argument("--site", help="the observatory: maunakea, paranal, pachon, palomar, or a "
                                   "latitude in deg (with --hour-angle; default: the "
                                   "instrument's)")

@@ -1,7 +1,7 @@
 """``kpifs extract``: kernel phases of cubes, calibrated when calibrators are given."""
 from .._checks import check_inputs
 from .._utils import check_output_path
-from ..rotation import angular_differential
+from ..adi import angular_differential
 from ..workflow import calibrate_observation, calibrator_options, extract_observation
 from ._options import extract_options
 

@@ -1,37 +1,39 @@
 """Searching a rotating sequence block by block (issue 29; DESIGN.md section 6).
 
 The calibrated product of a pupil-tracking sequence keeps its time blocks
-(`kpifs.rotation`). The search stacks, channel by channel, two parts of the
-whitened data (in the coordinates of the mean's whitening ``C``, which keeps
-the error model's modes only):
+(`kpifs.rotation`). The search stacks, channel by channel, two whitened parts:
 
-- the calibrated mean ``C d`` (the error model's covariance: calibrator and
-  residual included), whose signature is the frame-weighted mean of the
-  blocks' ``C K sin(theta_b)``;
-- the block contrasts ``sqrt(n_b / s) C (d_b - d)`` (``s``: the frames' noise
-  in units of the mean's), free of the calibrator and of every aberration
-  fixed on the detector, whose signature ``sqrt(n_b / s) C K (sin(theta_b) -
-  mean)`` is what survives of a companion turning with the sky (its
-  self-subtraction).
+- the calibrated mean ``C_m d`` (``C_m``: the error model's whitening in its
+  modes; calibrator and residual included), whose signature is the
+  frame-weighted mean of the blocks' ``C_m K sin(theta_b)``;
+- the block contrasts ``sqrt(n_b) C_f (d_b - d)`` (``C_f``: one frame's noise
+  whitened in its leading modes, `~kpifs.rotation.noise_whitening`, from the
+  frames' scatter within their blocks, which holds none of a companion's
+  turning), free of the calibrator and of every aberration fixed on the
+  detector, whose signature ``sqrt(n_b) C_f K (sin(theta_b) - mean)`` is what
+  survives of a companion turning with the sky (its self-subtraction).
 
 Tests, limits, fits and the null see one whitened vector per channel, of
-dimension ``r (B + 1)`` (``r`` modes, ``B`` blocks): the correlations of the
-blocks add up instead of those of a smeared mean. Without the mean part (the
+dimension ``r_m + B r_f`` (``B`` blocks): the correlations of the blocks add up
+instead of those of a smeared mean. Without the mean part (the
 angular-differential mode) only what turns is searched: neither a calibrator
 nor a static residual enters. A map costs one projection per block, as the
 rotating mean's did per PA bin.
 """
 import hashlib
 import logging
+import warnings
 
 import numpy as np
 from astropy import units as u
 
 from .._lazy import lazy_module
-from .._utils import thread_map
-from ..exceptions import KpifsError
-from .maps import DetectionModel, _unit
-from .sky import rotated_binary_kernel_phases
+from .._utils import one_blas_thread, thread_map, to_quantity
+from ..exceptions import KpifsError, KpifsWarning
+from ..kernel import MAS
+from ..rotation import noise_whitening, rotation_needed
+from .maps import UNIT_CACHE_BYTES, DetectionModel, _unit
+from .sky import sky_to_detector
 from .spectral import spectral_basis
 
 optimize = lazy_module("scipy.optimize")
@@ -52,32 +54,44 @@ class BlockModel(DetectionModel):
     ----------
     kernel_model, wavelengths, grid, pixscale, window, dof, basis
         As `~kpifs.detect.DetectionModel` (the grid on the sky).
-    comp : ndarray (q, r, p)
-        The mean's whitening in its modes (rows beyond a channel's rank zero).
-    scale : ndarray (q,)
-        Variance of one frame's whitened noise per mode, in units of the mean's.
+    comp_mean : ndarray (q, r_m, p) or None
+        The mean's whitening in its modes (rows beyond a channel's rank zero);
+        None: the angular-differential search (the blocks' departures only).
+    comp_frame : ndarray (q, r_f, p)
+        One frame's whitening in its modes (`~kpifs.rotation.noise_whitening`).
     angles, frames : ndarray (B,)
         The blocks' detector angles (deg) and frames.
-    mean : bool
-        Include the calibrated mean (False: the angular-differential search).
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.data import DetectionGrid
+    >>> from kpifs.detect.blocks import BlockModel
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> grid = DetectionGrid.from_separation(80 * u.mas, 10 * u.mas, frame="sky")
+    >>> c = np.eye(km.n_kp)[None, :5]
+    >>> bm = BlockModel(km, [1.6] * u.um, grid, c, c, [0.0, 20.0, 40.0], [2, 2, 2])
+    >>> bm.dim, bm.local_statistic(np.zeros((1, bm.dim))).shape
+    (20, (17, 17))
     """
 
-    def __init__(self, kernel_model, wavelengths, grid, comp, scale, angles, frames, *,
-                 pixscale=None, window=None, dof=None, basis=None, mean=True):
-        from .._utils import to_quantity
+    def __init__(self, kernel_model, wavelengths, grid, comp_mean, comp_frame, angles, frames,
+                 *, pixscale=None, window=None, dof=None, basis=None):
         self.kernel_model = kernel_model
         self.wavelengths = np.atleast_1d(to_quantity(wavelengths, u.um, name="wavelengths"))
         self.basis = spectral_basis(basis, self.wavelengths)
         self.grid = grid
         if grid.frame != "sky":
             raise KpifsError("a block search is on the sky: give a sky grid")
-        self.comp = np.asarray(comp, float)
-        self.scale = np.asarray(scale, float)
+        self.with_mean = comp_mean is not None
+        self.comp_mean = None if comp_mean is None else np.asarray(comp_mean, float)
+        self.comp_frame = np.asarray(comp_frame, float)
         self.frames = np.asarray(frames, float)
-        self.with_mean = bool(mean)
-        q, r, _ = self.comp.shape
-        self.n_modes = r
-        self.dim = r * (len(self.frames) + int(self.with_mean))
+        q = len(self.wavelengths)
+        self.r_mean = 0 if comp_mean is None else self.comp_mean.shape[1]
+        self.r_frame = self.comp_frame.shape[1]
+        self.dim = self.r_mean + self.r_frame * len(self.frames)
         self.dof = np.full(q, self.dim) if dof is None else np.asarray(dof, int)
         self.pixscale = None if pixscale is None else to_quantity(pixscale, u.mas).value
         self.window = window if (window is not None and pixscale is not None) else None
@@ -87,35 +101,42 @@ class BlockModel(DetectionModel):
         self._check_grid()
         self._wfac = (np.ones_like(grid.sep) if self.window is None
                       else self.window.at(grid.sep, self.pixscale))
-        # L_i = K^T C_i^T: the modes' coordinates to uv space
-        self._lift = np.matmul(self.comp, kernel_model.kernel).transpose(0, 2, 1)  # (q, nuv, r)
+        # L_i = K^T C_i^T: the modes' coordinates to uv space, (q, nuv, r)
+        kern = kernel_model.kernel
+        self._lift_f = np.matmul(self.comp_frame, kern).transpose(0, 2, 1)
+        self._lift_m = None if comp_mean is None else \
+            np.matmul(self.comp_mean, kern).transpose(0, 2, 1)
         # per channel, the poses' separable factors side by side (float32): a map is two
         # products over (poses x uv points)
         self._trig = [_concat(self._axis_trig(lam)) for lam in self.wavelengths.to_value(u.m)]
         self.norm2 = self._signature_norms()
 
-    def _weights(self, i):
-        """Per block: the mean's weight ``n_b / N`` and the contrasts' ``sqrt(n_b / s_i)``."""
+    def _weights(self):
+        """Per block: the mean's weight ``n_b / N`` and the departures' ``sqrt(n_b)``."""
         n = self.frames
-        return n / n.sum(), np.sqrt(n / self.scale[i])
+        return n / n.sum(), np.sqrt(n)
 
     def _stacked(self, i, rows, free=None):
-        """Stacked signatures ``[m, sqrt(n_b / s)(S_b - m)]`` (npos, dim), unsigned; with
+        """Stacked signatures ``[m, sqrt(n_b)(S_b - mean)]`` (npos, dim), unsigned; with
         *free* (npos,), the squared norm without the mean's removal is written there."""
         nx = self.grid.shape[1]
         iy, ix = np.divmod(rows, nx)
-        wm, wd = self._weights(i)
+        wm, wd = self._weights()
         sx, cx, sy, cy = self._trig[i]
-        nuv = self._lift.shape[1]
+        nuv = self._lift_f.shape[1]
         sin = (sx[ix] * cy[iy] + cx[ix] * sy[iy]).reshape(len(rows), -1, nuv)
-        lift = self._lift[i].astype(np.float32)
-        per = np.matmul(sin.transpose(1, 0, 2), lift).astype(float)      # (B, npos, r)
-        m = np.tensordot(wm, per, axes=(0, 0))
+        per = np.matmul(sin.transpose(1, 0, 2),
+                        self._lift_f[i].astype(np.float32)).astype(float)     # (B, npos, r)
+        md = np.tensordot(wm, per, axes=(0, 0))
+        parts = list(wd[:, None, None] * (per - md))
         if free is not None:
             free[:] = np.einsum("b,bkr,bkr->k", wd ** 2, per, per)
-            if self.with_mean:
+        if self.with_mean:
+            sbar = np.tensordot(wm.astype(np.float32), sin, axes=(0, 1))     # (npos, nuv)
+            m = (sbar @ self._lift_m[i].astype(np.float32)).astype(float)
+            parts.insert(0, m)
+            if free is not None:
                 free += np.einsum("kr,kr->k", m, m)
-        parts = ([m] if self.with_mean else []) + list(wd[:, None, None] * (per - m))
         return np.concatenate(parts, axis=-1)
 
     def _signature_norms(self):
@@ -131,7 +152,6 @@ class BlockModel(DetectionModel):
         else:
             rows = np.arange(n)
             keep = np.flatnonzero(self.grid.valid.ravel())
-        from .maps import UNIT_CACHE_BYTES
         cache = q * len(keep) * self.dim * 4 <= UNIT_CACHE_BYTES
         at = np.searchsorted(rows, keep) if not mirrored else np.arange(len(keep))
         unit = np.empty((q, len(keep), self.dim), np.float32) if cache else None
@@ -187,32 +207,36 @@ class BlockModel(DetectionModel):
         lead = y.shape[:-2]
         yb = y.reshape((-1,) + y.shape[-2:])
         m, q = len(yb), len(self.wavelengths)
-        r, nb = self.n_modes, len(self.frames)
+        rm, rf, nb = self.r_mean, self.r_frame, len(self.frames)
         ny, nx = self.grid.shape
         v = np.sqrt(self.frames / self.frames.sum())
+        wm, wd = self._weights()
         out = np.empty((m, q, ny, nx))
-        for i in range(q):
-            wm, wd = self._weights(i)
-            off = r if self.with_mean else 0
-            yd = yb[:, i, off:].reshape(m, nb, r)
+
+        def channel(i):
+            yd = yb[:, i, rm:].reshape(m, nb, rf)
             yd = yd - v[None, :, None] * np.einsum("mbr,b->mr", yd, v)[:, None, :]
-            h = wd[None, :, None] * yd                                          # (m, B, r)
+            g = (wd[None, :, None] * yd) @ self._lift_f[i].T                   # (m, B, nuv)
             if self.with_mean:
-                h = h + wm[None, :, None] * yb[:, i, None, :r]
-            g = (h @ self._lift[i].T).reshape(m, -1).astype(np.float32)         # (m, B nuv)
+                g = g + wm[None, :, None] * (yb[:, i, :rm] @ self._lift_m[i].T)[:, None, :]
+            g = g.reshape(m, -1).astype(np.float32)
             sx, cx, sy, cy = self._trig[i]
             k = g.shape[1]
             acc = (sx[None] * g[:, None, :]).reshape(m * nx, k) @ cy.T
             acc += (cx[None] * g[:, None, :]).reshape(m * nx, k) @ sy.T
             out[:, i] = -acc.reshape(m, nx, ny).transpose(0, 2, 1)
+        # channels side by side, one BLAS thread each (BLAS's threads on a busy machine
+        # wait for each other: 0.2 s became 10 s at a load of 9 on 2 cores)
+        thread_map(channel, range(q))
         return (out * self._wfac).reshape(lead + out.shape[1:])
 
     def key(self):
         if "_digest" in self.__dict__:
             return self._digest
         h = hashlib.sha1(b"blocks")
-        for arr in (self.kernel_model.kernel, self.kernel_model.uv.value, self.comp,
-                    self.scale, self.frames, self.detpa[0], self.wavelengths.value,
+        for arr in (self.kernel_model.kernel, self.kernel_model.uv.value,
+                    np.zeros(0) if self.comp_mean is None else self.comp_mean,
+                    self.comp_frame, self.frames, self.detpa[0], self.wavelengths.value,
                     self._wfac, self.basis):
             h.update(np.ascontiguousarray(arr).tobytes())
         for part in self.grid.key():
@@ -261,81 +285,86 @@ class BlockStack:
         self.kpd, self.mode, self.blocks = kpd, mode, rb
         self.with_mean = mode == "rotation"
         rank = np.atleast_1d(rank)
-        self.comp = comp = _compress(w, rank)
-        q, r, p = comp.shape
+        q = kpd.n_wave
         nb = rb.n_blocks
-        ntgt = rb.n_target_noise
-        proj = np.einsum("iap,fip->fia", comp, rb.noise)                     # (m, q, r)
-        dof_t = max(ntgt - nb, 1)
-        if rb.calibrated:
-            self.scale = scale = np.einsum("fia->i", proj[:ntgt] ** 2) / (dof_t * rank)
-        else:
-            # `kpifs.rotation.angular_differential`: the covariance is that of the mean of
-            # the frames, out of sample: one frame's is N times it
-            self.scale = scale = np.full(q, float(ntgt))
-        if np.any(scale <= 0) or not np.all(np.isfinite(scale)):
-            raise KpifsError(f"{kpd.name}: the target's frames show no noise within their "
-                             f"time blocks: cannot search the blocks")
-        parts = [proj[:ntgt] / np.sqrt(dof_t * scale)[None, :, None]]
-        if len(proj) > ntgt + 1:
-            cal = proj[ntgt:]
-            sc = np.einsum("fia->i", cal ** 2) / ((len(cal) - 1) * rank)
-            parts.append(cal / np.sqrt((len(cal) - 1) * sc)[None, :, None])
-        noise = np.concatenate(parts) / np.sqrt(len(parts))                    # Gram ~ I
-        v = np.sqrt(rb.frames / rb.frames.sum())
-        hmat = _complement(v)
-        dev_rows = np.einsum("jb,fia->jfiba", hmat, noise).reshape(-1, q, nb * r)
-        dev = np.einsum("iap,bip->bia", comp, rb.contrasts()) / np.sqrt(scale)[None, :, None]
-        dev = dev.transpose(1, 0, 2).reshape(q, nb * r)
+        self.comp_frame = cf = noise_whitening(rb)                              # (q, rf, p)
+        rf = cf.shape[1]
+        frank = np.count_nonzero(np.abs(cf).sum(axis=2), axis=1)
+        # the frames' noise rows, per mode at unit variance (their in-sample variance
+        # along their own leading modes is high), channels tied as the frames tie them
+        noise = np.einsum("iap,fip->fia", cf, rb.noise)
+        norm = np.sqrt(np.sum(noise ** 2, axis=0))
+        noise = np.divide(noise, norm, out=np.zeros_like(noise), where=norm > 0)
+        # as few rows as their rank (the same Gram matrix): the null's cost is in the rows
+        _, sv, vt = np.linalg.svd(noise.reshape(len(noise), -1), full_matrices=False)
+        keep = sv > 1e-10 * sv[0]
+        noise = (sv[keep, None] * vt[keep]).reshape(-1, q, rf)
+        hmat = _complement(np.sqrt(rb.frames / rb.frames.sum()))
+        dev_rows = np.einsum("jb,fia->jfiba", hmat, noise).reshape(-1, q, nb * rf)
+        dev = np.einsum("iap,bip->iba", cf, rb.contrasts()).reshape(q, nb * rf)
+        self.comp_mean = None
         pieces, rows = [dev], [dev_rows]
         if self.with_mean:
-            ym = np.einsum("iap,ip->ia", comp, kp)
-            pieces.insert(0, ym)
-            rows = [_pad(_rows(comp, kpd.covariance_rows), nb * r, after=True)] \
+            self.comp_mean = cm = _compress(w, rank)
+            rm = cm.shape[1]
+            pieces.insert(0, np.einsum("iap,ip->ia", cm, kp))
+            rows = [_pad(_rows(cm, kpd.covariance_rows), nb * rf, after=True)] \
                 if kpd.covariance_rows is not None else []
-            rows.append(_pad(dev_rows, r, after=False))
+            rows.append(_pad(dev_rows, rm, after=False))
         self.kp = np.concatenate(pieces, axis=-1)
         self.dim = self.kp.shape[1]
         self.rows = np.concatenate(rows)
         # the empirical null's time blocks would miss the blocks' own part: Gaussian only
         self.block_rows = None
         self.whitening = np.broadcast_to(np.eye(self.dim), (q, self.dim, self.dim))
-        self.rank = rank * (nb - 1 + int(self.with_mean))
-        log.info("%s: searched in %d time blocks over %.1f deg (%s), %d modes per channel; "
-                 "block noise %.2f x the mean's per frame", kpd.name, nb, rb.span, mode, r,
-                 float(np.mean(scale)))
+        self.rank = frank * (nb - 1) + (rank if self.with_mean else 0)
+        log.info("%s: searched in %d time blocks over %.1f deg (%s), %d modes of one frame's "
+                 "noise per channel", kpd.name, nb, rb.span, mode, rf)
 
     def detection_model(self, grid, *, basis=None):
         """The `BlockModel` on *grid*; in the angular-differential mode, what the rotation
         lets survive is measured (``self.info['retained']``, by separation) and too
         little of it is refused (nothing could be found) or warned about."""
         kpd = self.kpd
-        model = BlockModel(kpd.kernel_model, kpd.wavelengths, grid, self.comp, self.scale,
-                           self.blocks.angles, self.blocks.frames, pixscale=kpd.pixscale,
-                           window=kpd.window, dof=self.rank, basis=basis,
-                           mean=self.with_mean)
+        model = BlockModel(kpd.kernel_model, kpd.wavelengths, grid, self.comp_mean,
+                           self.comp_frame, self.blocks.angles, self.blocks.frames,
+                           pixscale=kpd.pixscale, window=kpd.window, dof=self.rank, basis=basis)
         self.info = {"mode": self.mode, "n_blocks": int(self.blocks.n_blocks),
                      "frames": self.blocks.frames.tolist(),
                      "angles": np.round(self.blocks.angles, 4).tolist(),
-                     "span": self.blocks.span, "block_noise": self.scale.round(4).tolist()}
+                     "span": self.blocks.span, "frame_modes": int(self.comp_frame.shape[1])}
         if not self.with_mean:
             self.info["retained"] = _check_rotation(model, kpd, self.blocks)
         return model
 
-    def model_kp(self, sky, contrast):
-        """Whitened stacked model (q, dim) of a companion at *sky* (dRA, dDec; mas)."""
+    def model_kp(self, sky, contrast, *, derivative=False):
+        """Whitened stacked model (q, dim) of a companion at *sky* (dRA, dDec; mas) of
+        *contrast* (per channel, the window's attenuation included); with *derivative*,
+        also its derivative with respect to each channel's contrast (q, dim)."""
         kpd, rb = self.kpd, self.blocks
-        per = np.stack([rotated_binary_kernel_phases(kpd.kernel_model, np.asarray(sky) * u.mas,
-                                                     contrast, kpd.wavelengths, [a])
-                        for a in rb.angles])                                   # (B, q, p)
-        n = rb.frames / rb.frames.sum()
-        mean = np.tensordot(n, per, axes=(0, 0))
+        km = kpd.kernel_model
+        x, y = sky_to_detector(float(sky[0]), float(sky[1]), rb.angles)      # (B,)
+        lam = kpd.wavelengths.to_value(u.m)
+        c = np.broadcast_to(np.asarray(contrast, float), lam.shape)
+        uv = km.uv.value
+        # K arg(1 + c exp(-i theta)) per block and channel, as KernelModel.binary_kernel_phases
+        theta = 2 * np.pi * MAS * (np.outer(x, uv[:, 0]) + np.outer(y, uv[:, 1]))
+        h = np.exp(-1j * theta[:, None, :] / lam[None, :, None])              # (B, q, nuv)
+        z = 1 + c[None, :, None] * h
+        out = self._stack(np.angle(z) @ km.kernel.T)
+        if not derivative:
+            return out
+        return out, self._stack(np.imag(h / z) @ km.kernel.T)        # d arg(z) / dc
+
+    def _stack(self, per):
+        """Per-block kernel phases (B, q, p) -> the whitened stack (q, dim)."""
+        rb = self.blocks
+        mean = np.tensordot(rb.frames / rb.frames.sum(), per, axes=(0, 0))
         dev = np.sqrt(rb.frames)[:, None, None] * (per - mean)
-        dev = np.einsum("iap,bip->iba", self.comp, dev) / np.sqrt(self.scale)[:, None, None]
-        dev = dev.reshape(len(self.scale), -1)
+        dev = np.einsum("iap,bip->iba", self.comp_frame, dev).reshape(per.shape[1], -1)
         if not self.with_mean:
             return dev
-        return np.concatenate([np.einsum("iap,ip->ia", self.comp, mean), dev], axis=-1)
+        return np.concatenate([np.einsum("iap,ip->ia", self.comp_mean, mean), dev], axis=-1)
 
     def _attenuation(self, x, y):
         kpd = self.kpd
@@ -359,11 +388,24 @@ class BlockStack:
                 c = par[2:] * scale_c * self._attenuation(par[0], par[1])
                 return (residual - self.model_kp(par[:2], c)).ravel()
 
+            def jac(par, step=1e-3):
+                # contrasts: exact (channel by channel); position: central differences
+                att = self._attenuation(par[0], par[1])
+                _, dc = self.model_kp(par[:2], par[2:] * scale_c * att, derivative=True)
+                out = np.zeros((q, dc.shape[1], len(par)))
+                out[np.arange(q), :, 2 + np.arange(q)] = -dc * scale_c * att
+                for j in range(2):
+                    d = np.zeros(len(par))
+                    d[j] = step
+                    out[:, :, j] = ((resid(par + d) - resid(par - d)) / (2 * step)).reshape(
+                        q, -1)
+                return out.reshape(-1, len(par))
+
             start = np.concatenate([[x0, y0], c0 / scale_c])
             lo = np.concatenate([[x0 - box, y0 - box], np.full(q, -np.inf)])
             hi = np.concatenate([[x0 + box, y0 + box], np.full(q, np.inf)])
-            res = optimize.least_squares(resid, start, bounds=(lo, hi), jac="2-point",
-                                         diff_step=1e-4)
+            with one_blas_thread():          # small products: BLAS's threads only wait
+                res = optimize.least_squares(resid, start, bounds=(lo, hi), jac=jac)
             jac = res.jac
             cov = np.linalg.pinv(jac.T @ jac)
             if noise_rows is not None:
@@ -396,9 +438,6 @@ ADI_REFUSE, ADI_WARN = 0.05, 0.5
 def _check_rotation(model, kpd, blocks):
     """The fraction of signal kept by separation (``[[sep, fraction], ...]``, mas), after
     refusing or warning when the rotation is too small for the grid."""
-    import warnings
-    from ..exceptions import KpifsWarning
-    from ..rotation import rotation_needed
     g = model.grid
     num, den = np.nansum(model.norm2, axis=0), np.nansum(model.norm2_free, axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -424,9 +463,9 @@ def _check_rotation(model, kpd, blocks):
         warnings.warn(
             f"{kpd.name}: {blocks.span:.1f} deg of rotation keep {100 * curve[0][1]:.0f} % of a "
             f"companion's signal at {curve[0][0]:.0f} mas in the angular-differential search "
-            f"(self-subtraction; half of it " + (f"from {inner:.0f} mas" if inner else
-                                                   "nowhere on the grid") +
-            f"); about {need:.0f} deg are needed there: limits and contrasts account for it",
+            f"(self-subtraction; half of it "
+            + (f"from {inner:.0f} mas" if inner else "nowhere on the grid")
+            + f"); about {need:.0f} deg are needed there: limits and contrasts account for it",
             KpifsWarning, stacklevel=4)
     return curve
 
@@ -460,4 +499,3 @@ def block_stack(kpd, kp, w, rank, *, frame, mode="auto"):
     if mode == "mean":
         return None
     return BlockStack(kpd, kp, w, rank, mode=mode)
-
