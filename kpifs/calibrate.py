@@ -310,7 +310,8 @@ def _result(target, calibrators, d, cov, jcov, rows, extra, n_cal):
                           f"when the angles are known) turns the model frame by frame, one on "
                           f"the detector smears a companion fixed on the sky over that arc "
                           f"(its signal is lost beyond ~{_smear_limit(target, span):.0f} mas); "
-                          f"the result carries the mean angle {pa:.1f} deg", KpifsWarning,
+                          f"the result carries the mean angle {pa:.1f} deg (and the time "
+                          f"blocks, searched block by block: kpifs.rotation)", KpifsWarning,
                           stacklevel=2)
     log.info("calibrated %s (%d frames) with %d calibrator(s)", _name(target), n_t,
              len(calibrators))

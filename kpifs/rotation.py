@@ -271,7 +271,10 @@ def noise_whitening(blocks, *, fraction=NOISE_MODES):
             held = np.isin(groups, fold)
             _, _, vf = np.linalg.svd(noise[~held, i], full_matrices=False)
             var += np.sum((noise[held, i] @ vf[:k].T) ** 2, axis=0)
-        var = var / max(dof, 1)
+        # nu / (nu - 2): the mean of 1 / (a variance estimated from nu squares) is that
+        # much larger than 1 / the variance (on CHARIS simulations without it the
+        # blocks' whitened energy was 1.12-1.15 of its dof)
+        var = var / max(dof - 2, 1)
         good = var > 1e-12 * max(var.max(), 1e-300)
         out[i, good] = vt[:k][good] / np.sqrt(var[good])[:, None]
     return out
