@@ -283,6 +283,15 @@ class BlockStack:
             raise KpifsError(f"unknown block search {mode!r}: use one of {MODES}")
         rb = kpd.rotation
         self.kpd, self.mode, self.blocks = kpd, mode, rb
+        n = rb.frames.astype(int)
+        frames = np.asarray(kpd.meta.get("detpa_frames") or [], float)
+        if frames.size == n.sum() and np.all(np.isfinite(frames)):
+            self._frame_angles = frames
+            edges = np.concatenate([[0], np.cumsum(n)])
+            self._block_frames = [np.arange(a, b) for a, b in zip(edges[:-1], edges[1:])]
+        else:                                   # the blocks' mean angles only
+            self._frame_angles = np.asarray(rb.angles, float)
+            self._block_frames = [np.array([b]) for b in range(rb.n_blocks)]
         self.with_mean = mode == "rotation"
         rank = np.atleast_1d(rank)
         q = kpd.n_wave
@@ -341,9 +350,11 @@ class BlockStack:
         """Whitened stacked model (q, dim) of a companion at *sky* (dRA, dDec; mas) of
         *contrast* (per channel, the window's attenuation included); with *derivative*,
         also its derivative with respect to each channel's contrast (q, dim)."""
-        kpd, rb = self.kpd, self.blocks
+        kpd = self.kpd
         km = kpd.kernel_model
-        x, y = sky_to_detector(float(sky[0]), float(sky[1]), rb.angles)      # (B,)
+        # every frame's own angle (a block's mean is the mean of its frames' models: a bright
+        # companion's model at the block's mean angle would leave side lobes)
+        x, y = sky_to_detector(float(sky[0]), float(sky[1]), self._frame_angles)   # (N,)
         lam = kpd.wavelengths.to_value(u.m)
         c = np.broadcast_to(np.asarray(contrast, float), lam.shape)
         uv = km.uv.value
@@ -351,10 +362,14 @@ class BlockStack:
         theta = 2 * np.pi * MAS * (np.outer(x, uv[:, 0]) + np.outer(y, uv[:, 1]))
         h = np.exp(-1j * theta[:, None, :] / lam[None, :, None])              # (B, q, nuv)
         z = 1 + c[None, :, None] * h
-        out = self._stack(np.angle(z) @ km.kernel.T)
+        out = self._stack(self._by_block(np.angle(z)) @ km.kernel.T)
         if not derivative:
             return out
-        return out, self._stack(np.imag(h / z) @ km.kernel.T)        # d arg(z) / dc
+        return out, self._stack(self._by_block(np.imag(h / z)) @ km.kernel.T)   # d arg / dc
+
+    def _by_block(self, a):
+        """Per-frame values (N, ...) averaged within each block (B, ...)."""
+        return np.stack([a[lab].mean(axis=0) for lab in self._block_frames])
 
     def _stack(self, per):
         """Per-block kernel phases (B, q, p) -> the whitened stack (q, dim)."""
