@@ -207,7 +207,8 @@ def preflight_detect(kp, calibrators, output, options):
     if calibrated and calibrators:
         raise KpifsError(f"{kp}: already calibrated (CALFLAG true): calibrating it again "
                          f"subtracts a star twice; give it without --calibrator")
-    if not calibrated and not calibrators and not options.allow_uncalibrated:
+    if not calibrated and not calibrators and not options.allow_uncalibrated \
+            and fits.getheader(kp).get("BLKSRCH") != "angular-differential":   # issue 29
         raise KpifsError(f"{kp}: not calibrated (no calibrator star subtracted): give its "
                          f"calibrator (--calibrator CAL_KP.fits), or --allow-uncalibrated to "
                          f"search the data as they are")

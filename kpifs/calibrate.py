@@ -21,6 +21,7 @@ from .covariance import calibrated_covariance, empirical_covariance, hartlap_fac
 from .data import KernelPhaseData
 from .errormodel import fit_error_model
 from .exceptions import KpifsError, KpifsWarning
+from .rotation import rotation_blocks
 
 __all__ = ["calibrate", "check_compatible", "check_calibration", "mean_detpa", "block_rows",
            "MAX_DETPA_SPAN"]
@@ -309,15 +310,18 @@ def _result(target, calibrators, d, cov, jcov, rows, extra, n_cal):
                           f"when the angles are known) turns the model frame by frame, one on "
                           f"the detector smears a companion fixed on the sky over that arc "
                           f"(its signal is lost beyond ~{_smear_limit(target, span):.0f} mas); "
-                          f"the result carries the mean angle {pa:.1f} deg", KpifsWarning,
+                          f"the result carries the mean angle {pa:.1f} deg (and the time "
+                          f"blocks, searched block by block: kpifs.rotation)", KpifsWarning,
                           stacklevel=2)
     log.info("calibrated %s (%d frames) with %d calibrator(s)", _name(target), n_t,
              len(calibrators))
-    return KernelPhaseData(d[None], target.wavelengths, target.pixscale,
-                           target.kernel_model, window=target.window, covariance=cov,
-                           joint_covariance=jcov, covariance_rows=rows,
-                           block_rows=block_rows(target, calibrators), header=target.header,
-                           detpa=detpa, bandwidth=target.bandwidth, meta=meta)
+    out = KernelPhaseData(d[None], target.wavelengths, target.pixscale,
+                          target.kernel_model, window=target.window, covariance=cov,
+                          joint_covariance=jcov, covariance_rows=rows,
+                          block_rows=block_rows(target, calibrators), header=target.header,
+                          detpa=detpa, bandwidth=target.bandwidth, meta=meta)
+    out.rotation = rotation_blocks(target, calibrators)     # issue 29: the rotation kept
+    return out
 
 
 def _smear_limit(kpd, span):

@@ -183,6 +183,7 @@ class KernelPhaseData:
         self.detpa = detpa
         self.bandwidth = bandwidth
         self.meta = dict(meta or {})
+        self.rotation = None        # time blocks of a rotating sequence (kpifs.rotation)
 
     @property
     def shape(self):
@@ -216,8 +217,11 @@ def _read_kpd(path, *, detpa=None):
     model = parts.pop("model")
     km = KernelModel.from_parts(model, source=path)
     window = ExtractionWindow.from_header(parts["header"])
-    return KernelPhaseData(parts.pop("kp"), parts.pop("wavelengths"), parts.pop("pixscale"),
-                           km, window=window, **parts)
+    rotation = parts.pop("rotation", None)
+    out = KernelPhaseData(parts.pop("kp"), parts.pop("wavelengths"), parts.pop("pixscale"),
+                          km, window=window, **parts)
+    out.rotation = rotation
+    return out
 
 
 register(KernelPhaseData, "kpfits", reader=_read_kpd, writer=write_kpfits,

@@ -126,7 +126,7 @@ class DetectOptions:
     ``max_sep``, ``min_sep`` and ``grid_step`` (mas) override the default grid;
     ``spectrum`` is 'flat' (None), a list of per-channel values or a text file;
     ``basis`` the spectral model of test S (`~kpifs.detect.spectral.spectral_basis`:
-    None, ``'smooth:R'``, ``'blackbody'`` or a file of spectra).
+    None, ``'smooth:R'``, ``'blackbody'``, spectra in a file); ``blocks``: `~kpifs.detect.detect`.
 
     Examples
     --------
@@ -151,6 +151,7 @@ class DetectOptions:
     allow_uncalibrated: bool = False
     frame: str = "auto"
     null: str = "auto"
+    blocks: str = "auto"
 
     def validate(self):
         """Refuse options no search can run with (before any work); return self."""
@@ -231,8 +232,7 @@ def kernel_model_for(options, instrument="generic", header=None):
     return load_kernel_model(pupil, pupil_scale=options.pupil_scale, step=step,
                              offset=offset, min_transmission=options.min_transmission,
                              grey=options.grey, min_redundancy=options.min_redundancy,
-                             rotation=rotation,
-                             hexagonal=options.hexagonal)
+                             rotation=rotation, hexagonal=options.hexagonal)
 
 
 def _pixscale(options):
@@ -410,7 +410,7 @@ def detect_observation(kpd, options=None, *, calibrators=(), progress=False):
                         shrinkage=options.shrinkage, fit=options.fit,
                         max_candidates=options.max_candidates,
                         allow_uncalibrated=options.allow_uncalibrated, frame=options.frame,
-                        null=options.null, progress=progress)
+                        null=options.null, blocks=options.blocks, progress=progress)
     except KpifsError as exc:             # every message names the file searched
         if kpd.name in str(exc):
             raise

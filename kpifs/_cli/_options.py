@@ -25,6 +25,7 @@ def detect_options(args):
     """`~kpifs.workflow.DetectOptions` from the search options of the command."""
     get = {k: getattr(args, k) for k in ("test", "pfa", "pd", "max_sep", "min_sep",
                                          "grid_step", "spectrum", "basis", "draws", "seed",
-                                         "shrinkage", "allow_uncalibrated", "frame", "null")
+                                         "shrinkage", "allow_uncalibrated", "frame", "null",
+                                         "blocks")
            if hasattr(args, k)}
     return DetectOptions(**get)

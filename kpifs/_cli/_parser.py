@@ -88,6 +88,9 @@ EPILOG_SIMULATE = """examples:
   kpifs simulate --preset gpi --layout gpi -o gpi_sim          # GPI _spdc.fits
   kpifs simulate --preset charis --frames 40 --drift 40nm --drift-time 8 \\
       --static-diff 15nm -o unkind     # drifting aberrations, target != calibrator
+  kpifs simulate --preset charis --layout charis --rotation 40deg -o turning
+  kpifs simulate --preset sphere --layout sphere --hour-angle=-1,1 --declination=-40 \\
+      -o transit                       # parallactic angles at Paranal
 presets: paper (the seed paper's Subaru scene: 3 channels at 1.52-1.68 um, 40x40 pixels
 of 10.42 mas, 1000 frames), charis (22 channels at 1.16-2.37 um, 201x201 pixels of
 16.2 mas, 20 frames), sphere (VLT, 39 channels at 0.96-1.33 um, 64x64 pixels of
@@ -239,6 +242,10 @@ def _extract(command):
                         "calibrators, whose mean is subtracted (default: none, kernel phases "
                         "of the target alone)")
     _cube_options(p)
+    p.add_argument("--angular-differential", action="store_true",
+                   help="keep the time blocks of a rotating sequence and search only what "
+                        "turns with the sky (what stays on the detector removed: with or "
+                        "without --calibrator; refused when the angles do not turn)")
     p.add_argument("--pa", metavar="DEG|LIST|FILE",
                    help="detector position angle of the target's frames (deg, East of North "
                         "of the detector +y axis): one value, a comma list with one per "
@@ -365,6 +372,17 @@ def _simulate(command):
     g.add_argument("--static-diff", help="rms of static aberrations of the calibrator only "
                                          "(a calibration residual), nm if no unit, e.g. 10nm "
                                          "(default 0)")
+    g = p.add_argument_group("field rotation (pupil tracking: the sky turns, the aberrations "
+                             "stay on the detector; default: the preset's angles)")
+    g.add_argument("--rotation", help="the detector angle turns by this much over the "
+                                      "sequence, deg if no unit, e.g. 40deg (default: none)")
+    g.add_argument("--hour-angle", help="or: the star's hour angles at the start and the end, "
+                                        "hours, e.g. --hour-angle=-1,1 (default: none)")
+    g.add_argument("--declination", help="the star's declination, deg if no unit (with "
+                                         "--hour-angle; default: none)")
+    g.add_argument("--site", help="the observatory: maunakea, paranal, pachon, palomar, or a "
+                                  "latitude in deg (with --hour-angle; default: the "
+                                  "instrument's)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
     _output(p, "output directory (required)")
 
@@ -385,6 +403,12 @@ def _detect(command):
     p.add_argument("--allow-uncalibrated", action="store_true",
                    help="search data that no calibrator was subtracted from (refused "
                         "otherwise: aberrations look like companions)")
+    p.add_argument("--blocks", default="auto",
+                   choices=("auto", "rotation", "angular-differential", "mean"),
+                   help="a rotating sequence's time blocks: the calibrated mean and what "
+                        "turns (rotation), what turns only (angular-differential), or the "
+                        "mean with the model averaged over the angles (mean); default: the "
+                        "data's own (%(default)s)")
     p.add_argument("--plots", metavar="DIR", help="write PNG figures there (default: none)")
     _output(p, "output detection FITS file (required)")
 

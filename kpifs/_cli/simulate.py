@@ -6,6 +6,8 @@ from .._checks import check_seed
 from .._utils import check_output_dir, to_quantity
 from ..exceptions import KpifsError
 from ..io.layouts import write_observation
+from ..detect.sky import detector_to_sky
+from ..rotation import sequence_angles
 from ..simulate import PRESETS, SceneParameters, simulate_scene
 
 
@@ -59,6 +61,7 @@ def run(args):
             over[name] = to_quantity(getattr(args, opt), u.nm, name=f"--{opt.replace('_', '-')}")
     if args.drift_time is not None:
         over["drift_time"] = args.drift_time
+    _rotation(args, over)
     obs = simulate_scene(args.preset, seed=args.seed, progress=not args.quiet, **over)
     paths = write_observation(obs, args.output, layout=args.layout, overwrite=args.overwrite)
     n = sum(len(v) for v in paths.values())
@@ -66,3 +69,50 @@ def run(args):
           f"companion at ({obs.truth['KPSIMX'][0]:.1f}, {obs.truth['KPSIMY'][0]:.1f}) mas, "
           f"calibrator")
     return 0
+
+
+#: Detector angle at parallactic angle 0 and the site, per preset (issue 29).
+_INSTRUMENT_ANGLES = {"charis": (113.0, "maunakea"), "sphere": (33.76, "paranal"),
+                      "sphere-sam": (33.76, "paranal"), "gpi": (-66.5, "pachon"),
+                      "paper": (0.0, "maunakea")}
+
+
+def _rotation(args, over):
+    """--rotation or --hour-angle: a sequence turning on the sky, companion fixed there."""
+    if args.rotation is None and args.hour_angle is None:
+        if args.declination is not None or args.site is not None:
+            raise KpifsError("--declination and --site go with --hour-angle")
+        return
+    if args.rotation is not None and args.hour_angle is not None:
+        raise KpifsError("give --rotation or --hour-angle, not both")
+    offset, site = _INSTRUMENT_ANGLES.get(args.preset, (0.0, "maunakea"))
+    params = dict(PRESETS[args.preset])
+    params.update(over)
+    n = params.get("n_frames", SceneParameters().n_frames)
+    if args.rotation is not None:
+        det = sequence_angles(n, span=to_quantity(args.rotation, u.deg, name="--rotation"),
+                              start=offset)
+    else:
+        try:
+            ha = [float(v) for v in str(args.hour_angle).split(",")]
+        except ValueError:
+            ha = []
+        if len(ha) != 2:
+            raise KpifsError(f"--hour-angle: expected start,end in hours, e.g. -1,1; got "
+                             f"{args.hour_angle!r}")
+        if args.declination is None:
+            raise KpifsError("--hour-angle needs the star's --declination")
+        lat = args.site if args.site is not None else site
+        try:
+            lat = float(lat) * u.deg
+        except ValueError:
+            pass
+        det = sequence_angles(n, hour_angle=ha * u.hourangle, latitude=lat, start=offset,
+                              declination=to_quantity(args.declination, u.deg,
+                                                      name="--declination"))
+    if params.get("sky_offset") is None:
+        # the companion where the preset puts it on the detector at the first frame
+        x, y = u.Quantity(params.get("companion_offset",
+                                     SceneParameters().companion_offset), u.mas).value
+        over["sky_offset"] = list(detector_to_sky(x, y, det[0])) * u.mas
+    over["detpa"] = det

@@ -190,7 +190,7 @@ class NullCalibration:
         than kernel phases the rows are projected once and the draws combine them.
         Draws go in batches whose work arrays stay in the processor's cache."""
         model, form, rows = self.model, self.form, self.noise_rows
-        q, p = len(model.wavelengths), model.kernel_model.n_kp
+        q, p = len(model.wavelengths), getattr(model, "dim", model.kernel_model.n_kp)
         positions, mirrored = model.half_positions()
         # the binary forms and the subspace test come from the same projections
         forms = (form,) if form == "NP" else ("B", "B-paper", "S")
@@ -471,7 +471,7 @@ def search_null(model, *, form, noise_rows, block_rows=None, method="auto",
         return null, {"gaussian": null}
     parts = {}
     if method == "both":
-        if _via_rows(noise_rows, model.kernel_model.n_kp):
+        if _via_rows(noise_rows, getattr(model, "dim", model.kernel_model.n_kp)):
             model.row_projections(noise_rows, also=(block_rows,))     # one pass for both
         parts["gaussian"] = NullCalibration(model, form=form, n_draws=n_draws, seed=seed,
                                             spectrum=spectrum, noise_rows=noise_rows,

@@ -4,7 +4,6 @@ import warnings
 
 import numpy as np
 from astropy import units as u
-from astropy.table import vstack
 
 from ..covariance import empirical_covariance, whiten, whitening_matrix
 from ..data import DetectionGrid, DetectionResult, KernelPhaseData
@@ -12,12 +11,13 @@ from ..exceptions import KpifsError, KpifsWarning
 from ..kernel import MAS, KernelModel
 from ..pupil import make_pupil
 from ._laws import chi2_sf, norm_isf
-from .fit import refine_candidates
-from .sky import (add_sky_columns, data_angles, pa_bins, rotated_binary_kernel_phases,
+from .search import _POWER, _chi2_red, _sequential_search
+from .sky import (add_sky_columns, data_angles, pa_bins,
                   search_frame, sky_search_columns)
 from .skyfit import refit_on_sky
 from .limits import (energy_lambda, limit_binary, limit_binary_correlated_forms, limit_energy,
                      limit_np, mirror_half_map, radial_curves, spectrum_shape)
+from .blocks import block_stack
 from .maps import DetectionModel
 from .null import DEFAULT_DRAWS, check_draws, search_null
 from .channels import (NOISE_CONFIDENCE, combined_scale, correlated_inputs, energy_null,
@@ -89,7 +89,8 @@ def _frame_and_poses(kpd, frame, grid):
 
 
 def _prepare(kpd, shrinkage, allow_uncalibrated):
-    if not kpd.meta.get("calibrated"):
+    adi = getattr(kpd.rotation, "search", None) == "angular-differential"
+    if not kpd.meta.get("calibrated") and not adi:     # ADI: only what turns is searched
         if not allow_uncalibrated:
             raise KpifsError(f"{kpd.name}: not calibrated (no calibrator star subtracted): "
                              f"give its calibrator (--calibrator CAL_KP.fits), or "
@@ -110,7 +111,8 @@ def _prepare(kpd, shrinkage, allow_uncalibrated):
 
 def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=None,
            n_draws=DEFAULT_DRAWS, seed=0, shrinkage="auto", fit=True, max_candidates=20,
-           allow_uncalibrated=False, frame="auto", limits=True, null="auto", progress=False):
+           allow_uncalibrated=False, frame="auto", limits=True, null="auto", progress=False,
+           blocks="auto"):
     """Search calibrated kernel phases for a companion.
 
     Parameters
@@ -173,6 +175,12 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
         the more conservative of the two (``'both'``, what ``'auto'`` picks when
         the data carry block rows). Both thresholds are reported
         (``result.meta['null']``).
+    blocks : {'auto', 'rotation', 'angular-differential'}
+        Data carrying the time blocks of a rotating sequence (`kpifs.rotation`)
+        are searched on the sky block by block (`kpifs.detect.blocks`): the
+        calibrated mean and the blocks' departures from it (``'rotation'``), or
+        the departures alone (``'angular-differential'``: no calibrator, nothing
+        fixed on the detector). ``'auto'``: the data's own choice.
     limits : bool
         Compute the detection limits (default). Without (as the injection
         curves do, which only need the candidates) ``result.limits`` is empty.
@@ -205,18 +213,26 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     if grid is None:
         grid = default_grid(kpd, frame=frame)
     window = kpd.window
-    model = DetectionModel(kpd.kernel_model, kpd.wavelengths, w, grid, pixscale=kpd.pixscale,
-                           window=window, dof=rank, detpa=search_poses, basis=basis)
+    # issue 29: a rotating sequence's time blocks, stacked (None: the one mean, as before)
+    stack = block_stack(kpd, kp, w, rank, frame=frame, mode=blocks)
+    cov_rows, blk_rows, fit_rows = kpd.covariance_rows, kpd.block_rows, kpd.fit_covariance_rows
+    if stack is not None:
+        kp, w, rank, y = stack.kp, stack.whitening, stack.rank, stack.kp
+        cov_rows, blk_rows, fit_rows = stack.rows, stack.block_rows, None
+        model = stack.detection_model(grid, basis=basis)
+    else:
+        model = DetectionModel(kpd.kernel_model, kpd.wavelengths, w, grid, pixscale=kpd.pixscale,
+                               window=window, dof=rank, detpa=search_poses, basis=basis)
     form = "B" if test == "E" else test
     rows = None
-    if kpd.covariance_rows is not None:
-        rows = whiten(kpd.covariance_rows, w)
+    if cov_rows is not None:
+        rows = whiten(cov_rows, w)
         model.correlate(rows)
     else:
         log.info("no covariance rows: channels taken as independent in the null model")
     blocks, block_energy = None, None
-    if kpd.block_rows is not None:       # the empirical null: its scale from the error model
-        blocks, block_energy = scale_block_rows(whiten(kpd.block_rows, w), rank)
+    if blk_rows is not None:       # the empirical null: its scale from the error model
+        blocks, block_energy = scale_block_rows(whiten(blk_rows, w), rank)
     null_method = null
 
     def make_null(f):
@@ -236,10 +252,10 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
                  null_info["threshold_empirical"])
     spread = energy_spread(rows, int(rank.sum()))
     characterise = None
-    if fit and kpd.covariance_rows is not None and kpd.fit_covariance_rows is not None:
+    if fit and cov_rows is not None and fit_rows is not None:
         # positions and contrasts from the error model with more modes (calibrate's
         # fit_modes), whose rows also carry its channel correlations
-        fr = kpd.fit_covariance_rows
+        fr = fit_rows
         fcov = np.matmul(fr.transpose(1, 2, 0), fr.transpose(1, 0, 2))       # (q, p, p)
         fw, frank = whitening_matrix(fcov, return_rank=True, source="characterisation covariance")
         characterise = (fw, whiten(fr, fw), int(np.sum(frank)))
@@ -269,7 +285,7 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     cands, kappa, scale = _sequential_search(
         model, kp, w, kpd, threshold=threshold, null=null, spectrum=spectrum, fit=fit,
         max_candidates=max_candidates, scaler=scaler, ring=ring, poses=poses,
-        characterise=characterise)
+        characterise=characterise, stack=stack)
     if frame == "sky":
         sky_search_columns(cands, poses)
     else:
@@ -300,7 +316,7 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     t_e = float(np.sum(y ** 2))
     # the raw energy is the error model's diagnostic (dof when it is calibrated); its P_FA,
     # like every test's, is judged with the noise scale the search applies
-    # the search's scale may keep a subtracted peak's share (`_sequential_search`)
+    # the search's scale is the test's own (S: its map's too)
     common = scale if form != "S" else last["scale"]
     t_es = t_e / common
     energy = {"statistic": t_es, "raw": t_e, "dof": dof, "pfa": float(chi2_sf(t_es, dof)),
@@ -366,7 +382,8 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
             "frame": frame,
             "pa_bins": None if poses is None else [np.asarray(p).tolist() for p in poses],
             "pa_bins_search": None if search_poses is None
-            else [np.asarray(p).tolist() for p in search_poses]}
+            else [np.asarray(p).tolist() for p in search_poses],
+            "blocks": None if stack is None else stack.info}
     log.info("detect: %d candidate(s) above the %s threshold %.3f (global P_FA %.1e)",
              len(cands), form, threshold, pfa)
     return _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands,
@@ -388,105 +405,6 @@ def _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands, th
 
 #: Draws of the energy detector's correlated null (its threshold read from them).
 ENERGY_DRAWS = 30000
-
-#: How each statistic scales with the noise variance (B: a sum of squares).
-_POWER = {"B": 1.0, "B-paper": 0.5, "NP": 0.5, "S": 1.0}
-
-
-def _chi2_red(residual, w, dof, n_par):
-    """Reduced chi-square of whitened kernel phases with *n_par* fitted parameters."""
-    return float(np.sum(whiten(residual, w) ** 2) / max(dof - n_par, 1))
-
-
-def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max_candidates,
-                       scaler, ring, poses=None, characterise=None):
-    """Strongest peak above threshold, fitted and subtracted, until none is left.
-
-    Each peak is judged on its statistic scaled by the reduced chi-square of
-    the whitened residual once its model is subtracted (never scaled down), and
-    its errors are scaled likewise: a calibration residual the error model
-    missed inflates the chi-square instead of passing as companions. Returns
-    the candidates, the reduced chi-square of the final residual and the noise
-    scale (*scaler*: residual, fitted parameters -> reduced chi-square, scale).
-    """
-    rows = []
-    residual = kp.copy()
-    form = null.form
-    q = kp.shape[0]
-    n_par = 2 + q
-    while len(rows) < max_candidates:
-        tab = model.candidates(whiten(residual, w), threshold=threshold, form=form, null=null,
-                               spectrum=spectrum)
-        if not len(tab):
-            break
-        row = tab[:1]
-        if fit:
-            model_kp = refine_candidates(row, residual, w, kpd, null.noise_rows, poses)[0]
-            if characterise is not None:
-                # from the search model's optimum (the robust start), the characterisation
-                model_kp = refine_candidates(row, residual, characterise[0], kpd,
-                                             characterise[1], poses, dof=characterise[2],
-                                             from_fit=True)[0]
-            r = row[0]
-            x, y = r["fit_x"].to_value(u.mas), r["fit_y"].to_value(u.mas)
-        else:
-            # the subtracted model is the fitted one, window gain included (a bright
-            # companion's approximate model would leave side lobes to be found next)
-            r = row[0]
-            x, y, c = r["x"].to_value(u.mas), r["y"].to_value(u.mas), np.asarray(r["contrast"])
-            att = 1.0 if kpd.window is None else \
-                float(kpd.window.at(np.hypot(x, y), kpd.pixscale))
-            if poses is None:
-                model_kp = kpd.kernel_model.binary_kernel_phases([x, y] * u.mas, c * att,
-                                                                 kpd.wavelengths)
-            else:
-                model_kp = rotated_binary_kernel_phases(kpd.kernel_model, [x, y] * u.mas,
-                                                        c * att, kpd.wavelengths, *poses)
-        after = residual - model_kp
-        kappa, scale = scaler(after, n_par * (len(rows) + 1))
-        # judged against its annulus's noise too, once subtracted (a bright companion's
-        # side lobes gone), away from the peak and its mirror (what its fit absorbed)
-        peak = (float(row["x"][0].to_value(u.mas)), float(row["y"][0].to_value(u.mas)))
-        around = ring(after, peak)
-        log.debug("peak %.2f: noise scale %.2f after its subtraction, %.2f in its annulus",
-                  float(row["statistic"][0]), scale, around)
-        scale = max(scale, around)
-        stat = float(row["statistic"][0]) / scale ** _POWER[form]
-        if stat < threshold:
-            log.info("peak at (%.1f, %.1f) mas: statistic %.2f / chi2_red %.2f is below the "
-                     "threshold %.2f", x, y, float(row["statistic"][0]), kappa, threshold)
-            break
-        pfa, tail = null.pfa(np.array([stat]), return_method=True)
-        row["statistic"] = [stat]
-        row["pfa_global"], row["pfa_global_tail"] = pfa, tail
-        row["pfa_local"] = model.local_pfa(np.array([stat]), form)
-        row["contrast_err"] = row["contrast_err"] * np.sqrt(scale)
-        if fit and characterise is None:
-            for col in ("fit_x_err", "fit_y_err", "fit_contrast_err"):
-                row[col] = row[col] * np.sqrt(scale)
-        row["chi2_red"] = [kappa]
-        residual = after
-        rows.append(row)
-    if len(rows) == max_candidates:
-        warnings.warn(f"{kpd.name}: the search stopped at max_candidates = {max_candidates}; "
-                      f"more peaks may lie above the threshold", KpifsWarning, stacklevel=3)
-    kappa, scale = scaler(residual, n_par * len(rows))
-    if not rows:
-        empty = model.candidates(whiten(kp, w), threshold=np.inf, form=form, null=null,
-                                 spectrum=spectrum)
-        if fit:
-            for col in ("fit_x", "fit_y", "fit_x_err", "fit_y_err"):
-                empty[col] = [] * u.mas
-            empty["fit_contrast"] = np.zeros((0, q))
-            empty["fit_contrast_err"] = np.zeros((0, q))
-            empty["fit_chi2"] = np.zeros(0)
-        empty["chi2_red"] = np.zeros(0)
-        return empty, kappa, scale
-    out = vstack(rows)
-    out.meta = rows[0].meta
-    out.meta["chi2_red"] = kappa
-    return out, kappa, scale
-
 
 _EXAMPLE = {}
 

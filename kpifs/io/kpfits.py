@@ -44,6 +44,7 @@ from astropy.io import fits
 
 from .._meta import VERSION
 from .._utils import write_hdulist
+from ..rotation import rotation_hdus
 from ._kpfits_common import (_ERROR_MODEL_CARDS, _INSTRUMENT_CARDS, KPCOV_COPY_LIMIT, _clean_header,
                              _label_columns, _number, _table_hdu, ascii_text, card)
 from .kpfits_model import (has_kernel_model, model_hdulist, model_hdus, read_model_file,
@@ -113,6 +114,7 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
     hdus += _data_hdus(kpd)
     hdus.append(_wavelength_hdu(kpd))
     hdus += _angle_hdus(kpd)
+    hdus += rotation_hdus(kpd)          # issue 29: time blocks of a rotating sequence
     if kpd.phases is not None and kpd.amplitudes is not None:
         hdus.append(_visibility_hdu(kpd))
     return fits.HDUList(hdus)

@@ -6,6 +6,7 @@ from astropy import units as u
 from astropy.io import fits
 
 from ..exceptions import KpifsError
+from ..rotation import rotation_from_hdul
 from ._kpfits_common import (_ERROR_MODEL_CARDS, _TELESCOPE_DIAMETERS, _all_nan, _column, _flag,
                              _number)
 from .cube import open_fits
@@ -399,4 +400,5 @@ def _read_data(hdul, path, detpa):
             "pixscale": pixscale, "covariance": cov, "kp_err": kp_err,
             "joint_covariance": jcov, "covariance_rows": rows,
             "fit_covariance_rows": fit_rows, "block_rows": blk_rows, "detpa": pa,
+            "rotation": rotation_from_hdul(hdul, path),
             "phases": phases, "amplitudes": amps, "header": hdr, "meta": meta}

@@ -23,7 +23,9 @@ from .._meta import VERSION
 from .._utils import check_output_path, write_hdulist
 from ..apertures import canonical_name
 from ..exceptions import KpifsError
+from .charis import CHARIS_DETPA_OFFSET
 from .layouts_instruments import write_gpi_exposures, write_jwst_calints
+from .sphere import SPHERE_DETPA_OFFSET
 
 __all__ = ["write_plain_cube", "write_charis_exposures", "write_sphere_cube",
            "write_observation", "LAYOUTS"]
@@ -185,14 +187,24 @@ def write_observation(obs, outdir, *, layout="plain", overwrite=False):
         elif layout == "charis":
             (outdir / role).mkdir(exist_ok=True)
             out[role] = write_charis_exposures(outdir / role, cube, 1 / var, p.wavelengths,
-                                               p.pixscale, **common)
+                                               p.pixscale, parang=_angles(p, len(cube),
+                                                                          CHARIS_DETPA_OFFSET),
+                                               **common)
         elif layout in ("jwst", "gpi"):
             out[role] = _write_instrument(layout, obs, role, cube, var, outdir, common)
         else:
             (outdir / role).mkdir(exist_ok=True)
             out[role] = write_sphere_cube(outdir / role, cube, p.wavelengths, p.pixscale,
+                                          angles=_angles(p, len(cube), SPHERE_DETPA_OFFSET),
                                           **common)
     return out
+
+
+def _angles(params, nframe, offset):
+    """The instrument's angle of each frame (its DETPA minus *offset*), or None (issue 29)."""
+    if params.detpa is None:
+        return None
+    return np.broadcast_to(np.asarray(params.detpa, float), (nframe,)) - offset
 
 
 def _write_instrument(layout, obs, role, cube, var, outdir, common):

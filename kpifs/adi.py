@@ -1,0 +1,81 @@
+"""Angular-differential kernel phases: only what turns with the sky is searched (issue 29).
+
+In a pupil-tracking sequence whatever stays fixed on the detector (the static
+aberrations, the calibrator's mismatch) cancels in the departures of the time
+blocks from their mean, while a companion turns with the sky and survives, minus
+a self-subtraction (`kpifs.rotation`, `kpifs.detect.blocks`; Laugier et al. 2020
+for angular-differential kernel phase).
+"""
+import logging
+
+import numpy as np
+
+from .data import KernelPhaseData
+from .exceptions import KpifsError
+from .rotation import NOISE_MODES, _span, noise_whitening, rotation_blocks
+
+__all__ = ["angular_differential"]
+
+log = logging.getLogger(__name__)
+
+
+def angular_differential(target, calibrated=None, *, n_modes=NOISE_MODES):
+    """A product searched by the blocks' departures only (``kpifs extract
+    --angular-differential``).
+
+    With *calibrated* (the target calibrated by `~kpifs.calibrate.calibrate`) its
+    blocks are marked for the angular-differential search; without, the
+    target's own frames make the product: their mean (searched not at all), a
+    covariance on the leading *n_modes* (fraction of the degrees of freedom
+    within the blocks) modes of the frames' scatter within their blocks, and
+    the blocks. Refused when the target's angles do not turn.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs.adi import angular_differential
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> rng = np.random.default_rng(0)
+    >>> t = KernelPhaseData(rng.normal(0, 0.1, (24, 1, km.n_kp)), [1.6] * u.um, 10 * u.mas,
+    ...                     km, detpa=np.linspace(0, 60, 24))
+    >>> adi = angular_differential(t)
+    >>> adi.rotation.search, adi.kp.shape, adi.meta["calibrated"]
+    ('angular-differential', (1, 1, 37), False)
+    """
+    name = target.meta.get("source", "target")
+    if calibrated is not None:
+        if calibrated.rotation is None:
+            raise KpifsError(f"{name}: --angular-differential needs frames whose angles turn "
+                             f"(span {_span(target):.1f} deg: no time blocks to compare)")
+        calibrated.rotation.search = "angular-differential"
+        calibrated.meta["block_search"] = "angular-differential"
+        return calibrated
+    rb = rotation_blocks(target, [])
+    if rb is None:
+        raise KpifsError(f"{name}: --angular-differential needs frames whose angles turn "
+                         f"(span {_span(target):.1f} deg: no time blocks to compare)")
+    rb.search = "angular-differential"
+    comp = noise_whitening(rb, fraction=n_modes)                 # rows v_k / sqrt(var_k)
+    # the product's covariance (of the frames' mean) on those modes, for its errors
+    inv = np.sum(comp ** 2, axis=-1)
+    var = np.divide(1.0, inv, out=np.zeros_like(inv), where=inv > 0)
+    vec = comp * np.sqrt(var)[..., None]
+    cov = np.einsum("ikp,ik,ikq->ipq", vec, var, vec) / target.n_frame
+    k = comp.shape[1]
+    meta = dict(target.meta)
+    meta.update(calibrated=False, block_search="angular-differential",
+                n_target_frames=target.n_frame, calibrators=[],
+                detpa_frames=[float(v) for v in target.detpa],
+                error_model={"model": "frames", "adi_modes": k})
+    a = target.detpa
+    pa = float(np.rad2deg(np.arctan2(np.sin(np.deg2rad(a)).mean(), np.cos(np.deg2rad(a)).mean())))
+    out = KernelPhaseData(target.kp.mean(axis=0)[None], target.wavelengths, target.pixscale,
+                          target.kernel_model, window=target.window, covariance=cov,
+                          header=target.header, detpa=[pa], bandwidth=target.bandwidth,
+                          meta=meta)
+    out.rotation = rb
+    out.header["BLKSRCH"] = ("angular-differential", "searched by its time blocks only")
+    log.info("%s: angular-differential product: %d blocks over %.1f deg, %d modes per channel",
+             name, rb.n_blocks, rb.span, k)
+    return out
