@@ -13,6 +13,7 @@ import numpy as np
 
 from ._laws import norm_isf
 from .limits import limit_energy_correlated
+from .quality import resolution_mas
 
 __all__ = ["whiten_weights", "channel_shrinkage", "SHRINKAGE_GRID", "np_correlated",
            "energy_spread", "noise_scale", "map_noise", "combined_scale",
@@ -224,7 +225,6 @@ def grid_rings(model):
     >>> int(grid_rings(dm).max())     # lambda / B_max = 43 mas: 20-100 mas in three
     2
     """
-    from .quality import resolution_mas
     if "_rings" not in model.__dict__:
         grid = model.grid
         sep = grid.sep.ravel()
