@@ -80,7 +80,8 @@ def run(args):
         print(f"  error model: whitened energy {e['raw'] / e['dof']:.2f} x its {e['dof']} dof "
               f"from the frames; noise scale {e.get('noise_scale', 1.0):.2f} applied to every "
               f"test (residual chi2 {res.meta.get('chi2_red', float('nan')):.2f}, map "
-              f"{e.get('map_noise', float('nan')):.2f}); energy test P_FA {e['pfa']:.1e}")
+              f"{e.get('map_noise', float('nan')):.2f}), more in annuli whose own noise is "
+              f"higher{_s_scale(res)}; energy test P_FA {e['pfa']:.1e}")
     for row in res.candidates:
         x = row["fit_x"] if "fit_x" in row.colnames else row["x"]
         y = row["fit_y"] if "fit_y" in row.colnames else row["y"]
@@ -110,3 +111,9 @@ def run(args):
         else:
             print(f"  figures in {args.plots}/")
     return 0
+
+
+def _s_scale(res):
+    """The spectral-model test's own scale, when it differs from the common one."""
+    s, c = res.meta.get("noise_scale_S"), res.meta.get("noise_scale_common")
+    return "" if s is None or c is None or abs(s - c) < 5e-3 else f", {s:.2f} for S"
