@@ -14,11 +14,10 @@ The calibrated product of a pupil-tracking sequence keeps its time blocks
   survives of a companion turning with the sky (its self-subtraction).
 
 Tests, limits, fits and the null see one whitened vector per channel, of
-dimension ``r_m + B r_f`` (``B`` blocks): the correlations of the blocks add up
-instead of those of a smeared mean. Without the mean part (the
-angular-differential mode) only what turns is searched: neither a calibrator
-nor a static residual enters. A map costs one projection per block, as the
-rotating mean's did per PA bin.
+dimension ``r_m + B r_f`` (``B`` blocks): the blocks' correlations add up
+instead of a smeared mean's. Without the mean part (angular-differential mode)
+only what turns is searched, with no calibrator or static residual; a map
+costs one projection per block.
 """
 import hashlib
 import logging
@@ -32,6 +31,7 @@ from .._utils import one_blas_thread, thread_map, to_quantity
 from ..exceptions import KpifsError, KpifsWarning
 from ..kernel import MAS
 from ..rotation import noise_whitening, rotation_needed
+from .fit import fit_errors
 from .maps import UNIT_CACHE_BYTES, DetectionModel, _unit
 from .sky import sky_to_detector
 from .spectral import spectral_basis
@@ -141,17 +141,8 @@ class BlockModel(DetectionModel):
 
     def _signature_norms(self):
         q = len(self.wavelengths)
-        ny, nx = self.grid.shape
-        n = ny * nx
-        keep, mirrored = self.half_positions()
-        if mirrored:
-            pair = np.zeros(n, bool)
-            pair[keep] = pair[n - 1 - keep] = True
-            rest = np.flatnonzero(~pair)
-            rows = np.concatenate([keep, rest[rest <= n - 1 - rest]])
-        else:
-            rows = np.arange(n)
-            keep = np.flatnonzero(self.grid.valid.ravel())
+        n = self.grid.valid.size
+        keep, mirrored, rows = self._norm_rows()
         cache = q * len(keep) * self.dim * 4 <= UNIT_CACHE_BYTES
         at = np.searchsorted(rows, keep) if not mirrored else np.arange(len(keep))
         unit = np.empty((q, len(keep), self.dim), np.float32) if cache else None
@@ -179,8 +170,8 @@ class BlockModel(DetectionModel):
             self._unit_cache = (keep, unit)
         # the blocks' signatures without the removal of their mean: what an arc of
         # rotation lets survive is norm2 / norm2_free (the self-subtraction)
-        self.norm2_free = free.reshape(q, ny, nx) * self._wfac[None] ** 2
-        return out.reshape(q, ny, nx) * self._wfac[None] ** 2
+        self.norm2_free = free.reshape((q,) + self.grid.shape) * self._wfac[None] ** 2
+        return out.reshape(self.norm2_free.shape) * self._wfac[None] ** 2
 
     def retained(self):
         """Fraction of a companion's squared signal the search keeps (per channel and
@@ -421,12 +412,7 @@ class BlockStack:
             hi = np.concatenate([[x0 + box, y0 + box], np.full(q, np.inf)])
             with one_blas_thread():          # small products: BLAS's threads only wait
                 res = optimize.least_squares(resid, start, bounds=(lo, hi), jac=jac)
-            jac = res.jac
-            cov = np.linalg.pinv(jac.T @ jac)
-            if noise_rows is not None:
-                rj = np.asarray(noise_rows, float).reshape(len(noise_rows), -1) @ jac
-                cov = cov @ (rj.T @ rj) @ cov
-            err = np.sqrt(np.clip(np.diag(cov), 0, None))
+            err = fit_errors(res.jac, noise_rows)
             cols["fit_x"].append(res.x[0])
             cols["fit_y"].append(res.x[1])
             cols["fit_x_err"].append(err[0])
@@ -495,12 +481,9 @@ def _pad(rows, n, *, after):
 
 
 def block_stack(kpd, kp, w, rank, *, frame, mode="auto"):
-    """The `BlockStack` of a search, or None for the fast path (one mean, as before).
-
-    Blocks are searched on the sky when the data carry them (``kpd.rotation``,
-    `kpifs.rotation`); *mode* ``'auto'`` takes the data's own
-    (``meta['block_search']``, else ``'rotation'``).
-    """
+    """The `BlockStack` of a search, or None for the fast path (one mean, as before):
+    blocks are searched on the sky when the data carry them (``kpd.rotation``); *mode*
+    ``'auto'`` takes the data's own (``meta['block_search']``, else ``'rotation'``)."""
     if mode not in MODES + ("auto",):
         raise KpifsError(f"unknown block search {mode!r}: use one of {MODES} or 'auto'")
     if getattr(kpd, "rotation", None) is None or frame != "sky":

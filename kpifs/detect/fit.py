@@ -18,7 +18,7 @@ from .sky import sky_to_detector
 
 optimize = lazy_module("scipy.optimize")
 
-__all__ = ["fit_binary", "refine_candidates"]
+__all__ = ["fit_binary", "fit_errors", "refine_candidates"]
 
 
 def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pixscale=None,
@@ -198,16 +198,31 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
         set_correction(*res.x[:2])
         res = optimize.least_squares(resid, np.clip(res.x, lo + 1e-12, hi - 1e-12), **kw)
     jac = res.jac
-    cov = np.linalg.pinv(jac.T @ jac)
-    if noise_rows is not None:
-        rj = np.asarray(noise_rows, float).reshape(len(noise_rows), -1) @ jac
-        cov = cov @ (rj.T @ rj) @ cov
-    err = np.sqrt(np.clip(np.diag(cov), 0, None))
+    err = fit_errors(jac, noise_rows)
     dof = int(np.count_nonzero(np.abs(whitening).sum(axis=2))) - (q + 2)
     return {"x": res.x[0], "y": res.x[1], "x_err": err[0], "y_err": err[1],
             "contrast": res.x[2:], "contrast_err": err[2:], "chi2": float(2 * res.cost),
             "dof": dof, "success": bool(res.success),
             "frame": "detector" if rot is None else "sky", "model": model(res.x)}
+
+
+def fit_errors(jac, noise_rows=None):
+    """1-sigma errors of a least-squares fit from its whitened Jacobian: ``(J^T J)^+``,
+    or, with *noise_rows* (the whitened noise's rows), the sandwich ``(J^T J)^+ J^T
+    R^T R J (J^T J)^+`` of the noise they describe.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.fit import fit_errors
+    >>> fit_errors(np.eye(3) * 2.0).tolist()
+    [0.5, 0.5, 0.5]
+    """
+    cov = np.linalg.pinv(jac.T @ jac)
+    if noise_rows is not None:
+        rj = np.asarray(noise_rows, float).reshape(len(noise_rows), -1) @ jac
+        cov = cov @ (rj.T @ rj) @ cov
+    return np.sqrt(np.clip(np.diag(cov), 0, None))
 
 
 def refine_candidates(cands, kp, w, kpd, noise_rows=None, poses=None, dof=None,

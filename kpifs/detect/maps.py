@@ -184,18 +184,8 @@ class DetectionModel:
         """``||s_i||^2`` everywhere; on the way, the unit signatures of `half_positions`
         are kept (single precision, within `UNIT_CACHE_BYTES`) for the nulls and limits."""
         q, p = len(self.wavelengths), self.kernel_model.n_kp
-        ny, nx = self.grid.shape
-        n = ny * nx
-        keep, mirrored = self.half_positions()
-        if mirrored:
-            # flat position n - 1 - r is -pos(r), of the same norm: one of each pair
-            pair = np.zeros(n, bool)
-            pair[keep] = pair[n - 1 - keep] = True
-            rest = np.flatnonzero(~pair)
-            rows = np.concatenate([keep, rest[rest <= n - 1 - rest]])
-        else:
-            rows = np.arange(n)
-            keep = np.flatnonzero(self.grid.valid.ravel())
+        n = self.grid.valid.size
+        keep, mirrored, rows = self._norm_rows()
         cache = q * len(keep) * p * 4 <= UNIT_CACHE_BYTES
         at = np.searchsorted(rows, keep) if not mirrored else np.arange(len(keep))
         unit = np.empty((q, len(keep), p), np.float32) if cache else None
@@ -217,7 +207,7 @@ class DetectionModel:
         thread_map(channel, range(q))
         if cache:
             self._unit_cache = (keep, unit)
-        return out.reshape(q, ny, nx) * self._wfac[None] ** 2
+        return out.reshape((q,) + self.grid.shape) * self._wfac[None] ** 2
 
     def _symmetric_grid(self):
         g = self.grid
@@ -422,6 +412,17 @@ class DetectionModel:
             while len(cache) > 3:
                 cache.pop(next(iter(cache)))
         return cache[keys[0]]
+
+    def _norm_rows(self):
+        """Kept positions, mirrored?, and the rows whose norms are computed (`half_positions`)."""
+        n = self.grid.valid.size
+        keep, mirrored = self.half_positions()
+        if not mirrored:
+            return np.flatnonzero(self.grid.valid.ravel()), False, np.arange(n)
+        pair = np.zeros(n, bool)
+        pair[keep] = pair[n - 1 - keep] = True
+        rest = np.flatnonzero(~pair)
+        return keep, True, np.concatenate([keep, rest[rest <= n - 1 - rest]])
 
     def half_positions(self):
         """Valid positions, split into a half and its mirror image when the grid allows."""
