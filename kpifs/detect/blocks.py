@@ -32,7 +32,8 @@ from ..exceptions import KpifsError, KpifsWarning
 from ..kernel import MAS
 from ..rotation import noise_whitening, rotation_needed
 from .fit import fit_errors
-from .maps import UNIT_CACHE_BYTES, DetectionModel, _unit
+from ._signatures import _norm_chunks, _unit
+from .maps import UNIT_CACHE_BYTES, DetectionModel
 from .sky import sky_to_detector
 from .spectral import spectral_basis
 
@@ -151,16 +152,12 @@ class BlockModel(DetectionModel):
         free = np.zeros((q, n))
 
         def channel(i):
-            raw = np.empty(len(rows))
-            for a in range(0, len(rows), 1024):
-                chunk = rows[a:a + 1024]
+            def stacked(chunk):         # and, on the way, the norms before self-subtraction
                 fb = np.empty(len(chunk))
                 s = self._stacked(i, chunk, free=fb)
                 free[i, chunk] = fb
-                raw[a:a + len(s)] = np.einsum("ij,ij->i", s, s)
-                if cache:
-                    sel = (at >= a) & (at < a + len(s))
-                    unit[i, sel] = _unit(s[at[sel] - a], raw[at[sel]], wf[sel])
+                return s
+            raw = _norm_chunks(rows, 1024, stacked, at, wf, unit[i] if cache else None)
             out[i, rows] = raw
             if mirrored:
                 out[i, n - 1 - rows] = raw

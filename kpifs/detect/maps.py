@@ -31,6 +31,7 @@ from ..exceptions import KpifsError
 from ..kernel import MAS
 from ..window import ExtractionWindow
 from ._laws import norm_sf
+from ._signatures import _norm_chunks, _unit
 from ._laws import chi2_sf
 from .limits import spectrum_shape
 from .channels import channel_shrinkage, whiten_weights
@@ -194,13 +195,8 @@ class DetectionModel:
 
         def channel(i):
             # ||W K sin||^2 through the (nuv, p) lift: fewer flops than the (nuv, nuv) Gram
-            raw = np.empty(len(rows))
-            for a in range(0, len(rows), 2048):
-                s = self._sin_rows(i, rows[a:a + 2048]) @ self._lift[i]
-                raw[a:a + len(s)] = np.einsum("ij,ij->i", s, s)
-                if cache:
-                    sel = (at >= a) & (at < a + len(s))
-                    unit[i, sel] = _unit(s[at[sel] - a], raw[at[sel]], wf[sel])
+            raw = _norm_chunks(rows, 2048, lambda c: self._sin_rows(i, c) @ self._lift[i],
+                               at, wf, unit[i] if cache else None)
             out[i, rows] = raw
             if mirrored:
                 out[i, n - 1 - rows] = raw
@@ -479,13 +475,6 @@ class DetectionModel:
         tab.meta["threshold"] = float(threshold)
         tab.meta["position_angle"] = "degrees from +y (image rows) towards +x (columns)"
         return tab
-
-
-def _unit(s, norm2, wf):
-    """Unit signatures ``-s / ||s||`` from ``s = sin(theta) L`` and its squared norms
-    (NaN where the window factor *wf* is 0, as the norms there are)."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return -s / np.where(wf > 0, np.sqrt(norm2), 0.0)[:, None]
 
 
 def _window_max(t, size):
