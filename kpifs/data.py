@@ -206,6 +206,59 @@ class KernelPhaseData:
         """The data's name for messages (its source file)."""
         return self.meta.get("source", "<kernel-phase data>")
 
+    def select_channels(self, keep):
+        """The same data restricted to some channels (a boolean mask or indices).
+
+        Everything per channel follows: kernel phases, covariances and their
+        rows, errors, raw phases, the time blocks; the meta records the channels
+        kept (``meta['channels']``, 1-based numbers of the original channels).
+
+        Examples
+        --------
+        >>> import numpy as np, astropy.units as u
+        >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+        >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+        >>> kpd = KernelPhaseData(np.zeros((1, 3, km.n_kp)), [1.52, 1.6, 1.68] * u.um,
+        ...                       10.42 * u.mas, km)
+        >>> sub = kpd.select_channels([0, 2])
+        >>> sub.wavelengths, sub.meta["channels"]
+        (<Quantity [1.52, 1.68] um>, [1, 3])
+        """
+        idx = np.arange(self.n_wave)[np.asarray(keep)] if np.asarray(keep).dtype == bool \
+            else np.asarray(keep, int).ravel()
+        if idx.size == 0 or idx.min() < -self.n_wave or idx.max() >= self.n_wave:
+            raise KpifsError(f"{self.name}: channels {keep!r} do not select among "
+                             f"{self.n_wave} channel(s)")
+        idx = np.unique(idx % self.n_wave)
+
+        def per_channel(a, axis):
+            return None if a is None else np.take(np.asarray(a), idx, axis=axis)
+
+        jcov = None
+        if self.joint_covariance is not None:
+            q, p = self.n_wave, self.n_kp
+            jcov = self.joint_covariance.reshape(q, p, q, p)[idx][:, :, idx]
+            jcov = jcov.reshape(idx.size * p, idx.size * p)
+        meta = dict(self.meta)
+        numbers = list(self.meta.get("channels") or range(1, self.n_wave + 1))
+        meta["channels"] = [int(numbers[i]) for i in idx]
+        bw = self.bandwidth
+        if bw is not None and np.ndim(bw) > 0:
+            bw = bw[idx]
+        out = KernelPhaseData(
+            self.kp[:, idx], self.wavelengths[idx], self.pixscale, self.kernel_model,
+            window=self.window, phases=per_channel(self.phases, 1),
+            amplitudes=per_channel(self.amplitudes, 1), covariance=per_channel(self.covariance, 0),
+            joint_covariance=jcov, covariance_rows=per_channel(self.covariance_rows, 1),
+            fit_covariance_rows=per_channel(self.fit_covariance_rows, 1),
+            block_rows=per_channel(self.block_rows, 1), kp_err=per_channel(self.kp_err, 1),
+            header=self.header, detpa=self.detpa, bandwidth=bw, meta=meta)
+        if self.rotation is not None:
+            r = self.rotation
+            out.rotation = type(r)(r.angles, r.frames, r.data[:, idx], r.noise[:, idx],
+                                   r.n_target_noise, r.calibrated, r.search)
+        return out
+
     def __repr__(self):
         return (f"<KernelPhaseData: {self.n_frame} frame(s) x {self.n_wave} channel(s) x "
                 f"{self.n_kp} kernel phases, {self.wavelengths.min():.3f}-"
@@ -430,6 +483,9 @@ def _read_detection(path):
             "seed": hdr["MCSEED"], "null_channels": hdr["NULLCHAN"],
             "calibrators": [hdr[k] for k in hdr if k.startswith("KPCAL") and k[5:].isdigit()],
             "spectrum": [hdr[f"SPEC{i}"] for i in range(1, nwave + 1) if f"SPEC{i}" in hdr],
+            "aliased": [hdr.get(f"ALIAS{i}", 0.0) for i in range(1, nwave + 1)],
+            "channels": [hdr.get(f"CHAN{i}", i) for i in range(1, nwave + 1)],
+            "excluded_channels": [int(v) for v in str(hdr.get("EXCLCHAN", "")).split(",") if v],
             "source": str(path)}
     if "CHI2RED" in hdr:
         meta.update(chi2_red=hdr["CHI2RED"], noise_scale=hdr.get("NOISESC", 1.0))

@@ -47,8 +47,7 @@ __all__ = ["ExtractOptions", "DetectOptions", "DEFAULT_PUPIL", "kernel_model_for
            "process_observation", "options_record", "inputs_digest",
            "products_digest", "observation_digest"]
 
-# kpifs.detect brings astropy.table (a tenth of a second): loaded when a search runs,
-# not for `kpifs extract`
+# kpifs.detect brings astropy.table (0.1 s): loaded when a search runs, not for extract
 _null = lazy_module("kpifs.detect.null")
 _pipeline = lazy_module("kpifs.detect.pipeline")
 _sky = lazy_module("kpifs.detect.sky")
@@ -87,10 +86,9 @@ class ExtractOptions:
     pixscale: object = None
     pa: object = None
     dq_bits: object = None          # JWST: DQ flags read as bad (`kpifs.io.jwst.parse_dq_bits`)
-    # pupil and kernel model (pupil None: the instrument's telescope)
+    # pupil (None: the instrument's telescope) and model (None: `pupil.MODEL_DEFAULTS`)
     pupil: object = None
     pupil_scale: object = None
-    # (None: the pupil's default, `kpifs.pupil.MODEL_DEFAULTS`)
     step: object = None
     offset: object = None
     min_transmission: float = None
@@ -126,13 +124,13 @@ class DetectOptions:
     ``max_sep``, ``min_sep`` and ``grid_step`` (mas) override the default grid;
     ``spectrum`` is 'flat' (None), a list of per-channel values or a text file;
     ``basis`` the spectral model of test S (`~kpifs.detect.spectral.spectral_basis`:
-    None, ``'smooth:R'``, ``'blackbody'``, spectra in a file); ``blocks``: `~kpifs.detect.detect`.
+    None, ``'smooth:R'``, ``'blackbody'``, spectra in a file); ``blocks``, ``aliased``: `detect`.
 
     Examples
     --------
     >>> from kpifs.workflow import DetectOptions
-    >>> DetectOptions(pfa=1e-4).test
-    'auto'
+    >>> DetectOptions(pfa=1e-4).test, DetectOptions().aliased
+    ('auto', 'keep')
     """
 
     test: str = "auto"
@@ -152,6 +150,7 @@ class DetectOptions:
     frame: str = "auto"
     null: str = "auto"
     blocks: str = "auto"
+    aliased: str = "keep"
 
     def validate(self):
         """Refuse options no search can run with (before any work); return self."""
@@ -410,7 +409,8 @@ def detect_observation(kpd, options=None, *, calibrators=(), progress=False):
                         shrinkage=options.shrinkage, fit=options.fit,
                         max_candidates=options.max_candidates,
                         allow_uncalibrated=options.allow_uncalibrated, frame=options.frame,
-                        null=options.null, blocks=options.blocks, progress=progress)
+                        null=options.null, blocks=options.blocks, aliased=options.aliased,
+                        progress=progress)
     except KpifsError as exc:             # every message names the file searched
         if kpd.name in str(exc):
             raise

@@ -409,6 +409,10 @@ def _detect(command):
                         "turns (rotation), what turns only (angular-differential), or the "
                         "mean with the model averaged over the angles (mean); default: the "
                         "data's own (%(default)s)")
+    p.add_argument("--aliased", default="keep", choices=("keep", "exclude"),
+                   help="channels whose pixels alias some of their uv points (their "
+                        "contrasts are flagged): searched like the others (keep, the default) "
+                        "or left out of the search, limits and fits (exclude)")
     p.add_argument("--plots", metavar="DIR", help="write PNG figures there (default: none)")
     _output(p, "output detection FITS file (required)")
 

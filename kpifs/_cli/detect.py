@@ -82,6 +82,7 @@ def run(args):
               f"test (residual chi2 {res.meta.get('chi2_red', float('nan')):.2f}, map "
               f"{e.get('map_noise', float('nan')):.2f}), more in annuli whose own noise is "
               f"higher{_s_scale(res)}; energy test P_FA {e['pfa']:.1e}")
+    _aliased_line(res)
     for row in res.candidates:
         x = row["fit_x"] if "fit_x" in row.colnames else row["x"]
         y = row["fit_y"] if "fit_y" in row.colnames else row["y"]
@@ -111,6 +112,21 @@ def run(args):
         else:
             print(f"  figures in {args.plots}/")
     return 0
+
+
+def _aliased_line(res):
+    """Which channels alias uv points, and what was done with them."""
+    gone = res.meta.get("excluded_channels") or []
+    numbers = res.meta.get("channels") or []
+    hit = [(n, w) for n, w, f in zip(numbers, res.wavelengths.to_value(u.um),
+                                     res.meta.get("aliased") or []) if f > 0]
+    if gone:
+        print(f"  channel(s) {', '.join(map(str, gone))} left out (pixels too coarse: aliased "
+              f"uv points)")
+    if hit:
+        print(f"  channel(s) {', '.join(f'{n} ({w:.3f} um)' for n, w in hit)}: pixels too "
+              f"coarse for some uv points; their contrasts are biased (flagged), "
+              f"--aliased exclude leaves them out")
 
 
 def _s_scale(res):

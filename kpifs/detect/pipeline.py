@@ -10,6 +10,7 @@ from ..data import DetectionGrid, DetectionResult, KernelPhaseData
 from ..exceptions import KpifsError, KpifsWarning
 from ..kernel import MAS, KernelModel
 from ..pupil import make_pupil
+from ..sampling import aliased_channels
 from ._laws import chi2_sf, norm_isf
 from .search import _POWER, _chi2_red, _sequential_search
 from .sky import (add_sky_columns, data_angles, pa_bins,
@@ -112,7 +113,7 @@ def _prepare(kpd, shrinkage, allow_uncalibrated):
 def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=None,
            n_draws=DEFAULT_DRAWS, seed=0, shrinkage="auto", fit=True, max_candidates=20,
            allow_uncalibrated=False, frame="auto", limits=True, null="auto", progress=False,
-           blocks="auto"):
+           blocks="auto", aliased="keep"):
     """Search calibrated kernel phases for a companion.
 
     Parameters
@@ -184,6 +185,14 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     limits : bool
         Compute the detection limits (default). Without (as the injection
         curves do, which only need the candidates) ``result.limits`` is empty.
+    aliased : {'keep', 'exclude'}
+        Channels whose pixels alias some of their uv points (`kpifs.sampling`)
+        are flagged in the result (``meta['aliased']``, the fraction per
+        channel; cards ``ALIAS<i>`` of the products): a companion's contrast
+        there is biased. ``'keep'`` (default) searches them, their noise is
+        measured like any other's; ``'exclude'`` leaves them out of the search,
+        the limits and the fits (``meta['excluded_channels']``), unless every
+        channel is aliased.
 
     Returns
     -------
@@ -201,6 +210,13 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     pfa = check_probability(pfa, "P_FA")
     pd = check_probability(pd, "P_D")
     check_draws(n_draws)
+    q0 = kpd.n_wave
+    kpd, kept = _drop_aliased(kpd, aliased)
+    if kept is not None:     # a per-channel spectrum or basis follows the channels kept
+        if spectrum is not None and np.size(spectrum) == q0:
+            spectrum = np.asarray(spectrum, float).ravel()[kept]
+        if isinstance(basis, np.ndarray) and basis.ndim == 2 and len(basis) == q0:
+            basis = basis[kept]
     kp, cov, kpd = _prepare(kpd, shrinkage, allow_uncalibrated)
     q, p = kp.shape
     if test == "auto":     # measured: `docs/user/choosing_test.rst`
@@ -390,9 +406,43 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
                    threshold, energy, meta, curves)
 
 
+def _aliased(kpd):
+    # interferometric data (OIFITS) have no pixels to alias
+    if kpd.meta.get("closure_phases"):
+        return np.zeros(kpd.n_wave)
+    return aliased_channels(kpd.kernel_model, kpd.wavelengths, kpd.pixscale)
+
+
+def _drop_aliased(kpd, aliased):
+    """*kpd* without its aliased channels (``aliased='exclude'``) and the indices kept,
+    else *kpd* and None."""
+    if aliased not in ("keep", "exclude"):
+        raise KpifsError(f"aliased must be 'keep' or 'exclude', got {aliased!r}")
+    frac = _aliased(kpd)
+    bad = frac > 0
+    numbers = list(kpd.meta.get("channels") or range(1, kpd.n_wave + 1))
+    if bad.any():
+        log.info("%s: channel(s) %s alias %s of their uv points", kpd.name,
+                 [numbers[i] for i in np.flatnonzero(bad)],
+                 [f"{f:.0%}" for f in frac[bad]])
+    if aliased == "keep" or not bad.any():
+        return kpd, None
+    if bad.all():
+        warnings.warn(f"{kpd.name}: every channel aliases some of its uv points (pixels "
+                      f"coarser than the pupil needs): none is left out", KpifsWarning,
+                      stacklevel=3)
+        return kpd, None
+    out = kpd.select_channels(~bad)
+    out.meta["excluded_channels"] = [numbers[i] for i in np.flatnonzero(bad)]
+    return out, np.flatnonzero(~bad)
+
+
 def _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands, threshold,
             energy, meta, curves=None):
     valid = grid.valid
+    meta["aliased"] = _aliased(kpd).tolist()
+    meta["channels"] = list(kpd.meta.get("channels") or range(1, kpd.n_wave + 1))
+    meta["excluded_channels"] = list(kpd.meta.get("excluded_channels", []))
     if curves is None:
         curves = radial_curves(limits, grid)
     return DetectionResult(grid=grid, test=test, pfa=pfa, pd=pd, statistic=t, pfa_local=ploc,

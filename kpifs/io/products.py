@@ -73,6 +73,15 @@ def detection_hdulist(result, *, header=None, inputs=()):
                       "[mas] largest separation searched (-1: none)")
     for i, w in enumerate(result.wavelengths.to_value("um"), 1):
         hdr[f"WAVE{i}"] = (float(w), f"[um] wavelength of channel {i}")
+    for i, f in enumerate(result.meta.get("aliased") or [], 1):
+        if any(result.meta["aliased"]):
+            hdr[f"ALIAS{i}"] = (round(float(f), 4), f"uv points aliased in channel {i} (fraction)")
+    chans = result.meta.get("channels") or []
+    if result.meta.get("excluded_channels"):
+        hdr["EXCLCHAN"] = (",".join(map(str, result.meta["excluded_channels"])),
+                           "input channels left out (aliased)")
+        for i, n in enumerate(chans, 1):
+            hdr[f"CHAN{i}"] = (int(n), f"input channel of channel {i}")
     for i, a in enumerate(result.meta.get("spectrum", []), 1):
         hdr[f"SPEC{i}"] = (float(a), "companion spectrum shape used for limits")
     hdr["NULLCHAN"] = (result.meta.get("null_channels", "independent"),
@@ -142,11 +151,11 @@ NULL_CARDS = {"threshold_gaussian": ("THRGAUS", "Gaussian Monte-Carlo"),
 # products' own cards come in one order however often a result is written
 _PRODUCT_CARDS = {"KPIFSVER", "CONTENT", "TEST", "MAPTEST", "PFA", "PD", "THRESH", "NDRAWS",
                   "PFAFLOOR", "MCSEED", "NCAND", "ESTAT", "EDOF", "EPFA", "ETHRESH", "GRIDFRM",
-                  "ERAW", "MAPNOISE", "SUBNOISE",
+                  "ERAW", "MAPNOISE", "SUBNOISE", "EXCLCHAN",
                   "GRIDMIN", "GRIDMAX",
                   "NULLCHAN", "CALIB", "CHI2RED", "NOISESC", "DETPA", "NULLMETH",
                   *(name for name, _ in NULL_CARDS.values())}
-_PRODUCT_PREFIXES = ("WAVE", "SPEC", "KPCAL", "KPIN")
+_PRODUCT_PREFIXES = ("WAVE", "SPEC", "KPCAL", "KPIN", "ALIAS", "CHAN")
 
 
 def _strip(header):
