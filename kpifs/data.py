@@ -489,6 +489,9 @@ def _read_detection(path):
             "source": str(path)}
     if "CHI2RED" in hdr:
         meta.update(chi2_red=hdr["CHI2RED"], noise_scale=hdr.get("NOISESC", 1.0))
+    if "STATSHR" in hdr:
+        meta["static"] = {"share": hdr["STATSHR"], "amplitude": hdr.get("STATAMP"),
+                          "pupil": hdr.get("STATPUP")}
     if "NULLMETH" in hdr:
         meta["null"] = {"method": hdr["NULLMETH"], "threshold": hdr["THRESH"],
                         **{key: hdr[name] for key, (name, _) in NULL_CARDS.items()

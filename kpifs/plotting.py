@@ -141,11 +141,20 @@ def plot_contrast_curves(result, *, ax=None):
     return fig
 
 
+def analytic_column(result):
+    """The curve of *result*'s own test (``'<test>_median'``; the energy test's map is B's)."""
+    test = "B" if result.test == "E" else result.test
+    for col in (f"{test}_median", "B_median"):
+        if col in result.curves.colnames:
+            return col
+    return None
+
+
 def plot_injection_limits(table, *, analytic=None, ax=None):
     """Empirical 50 % limit from injections (points: found / not found) beside the analytic one.
 
     *table* is `~kpifs.inject.injection_limits`'s; *analytic* a
-    `~kpifs.DetectionResult` of the same data without injections (its B median
+    `~kpifs.DetectionResult` of the same data without injections (its own test's median
     curve). A limit the ladder did not bracket (``table.meta['flags']``) is
     drawn as an arrow: down for an upper bound, up for a lower one.
 
@@ -182,10 +191,11 @@ def plot_injection_limits(table, *, analytic=None, ax=None):
             style = dict(color="k", marker=marker, ms=10, mfc="none", mew=1.5, ls="none")
             ax.plot(seps[sel], lims[sel], **style)
             handles.append(Line2D([], [], label=text, **style))
-    if analytic is not None and "B_median" in analytic.curves.colnames:
+    col = None if analytic is None else analytic_column(analytic)
+    if col is not None:
         handles += ax.plot(analytic.curves["separation"].to_value(u.mas),
-                           analytic.curves["B_median"], "b--",
-                           label="analytic limit (B test, median over angles)")
+                           analytic.curves[col], "b--",
+                           label=f"analytic limit ({col.split('_')[0]} test, median over angles)")
     ax.set_yscale("log")
     ax.set_xlabel("separation (mas)")
     ax.set_ylabel("contrast (companion / star)")

@@ -124,7 +124,8 @@ class DetectOptions:
     ``max_sep``, ``min_sep`` and ``grid_step`` (mas) override the default grid;
     ``spectrum`` is 'flat' (None), a list of per-channel values or a text file;
     ``basis`` the spectral model of test S (`~kpifs.detect.spectral.spectral_basis`:
-    None, ``'smooth:R'``, ``'blackbody'``, spectra in a file); ``blocks``, ``aliased``: `detect`.
+    None, ``'smooth:R'``, ``'blackbody'``, spectra in a file); ``blocks``, ``aliased``,
+    ``static``: `~kpifs.detect.detect`.
 
     Examples
     --------
@@ -151,6 +152,7 @@ class DetectOptions:
     null: str = "auto"
     blocks: str = "auto"
     aliased: str = "keep"
+    static: str = "auto"
 
     def validate(self):
         """Refuse options no search can run with (before any work); return self."""
@@ -220,11 +222,10 @@ def kernel_model_for(options, instrument="generic", header=None):
     pupil = options.pupil if options.pupil is not None else default_pupil(instrument, header)
     if header is not None:
         check_pupil_header(pupil, header, source=header.get("FILENAME", "cube"))
-    offset = None
-    if options.offset is not None:
-        offset = to_quantity(options.offset, u.m, name="grid offset")
-        if offset.size != 2:
-            raise KpifsError(f"the grid offset needs two values x,y, got {options.offset!r}")
+    offset = None if options.offset is None else \
+        to_quantity(options.offset, u.m, name="grid offset")
+    if offset is not None and offset.size != 2:
+        raise KpifsError(f"the grid offset needs two values x,y, got {options.offset!r}")
     step = None if options.step is None else to_quantity(options.step, u.m, name="grid step")
     rotation = (None if options.rotation is None
                 else to_quantity(options.rotation, u.deg, name="pupil rotation"))
@@ -235,9 +236,8 @@ def kernel_model_for(options, instrument="generic", header=None):
 
 
 def _pixscale(options):
-    if options.pixscale is None:
-        return None
-    return to_quantity(options.pixscale, u.mas, name="pixel scale")
+    return None if options.pixscale is None else \
+        to_quantity(options.pixscale, u.mas, name="pixel scale")
 
 
 def extract_observation(files, options=None, *, model=None, progress=False):
@@ -407,7 +407,7 @@ def detect_observation(kpd, options=None, *, calibrators=(), progress=False):
                         spectrum=_spectral.parse_spectrum(options.spectrum, kpd.n_wave),
                         basis=options.basis, n_draws=options.draws, seed=options.seed,
                         shrinkage=options.shrinkage, fit=options.fit,
-                        max_candidates=options.max_candidates,
+                        max_candidates=options.max_candidates, static=options.static,
                         allow_uncalibrated=options.allow_uncalibrated, frame=options.frame,
                         null=options.null, blocks=options.blocks, aliased=options.aliased,
                         progress=progress)

@@ -26,6 +26,6 @@ def detect_options(args):
     get = {k: getattr(args, k) for k in ("test", "pfa", "pd", "max_sep", "min_sep",
                                          "grid_step", "spectrum", "basis", "draws", "seed",
                                          "shrinkage", "allow_uncalibrated", "frame", "null",
-                                         "blocks", "aliased")
+                                         "blocks", "aliased", "static")
            if hasattr(args, k)}
     return DetectOptions(**get)

@@ -83,6 +83,11 @@ def run(args):
               f"{e.get('map_noise', float('nan')):.2f}), more in annuli whose own noise is "
               f"higher{_s_scale(res)}; energy test P_FA {e['pfa']:.1e}")
     _aliased_line(res)
+    st = res.meta.get("static")
+    if st:
+        print(f"  static aberrations (no calibrator): a kernel-phase residual imaged through the "
+              f"{st['pupil']} pupil, fitted at {st['share']:.2f} x the frames' variance, is in "
+              f"the covariance of every test")
     for row in res.candidates:
         x = row["fit_x"] if "fit_x" in row.colnames else row["x"]
         y = row["fit_y"] if "fit_y" in row.colnames else row["y"]

@@ -15,7 +15,7 @@ from ..io import parse_wavelengths, read_cube
 from ..io._kpfits_common import ascii_text
 from ..io.angles import frame_detpa
 from ..io.layouts import write_plain_cube
-from ..plotting import _save, plot_injection_limits
+from ..plotting import _save, analytic_column, plot_injection_limits
 from ..workflow import (calibrate_observation, calibrator_options, detect_observation,
                         extract_observation, kernel_model_for, DetectOptions)
 from ._options import extract_options
@@ -140,8 +140,9 @@ def _curve(args, options, data, wl, ps, instrument, name):
     target = extract_observation(args.cubes, options, model=model)
     analytic = detect_observation(calibrate_observation(target, cals, options),
                                   DetectOptions(pfa=args.pfa, draws=args.draws, seed=args.seed))
+    # the limit of the test the injections are searched with (detect's default)
     ana = np.interp(seps.value, analytic.curves["separation"].to_value(u.mas),
-                    analytic.curves["B_median"], left=np.nan, right=np.nan)
+                    analytic.curves[analytic_column(analytic)], left=np.nan, right=np.nan)
     ladder = None if args.contrasts is None else _floats(args.contrasts, "--contrasts")
     if ladder is None and not np.all(np.isfinite(ana)):
         bad = ", ".join(f"{s:g}" for s in seps.value[~np.isfinite(ana)])

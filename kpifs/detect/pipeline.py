@@ -9,6 +9,7 @@ from ..covariance import empirical_covariance, whiten, whitening_matrix
 from ..data import DetectionGrid, DetectionResult, KernelPhaseData
 from ..exceptions import KpifsError, KpifsWarning
 from ..kernel import MAS, KernelModel
+from ..aberrations import static_term
 from ..pupil import make_pupil
 from ..sampling import aliased_channels
 from ._laws import chi2_sf, norm_isf
@@ -113,7 +114,7 @@ def _prepare(kpd, shrinkage, allow_uncalibrated):
 def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=None,
            n_draws=DEFAULT_DRAWS, seed=0, shrinkage="auto", fit=True, max_candidates=20,
            allow_uncalibrated=False, frame="auto", limits=True, null="auto", progress=False,
-           blocks="auto", aliased="keep"):
+           blocks="auto", aliased="keep", static="auto"):
     """Search calibrated kernel phases for a companion.
 
     Parameters
@@ -193,6 +194,11 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
         measured like any other's; ``'exclude'`` leaves them out of the search,
         the limits and the fits (``meta['excluded_channels']``), unless every
         channel is aliased.
+    static : {'auto', 'fit', 'none'}
+        Add the kernel-phase residual of static aberrations to the covariance,
+        its shape imaged through the pupil and its amplitude fitted to the data
+        (`kpifs.aberrations`; ``result.meta['static']``). ``'auto'``: for data
+        no calibrator was subtracted from, whose frames cannot show it.
 
     Returns
     -------
@@ -218,6 +224,10 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
         if isinstance(basis, np.ndarray) and basis.ndim == 2 and len(basis) == q0:
             basis = basis[kept]
     kp, cov, kpd = _prepare(kpd, shrinkage, allow_uncalibrated)
+    static_rows, static_info = None, None
+    if _wants_static(kpd, static):
+        cov, static_rows, static_info = static_term(
+            kpd, kp, cov, whitening_matrix(cov, source="covariance of the data"), seed=seed)
     q, p = kp.shape
     if test == "auto":     # measured: `docs/user/choosing_test.rst`
         test = "S" if q > 1 else "B"
@@ -232,6 +242,8 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     # issue 29: a rotating sequence's time blocks, stacked (None: the one mean, as before)
     stack = block_stack(kpd, kp, w, rank, frame=frame, mode=blocks)
     cov_rows, blk_rows, fit_rows = kpd.covariance_rows, kpd.block_rows, kpd.fit_covariance_rows
+    if static_rows is not None and cov_rows is not None:
+        cov_rows = np.concatenate([cov_rows, static_rows])
     if stack is not None:
         kp, w, rank, y = stack.kp, stack.whitening, stack.rank, stack.kp
         cov_rows, blk_rows, fit_rows = stack.rows, stack.block_rows, None
@@ -344,7 +356,7 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
         return _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, {}, cands, threshold,
                        energy, {"frame": frame, "chi2_red": kappa, "noise_scale": scale,
                                 "n_draws": n_draws, "seed": seed, "test": test, "pfa": pfa,
-                                "pd": pd, "null": null_info})
+                                "pd": pd, "null": null_info, "static": static_info})
     if rows is not None:   # correlated channels: the energy's law from the same null model
         # a one-number statistic: its draws are cheap, and its threshold is read directly
         te = energy_null(rows, max(n_draws, ENERGY_DRAWS), seed)
@@ -399,11 +411,18 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
             "pa_bins": None if poses is None else [np.asarray(p).tolist() for p in poses],
             "pa_bins_search": None if search_poses is None
             else [np.asarray(p).tolist() for p in search_poses],
-            "blocks": None if stack is None else stack.info}
+            "blocks": None if stack is None else stack.info, "static": static_info}
     log.info("detect: %d candidate(s) above the %s threshold %.3f (global P_FA %.1e)",
              len(cands), form, threshold, pfa)
     return _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands,
                    threshold, energy, meta, curves)
+
+
+def _wants_static(kpd, static):
+    if static not in ("auto", "fit", "none"):
+        raise KpifsError(f"static must be 'auto', 'fit' or 'none', got {static!r}")
+    adi = getattr(kpd.rotation, "search", None) == "angular-differential"
+    return static == "fit" or (static == "auto" and not kpd.meta.get("calibrated") and not adi)
 
 
 def _aliased(kpd):

@@ -76,6 +76,11 @@ def detection_hdulist(result, *, header=None, inputs=()):
     for i, f in enumerate(result.meta.get("aliased") or [], 1):
         if any(result.meta["aliased"]):
             hdr[f"ALIAS{i}"] = (round(float(f), 4), f"uv points aliased in channel {i} (fraction)")
+    st = result.meta.get("static")
+    if st:
+        hdr["STATSHR"] = (round(float(st["share"]), 6), "static residual / frames' variance")
+        hdr["STATAMP"] = (float(st["amplitude"]), "static residual amplitude (ML fit)")
+        hdr["STATPUP"] = (str(st["pupil"]), "pupil the static residual was imaged through")
     chans = result.meta.get("channels") or []
     if result.meta.get("excluded_channels"):
         hdr["EXCLCHAN"] = (",".join(map(str, result.meta["excluded_channels"])),
@@ -151,7 +156,7 @@ NULL_CARDS = {"threshold_gaussian": ("THRGAUS", "Gaussian Monte-Carlo"),
 # products' own cards come in one order however often a result is written
 _PRODUCT_CARDS = {"KPIFSVER", "CONTENT", "TEST", "MAPTEST", "PFA", "PD", "THRESH", "NDRAWS",
                   "PFAFLOOR", "MCSEED", "NCAND", "ESTAT", "EDOF", "EPFA", "ETHRESH", "GRIDFRM",
-                  "ERAW", "MAPNOISE", "SUBNOISE", "EXCLCHAN",
+                  "ERAW", "MAPNOISE", "SUBNOISE", "EXCLCHAN", "STATSHR", "STATAMP", "STATPUP",
                   "GRIDMIN", "GRIDMAX",
                   "NULLCHAN", "CALIB", "CHI2RED", "NOISESC", "DETPA", "NULLMETH",
                   *(name for name, _ in NULL_CARDS.values())}
