@@ -383,7 +383,7 @@ def detect_observation(kpd, options=None, *, calibrators=(), progress=False):
     --------
     >>> from kpifs.detect.pipeline import _example_result
     >>> _example_result().test                           # made by detect()
-    'S'
+    'B'
     """
     detect, default_grid = _pipeline.detect, _pipeline.default_grid
     options = (options or DetectOptions()).validate()

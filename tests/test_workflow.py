@@ -161,7 +161,7 @@ def test_detection_result_round_trip(tmp_path):
     assert len(back.candidates) == len(res.candidates) == 1
     np.testing.assert_allclose(back.candidates["fit_contrast"], res.candidates["fit_contrast"])
     assert back.energy == pytest.approx(res.energy)
-    assert back.limit is back.limits["S"]
+    assert back.limit is back.limits["B"]
     # written again, the products are the same
     back.write(tmp_path / "again.fits")
     _same_products(path, tmp_path / "again.fits", history=False)

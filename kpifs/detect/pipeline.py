@@ -26,7 +26,7 @@ from .channels import (NOISE_CONFIDENCE, combined_scale, correlated_inputs, ener
                        energy_spread, map_noise, np_correlated, scale_block_rows,
                        subspace_scale, annulus_noise, ring_noise)
 from .quality import add_spectrum_model, flag_candidates, resolution_mas
-from .spectral import limit_subspace
+from .spectral import limit_subspace, spectral_basis
 from .stats import TESTS, check_probability, energy_threshold
 
 
@@ -125,8 +125,10 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
         *allow_uncalibrated* (the frames' mean is then searched, with a
         warning).
     test : {'auto', 'B', 'B-paper', 'S', 'NP', 'E'}
-        ``'auto'`` (default): ``'S'`` on data with several channels, ``'B'`` on
-        one channel (where the two are the same test). ``'B'``: the GLR binary
+        ``'auto'`` (default): ``'S'`` when its spectral model (*basis*) has
+        fewer dimensions than the data have channels, else ``'B'`` (on one
+        channel the two are the same test; with as many dimensions as
+        channels, B's all-positive contrasts constrain more). ``'B'``: the GLR binary
         test ``sum_i max(z_i, 0)^2``; ``'B-paper'``: the seed paper's
         ``sum_i max(z_i, 0)``; ``'S'``: the spectral-model (subspace) test, the
         GLR for a contrast spectrum in the span of *basis*
@@ -208,8 +210,8 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     --------
     >>> from kpifs.detect.pipeline import _example_result
     >>> res = _example_result()          # detect() on a simulated calibrated data set
-    >>> len(res.candidates), res.test      # 'auto': S on the three channels
-    (1, 'S')
+    >>> len(res.candidates), res.test      # 'auto': two channels, B (see *test*)
+    (1, 'B')
     """
     if test not in TESTS + ("auto",):
         raise KpifsError(f"unknown test {test!r}: use one of {TESTS} or 'auto'")
@@ -230,7 +232,9 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
             kpd, kp, cov, whitening_matrix(cov, source="covariance of the data"), seed=seed)
     q, p = kp.shape
     if test == "auto":     # measured: `docs/user/choosing_test.rst`
-        test = "S" if q > 1 else "B"
+        # S only constrains the spectrum when its model has fewer dimensions than the
+        # channels; with as many, B's all-positive contrasts are the stronger constraint
+        test = "S" if spectral_basis(basis, kpd.wavelengths).shape[1] < q else "B"
     a = spectrum_shape(spectrum, q)
     w, rank = whitening_matrix(cov, return_rank=True, source="covariance of the data")
     rank = np.atleast_1d(rank)

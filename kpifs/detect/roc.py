@@ -6,7 +6,9 @@ one frame's kernel phases; whiten; form the whitened companion signal
 ``x_i = W_i K arg(1 + c_i w exp(-2 pi i (alpha u + beta v)/lambda_i))``; draw M
 realisations of ``y = e`` (H0) and ``y = x + e`` (H1) with ``e`` standard normal
 in each channel's whitened subspace; compute every test on the whole set of
-channels and on each channel alone; compare with the theory for NP and E.
+channels and on each channel alone; compare with the theory for NP and E, and
+for the subspace test S at the companion's known position
+(`theory_roc_subspace`).
 """
 import logging
 
@@ -20,11 +22,13 @@ from ..extract import extract_kernel_phases
 from ..kernel import KernelModel
 from ..pupil import make_pupil
 from ..simulate import simulate_scene
+from . import spectral
 from .stats import TESTS, auc, monte_carlo_roc, roc_curve
 
 stats = lazy_module("scipy.stats")
 
-__all__ = ["paper_experiment", "theory_roc", "whitened_signal"]
+__all__ = ["paper_experiment", "theory_roc", "theory_roc_subspace", "subspace_mean",
+           "whitened_signal"]
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +78,73 @@ def theory_roc(test, norm_x, dof, pfa):
     if test == "E":
         return stats.ncx2.sf(stats.chi2.isf(pfa, dof), dof, norm_x ** 2)
     raise ValueError(test)
+
+
+def subspace_mean(norms):
+    """Mean ``(mu_h, lambda_perp, r)`` of the subspace statistic's projections at a known
+    position: ``gamma = W z ~ N(mu, I_r)``, ``mu_h`` its part along the sign vector ``h``
+    and ``lambda_perp`` the squared rest (as `~kpifs.detect.stats.monte_carlo_roc`
+    builds ``W`` and ``h`` from the channels' signal norms *norms*).
+
+    Examples
+    --------
+    >>> from kpifs.detect.roc import subspace_mean
+    >>> mu_h, lam, r = subspace_mean([2.0, 2.0, 2.0, 2.0])   # flat: all along h
+    >>> round(mu_h, 4), round(lam, 6), r
+    (4.0, 0.0, 3)
+    """
+    norms = np.asarray(norms, float)
+    q = len(norms)
+    basis = spectral.smooth_basis(np.arange(1.0, q + 1), max(1, min(3, q - 1)))
+    w = spectral.subspace_weights(norms[:, None] ** 2, basis)[:, :, 0]
+    h = np.linalg.solve((w @ (norms[:, None] * basis)).T, basis.sum(axis=0))
+    mu = w @ norms
+    mu_h = float(mu @ h / np.linalg.norm(h))
+    return mu_h, float(max(mu @ mu - mu_h ** 2, 0.0)), basis.shape[1]
+
+
+def theory_roc_subspace(mu_h, lam_perp, r, pfa):
+    """Theoretical ``P_D(P_FA)`` of the subspace test at a known position.
+
+    ``S = |gamma|^2`` when ``h . gamma > 0`` (else 0), ``gamma ~ N(mu, I_r)``: with
+    ``g`` the part along ``h``, ``P(S > t) = int_0^inf phi(g - mu_h)
+    P(chi2'_{r-1}(lambda_perp) > t - g^2) dg``; under H0 that is half the chi2 law
+    with r degrees of freedom, so the threshold at *pfa* (< 0.5) is
+    ``chi2.isf(2 pfa, r)``.
+
+    Examples
+    --------
+    >>> from kpifs.detect.roc import theory_roc_subspace
+    >>> round(float(theory_roc_subspace(0.0, 0.0, 3, 0.01)), 4)     # H1 = H0
+    0.01
+    """
+    pfa = np.atleast_1d(np.asarray(pfa, float))
+    out = np.empty(pfa.shape)
+    g = np.linspace(0.0, mu_h + 12.0, 4001)[1:] if mu_h > 0 else np.linspace(0, 12, 4001)[1:]
+    dens = stats.norm.pdf(g - mu_h)
+    for k, pf in enumerate(pfa):
+        if pf >= 0.5:
+            out[k] = np.nan
+            continue
+        t = stats.chi2.isf(2 * pf, r)
+        rest = t - g ** 2
+        if r == 1:
+            tail = (rest <= 0).astype(float)
+        elif lam_perp > 0:
+            tail = np.where(rest <= 0, 1.0, stats.ncx2.sf(np.maximum(rest, 0), r - 1, lam_perp))
+        else:
+            tail = np.where(rest <= 0, 1.0, stats.chi2.sf(np.maximum(rest, 0), r - 1))
+        out[k] = np.trapezoid(dens * tail, g)
+    return out if out.size > 1 else out[0]
+
+
+def _theory_auc_subspace(mu_h, lam_perp, r):
+    # continuous part (P_FA < 0.5), then the atom at 0: H0 half the time, H1 when
+    # h . gamma <= 0 (probability Phi(-mu_h)); ties count half, as in `auc`
+    grid = np.concatenate([np.logspace(-10, -3, 200), np.linspace(1e-3, 0.5, 800)[1:-1]])
+    cont = np.trapezoid(theory_roc_subspace(mu_h, lam_perp, r, grid), grid)
+    q1 = stats.norm.cdf(-mu_h)
+    return float(cont + 0.5 * ((1 - q1) + 0.5 * q1))
 
 
 def _theory_auc(test, norm_x, dof):
@@ -154,6 +225,10 @@ def paper_experiment(*, preset="paper", n_frames=1000, n_draws=30000, seed=0, pf
                 row["auc_theory"] = _theory_auc(test, norm, dof)
                 row["pd_theory"] = float(theory_roc(test, norm, dof, pfa_ref))
                 curves[name][f"{test} theory"] = (pf, theory_roc(test, norm, dof, pf))
+            elif test == "S":
+                sm = subspace_mean(np.linalg.norm(xs, axis=1))
+                row["auc_theory"] = _theory_auc_subspace(*sm)
+                row["pd_theory"] = float(theory_roc_subspace(*sm, pfa_ref))
             rows.append(row)
     table = QTable(rows=[[r[k] for k in rows[0]] for r in rows], names=list(rows[0]))
     table.meta.update({"preset": preset, "n_frames": n_frames, "n_draws": n_draws,

@@ -278,8 +278,9 @@ def monte_carlo_roc(x, *, n_draws=30000, seed=None, dof=None, tests=TESTS, basis
     dof : sequence of int, optional
         Noise dimension kept per channel (rank of the whitening); default p.
     tests : sequence of str
-        Among `TESTS`; ``'S'`` is the subspace test with a quadratic spectrum
-        over the channels (`kpifs.detect.spectral`).
+        Among `TESTS`; ``'S'`` is the subspace test with a smooth spectrum
+        over the channels (`kpifs.detect.spectral`), quadratic or of rank
+        ``q - 1`` when there are fewer than four channels.
     basis : list of ndarray (p, r_i), optional
         Orthonormal bases of the whitened subspaces (noise is drawn in them);
         default the full space.
@@ -331,7 +332,8 @@ def monte_carlo_roc(x, *, n_draws=30000, seed=None, dof=None, tests=TESTS, basis
             out[form] = (binary_statistic(z0, form), binary_statistic(z1, form))
     if "S" in out:      # the subspace test: a smooth spectrum over the channels' order
         norms = np.linalg.norm(x, axis=1)
-        basis = spectral.smooth_basis(np.arange(1.0, q + 1), min(3, q))
+        # fewer dimensions than channels (detect's 'auto' rule): else B is the better test
+        basis = spectral.smooth_basis(np.arange(1.0, q + 1), max(1, min(3, q - 1)))
         w = spectral.subspace_weights(norms[:, None] ** 2, basis)[:, :, 0]          # (r, q)
         # a spectrum of positive mean only: h . gamma > 0 (`DetectionModel.subspace_sign`)
         h = np.linalg.solve((w @ (norms[:, None] * basis)).T, basis.sum(axis=0))
