@@ -413,10 +413,10 @@ def _detect(command):
                    help="channels whose pixels alias some of their uv points (their "
                         "contrasts are flagged): searched like the others (keep, the default) "
                         "or left out of the search, limits and fits (exclude)")
-    p.add_argument("--static", default="auto", choices=("auto", "fit", "none"),
-                   help="the kernel-phase residual of static aberrations, imaged through the "
-                        "pupil and fitted to the data, added to the covariance: for data with "
-                        "no calibrator (auto, the default), always (fit) or never (none)")
+    p.add_argument("--static", default="auto", choices=("auto", "none"),
+                   help="data with no calibrator: add the kernel-phase residual of static "
+                        "aberrations, imaged through the pupil and fitted to the data, to "
+                        "their covariance (auto, the default) or not (none)")
     p.add_argument("--plots", metavar="DIR", help="write PNG figures there (default: none)")
     _output(p, "output detection FITS file (required)")
 

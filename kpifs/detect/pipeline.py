@@ -196,11 +196,13 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
         measured like any other's; ``'exclude'`` leaves them out of the search,
         the limits and the fits (``meta['excluded_channels']``), unless every
         channel is aliased.
-    static : {'auto', 'fit', 'none'}
-        Add the kernel-phase residual of static aberrations to the covariance,
-        its shape imaged through the pupil and its amplitude fitted to the data
-        (`kpifs.aberrations`; ``result.meta['static']``). ``'auto'``: for data
-        no calibrator was subtracted from, whose frames cannot show it.
+    static : {'auto', 'none'}
+        ``'auto'``: data no calibrator was subtracted from, whose frames cannot
+        show their static aberrations, carry the kernel-phase residual of those
+        in their covariance, its shape imaged through the pupil and its
+        amplitude fitted to the data (`kpifs.aberrations`;
+        ``result.meta['static']``). (Calibrated data carry the calibrated error
+        model, whose modes the term would not respect.)
 
     Returns
     -------
@@ -423,10 +425,10 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
 
 
 def _wants_static(kpd, static):
-    if static not in ("auto", "fit", "none"):
-        raise KpifsError(f"static must be 'auto', 'fit' or 'none', got {static!r}")
+    if static not in ("auto", "none"):
+        raise KpifsError(f"static must be 'auto' or 'none', got {static!r}")
     adi = getattr(kpd.rotation, "search", None) == "angular-differential"
-    return static == "fit" or (static == "auto" and not kpd.meta.get("calibrated") and not adi)
+    return static == "auto" and not kpd.meta.get("calibrated") and not adi
 
 
 def _aliased(kpd):
