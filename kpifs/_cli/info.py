@@ -10,6 +10,7 @@ from ..io.kpfits_read import _layout, _read_pixscale, _read_wavelengths
 from ..io.readers import detect_instrument, read_cube
 from ..io.wavelengths import parse_wavelengths
 from ..kernel import KernelModel, nyquist_usable
+from ..sampling import aliased_channels
 from ..workflow import default_pupil, kernel_model_for
 from ._options import extract_options
 
@@ -261,6 +262,14 @@ def _cube(path, args):
                   "refuses (--nyquist raise)")
         else:
             print("  Nyquist: every channel is sampled well enough for every uv point")
+        kept = km.subset(usable.all(axis=0)) if lost.any() and usable.all(axis=0).sum() > 1 \
+            else km
+        frac = aliased_channels(kept, cube.wavelengths, cube.pixscale)
+        if frac.any():
+            print("  aliasing: " + ", ".join(f"{w:.4f} um {f:.0%}" for w, f in
+                                             zip(wl[frac > 0], frac[frac > 0]))
+                  + " of the uv points kept see the sampling's copies; detect flags those "
+                  "channels (--aliased exclude leaves them out)")
         files = cube.source[0] if len(cube.source) == 1 else f"{cube.source[0]} ..."
         print(f"  next: kpifs extract {files} {' '.join(_given(args, opts, pupil))} "
               f"[--calibrator CAL] -o kp.fits")
