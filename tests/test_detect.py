@@ -459,3 +459,21 @@ def test_thread_count_follows_the_environment(monkeypatch):
     monkeypatch.delenv("KPIFS_THREADS")
     monkeypatch.setenv("OMP_NUM_THREADS", "many")            # not ours to refuse: the cores
     assert threads() >= 1
+
+
+def test_negative_contrast_fit_goes_to_the_mirror():
+    # kernel phases are odd: a fit started at the mirror of a companion finds the same
+    # model with negative contrasts; the refinement takes the mirror (positive contrast)
+    from astropy.table import QTable
+    from kpifs.detect.fit import refine_candidates
+    from kpifs.detect.quality import flag_candidates
+    km = KernelModel.from_pupil(make_pupil("subaru", step=0.6 * u.m))
+    kp = km.binary_kernel_phases([70, -40] * u.mas, [4e-3, 3e-3, 2e-3], WL3)
+    kpd = KernelPhaseData(kp[None], WL3, 10.42 * u.mas, km)
+    t = QTable({"x": [-68.0] * u.mas, "y": [41.0] * u.mas, "contrast": [[-3e-3] * 3]})
+    refine_candidates(t, kp, np.stack([np.eye(km.n_kp) * 1e3] * 3), kpd)
+    assert abs(t["fit_x"][0].value - 70) < 0.5 and abs(t["fit_y"][0].value + 40) < 0.5
+    assert np.allclose(t["fit_contrast"][0], [4e-3, 3e-3, 2e-3], rtol=0.02)
+    grid = DetectionGrid.from_separation(150 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    flag_candidates(t, grid, resolution=40.0)
+    assert t["flags"][0] == ""            # at the peak's mirror: not 'moved'

@@ -225,6 +225,20 @@ def fit_errors(jac, noise_rows=None):
     return np.sqrt(np.clip(np.diag(cov), 0, None))
 
 
+def _walk(kp, w, kpd, start, c0, step, noise_rows, kw):
+    """`fit_binary` from *start* in a box of +-*step* mas, walking on (at most 4 boxes)
+    while the box stops it (a grid peak off the optimum, as a spectral-model test's
+    can be near the grid's edge)."""
+    for _ in range(4):
+        r = fit_binary(kp, w, kpd.kernel_model, kpd.wavelengths, start, c0,
+                       pixscale=kpd.pixscale, window=kpd.window, bounds_mas=step,
+                       noise_rows=noise_rows, **kw)
+        if max(abs(r["x"] - start[0]), abs(r["y"] - start[1])) < 0.95 * step:
+            break
+        start, c0 = (r["x"], r["y"]), np.asarray(r["contrast"])
+    return r
+
+
 def refine_candidates(cands, kp, w, kpd, noise_rows=None, poses=None, dof=None,
                       from_fit=False):
     """Fit each candidate (from its grid peak, or *from_fit* its earlier fit); with
@@ -258,15 +272,15 @@ def refine_candidates(cands, kp, w, kpd, noise_rows=None, poses=None, dof=None,
         pre = "fit_" if from_fit else ""
         start = (row[pre + "x"].to_value(u.mas), row[pre + "y"].to_value(u.mas))
         c0 = np.asarray(row[pre + "contrast"])
-        for _ in range(4):
-            r = fit_binary(kp, w, kpd.kernel_model, kpd.wavelengths, start, c0,
-                           pixscale=kpd.pixscale, window=kpd.window, bounds_mas=step,
-                           noise_rows=noise_rows, **kw)
-            # a fit stopped by its box walks on from there (a grid peak off the optimum,
-            # as a spectral-model test's can be near the grid's edge)
-            if max(abs(r["x"] - start[0]), abs(r["y"] - start[1])) < 0.95 * step:
-                break
-            start, c0 = (r["x"], r["y"]), np.asarray(r["contrast"])
+        r = _walk(kp, w, kpd, start, c0, step, noise_rows, kw)
+        if np.mean(r["contrast"]) < 0:
+            # kernel phases are odd: (x, c) and (-x, -c) are one model to first order, and
+            # a companion's contrast is positive (a grid peak of channels correlated by a
+            # common error can sit at the mirror): the fit from the mirror decides
+            flip = _walk(kp, w, kpd, (-r["x"], -r["y"]), -np.asarray(r["contrast"]), step,
+                         noise_rows, kw)
+            if flip["chi2"] <= r["chi2"] * (1 + 1e-6) or np.mean(flip["contrast"]) > 0:
+                r = flip
         k = 1.0
         if dof is not None:
             chi2_red = r["chi2"] / max(dof - (q + 2), 1)

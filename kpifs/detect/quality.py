@@ -10,7 +10,8 @@ should not be taken at face value:
   binary model cannot account for the signal;
 - ``inner-edge`` / ``outer-edge``: the fitted separation lies within one grid
   step of the searched range's edge, where the grid cannot bracket it;
-- ``moved``: the fit left the grid peak by more than a resolution element
+- ``moved``: the fit left the grid peak (or its mirror, where a fit whose
+  contrast came out negative is taken) by more than a resolution element
   ``lambda_min / B_max`` (or reached its position box);
 - ``chi2``: the reduced chi-square of the residual once the candidate is
   subtracted exceeds `CHI2_FACTOR` times the noise scale applied to the
@@ -69,8 +70,11 @@ def flag_candidates(cands, grid, *, resolution, noise_scale=1.0, box=20.0):
         if np.isfinite(grid.max_sep) and sep > float(grid.max_sep) - step:
             flags[k].append("outer-edge")
         if fitted:
-            dx = fx - row["x"].to_value(u.mas)
-            dy = fy - row["y"].to_value(u.mas)
+            # from the peak or from its mirror, where the fit goes when the peak's
+            # contrast came out negative (`kpifs.detect.fit.refine_candidates`)
+            px, py = row["x"].to_value(u.mas), row["y"].to_value(u.mas)
+            dx, dy = min(((fx - px, fy - py), (fx + px, fy + py)),
+                         key=lambda d: np.hypot(*d))
             if np.hypot(dx, dy) > resolution or max(abs(dx), abs(dy)) >= box * (1 - 1e-6):
                 flags[k].append("moved")
         if "chi2_red" in cands.colnames and \
