@@ -145,7 +145,7 @@ def test_angular_differential_without_calibrator_false_alarms_and_recovery(km):
     detector, 24 frames over 60 deg. At most one of six companion-free sequences gives a
     candidate at P_FA 1e-2 (the mean of the frames, searched as if calibrated, gives one in
     every sequence); companions injected at the stated limit are found about half the time
-    and at twice the limit every time."""
+    (6 of 8 here) and at twice the limit every time."""
     detpa = np.linspace(100.0, 160.0, 24)
     wl = [1.55, 1.65, 1.75] * u.um
     grid = DetectionGrid.from_separation(150 * u.mas, 8 * u.mas, min_sep=60 * u.mas,
@@ -170,7 +170,8 @@ def test_angular_differential_without_calibrator_false_alarms_and_recovery(km):
                                    detpa=[130.0], meta={"calibrated": True})
             plain += len(detect(mean, **kw).candidates) > 0
     assert alarms <= 1 and plain == 2
-    # injections at 120 mas, 8 position angles, on the companion-free sequence's noise
+    # injections at 120 mas, 8 position angles; at P_D 0.5, 2 to 6 of 8 are found 93 % of
+    # the time (binomial)
     pas = np.deg2rad(20 + 45 * np.arange(8))
     sky = [(120 * np.sin(a), 120 * np.cos(a)) for a in pas]
     g = free.grid
@@ -179,8 +180,8 @@ def test_angular_differential_without_calibrator_false_alarms_and_recovery(km):
     found = {}
     for f in (1.0, 2.0):
         hits = 0
-        for pos in sky:
-            res = detect(angular_differential(target(0, pos, f * lim)), **kw)
+        for k, pos in enumerate(sky):        # each injection in its own noise
+            res = detect(angular_differential(target(10 + k, pos, f * lim)), **kw)
             c = res.candidates
             hits += bool(len(c)) and np.hypot(c["fit_dra"][0].value - pos[0],
                                               c["fit_ddec"][0].value - pos[1]) < 20
