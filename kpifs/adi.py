@@ -7,12 +7,15 @@ a self-subtraction (`kpifs.rotation`, `kpifs.detect.blocks`; Laugier et al. 2020
 for angular-differential kernel phase).
 """
 import logging
+import warnings
 
 import numpy as np
+from astropy import units as u
 
 from .data import KernelPhaseData
-from .exceptions import KpifsError
-from .rotation import NOISE_MODES, _span, noise_whitening, rotation_blocks
+from .exceptions import KpifsError, KpifsWarning
+from .rotation import (NOISE_MODES, _span, noise_whitening, rotation_blocks,
+                       rotation_needed)
 
 __all__ = ["angular_differential"]
 
@@ -79,3 +82,45 @@ def angular_differential(target, calibrated=None, *, n_modes=NOISE_MODES):
     log.info("%s: angular-differential product: %d blocks over %.1f deg, %d modes per channel",
              name, rb.n_blocks, rb.span, k)
     return out
+
+
+#: An angular-differential search is refused when it keeps less than this fraction of a
+#: companion's squared signal even at the grid's largest separations, and warned about
+#: when it keeps less than `ADI_WARN` at the smallest.
+ADI_REFUSE, ADI_WARN = 0.05, 0.5
+
+
+def _check_rotation(model, kpd, blocks):
+    """The fraction of signal kept by separation (``[[sep, fraction], ...]``, mas), after
+    refusing or warning when the rotation is too small for the grid (*model*: the
+    angular-differential `~kpifs.detect.blocks.BlockModel`)."""
+    g = model.grid
+    num, den = np.nansum(model.norm2, axis=0), np.nansum(model.norm2_free, axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        frac = num / den
+    edges = np.linspace(g.sep[g.valid].min(), g.sep[g.valid].max(), 6)
+    curve = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        sel = g.valid & (g.sep >= a) & (g.sep <= b) & np.isfinite(frac)
+        if sel.any():
+            curve.append([round(float(0.5 * (a + b)), 1), round(float(np.median(frac[sel])), 4)])
+    diam = float(np.max(np.hypot(*kpd.kernel_model.uv.value.T)))
+    lam = kpd.wavelengths.max()
+    need = rotation_needed(curve[0][0] * u.mas, lam, diam * u.m)
+    if curve[-1][1] < ADI_REFUSE:
+        raise KpifsError(
+            f"{kpd.name}: {blocks.span:.1f} deg of rotation keep {100 * curve[-1][1]:.1f} % of a "
+            f"companion's signal even at {curve[-1][0]:.0f} mas: an angular-differential search "
+            f"cannot find anything (a companion must move about lambda/D between blocks: "
+            f"{rotation_needed(curve[-1][0] * u.mas, lam, diam * u.m):.0f} deg at "
+            f"{curve[-1][0]:.0f} mas); search with the calibrator instead")
+    if curve[0][1] < ADI_WARN:
+        inner = next((c[0] for c in curve if c[1] >= ADI_WARN), None)
+        warnings.warn(
+            f"{kpd.name}: {blocks.span:.1f} deg of rotation keep {100 * curve[0][1]:.0f} % of a "
+            f"companion's signal at {curve[0][0]:.0f} mas in the angular-differential search "
+            f"(self-subtraction; half of it "
+            + (f"from {inner:.0f} mas" if inner else "nowhere on the grid")
+            + f"); about {need:.0f} deg are needed there: limits and contrasts account for it",
+            KpifsWarning, stacklevel=4)
+    return curve

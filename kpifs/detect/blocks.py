@@ -21,17 +21,18 @@ costs one projection per block.
 """
 import hashlib
 import logging
-import warnings
 
 import numpy as np
 from astropy import units as u
 
 from .._lazy import lazy_module
 from .._utils import one_blas_thread, thread_map, to_quantity
-from ..exceptions import KpifsError, KpifsWarning
+from ..adi import _check_rotation
+from ..exceptions import KpifsError
 from ..kernel import MAS
-from ..rotation import noise_whitening, rotation_needed
+from ..rotation import noise_whitening
 from .fit import fit_errors
+from ._blocktrig import block_trig
 from ._signatures import _norm_chunks, _unit
 from .maps import UNIT_CACHE_BYTES, DetectionModel
 from .sky import sky_to_detector
@@ -109,7 +110,9 @@ class BlockModel(DetectionModel):
             np.matmul(self.comp_mean, kern).transpose(0, 2, 1)
         # per channel, the poses' separable factors side by side (float32): a map is two
         # products over (poses x uv points)
-        self._trig = [_concat(self._axis_trig(lam)) for lam in self.wavelengths.to_value(u.m)]
+        uv = kernel_model.uv.value
+        self._trig = thread_map(lambda lam: block_trig(grid, uv, self.detpa[0], lam),
+                                self.wavelengths.to_value(u.m))
         self.norm2 = self._signature_norms()
 
     def _weights(self):
@@ -125,15 +128,23 @@ class BlockModel(DetectionModel):
         wm, wd = self._weights()
         sx, cx, sy, cy = self._trig[i]
         nuv = self._lift_f.shape[1]
-        sin = (sx[ix] * cy[iy] + cx[ix] * sy[iy]).reshape(len(rows), -1, nuv)
-        per = np.matmul(sin.transpose(1, 0, 2),
-                        self._lift_f[i].astype(np.float32)).astype(float)     # (B, npos, r)
+        lift = self._lift_f[i].astype(np.float32)
+        per = np.empty((len(self.frames), len(rows), lift.shape[1]))
+        sbar = np.zeros((len(rows), nuv), np.float32) if self.with_mean else None
+        # block by block: the work arrays (npos x nuv) stay in the processor's cache
+        for b in range(len(self.frames)):
+            uv = slice(b * nuv, (b + 1) * nuv)
+            sin = sx[ix, uv] * cy[iy, uv]
+            sin += cx[ix, uv] * sy[iy, uv]
+            per[b] = sin @ lift
+            if sbar is not None:
+                sin *= np.float32(wm[b])
+                sbar += sin
         md = np.tensordot(wm, per, axes=(0, 0))
         parts = list(wd[:, None, None] * (per - md))
         if free is not None:
             free[:] = np.einsum("b,bkr,bkr->k", wd ** 2, per, per)
         if self.with_mean:
-            sbar = np.tensordot(wm.astype(np.float32), sin, axes=(0, 1))     # (npos, nuv)
             m = (sbar @ self._lift_m[i].astype(np.float32)).astype(float)
             parts.insert(0, m)
             if free is not None:
@@ -157,7 +168,7 @@ class BlockModel(DetectionModel):
                 s = self._stacked(i, chunk, free=fb)
                 free[i, chunk] = fb
                 return s
-            raw = _norm_chunks(rows, 1024, stacked, at, wf, unit[i] if cache else None)
+            raw = _norm_chunks(rows, 256, stacked, at, wf, unit[i] if cache else None)
             out[i, rows] = raw
             if mirrored:
                 out[i, n - 1 - rows] = raw
@@ -165,6 +176,9 @@ class BlockModel(DetectionModel):
         thread_map(channel, range(q))
         if cache:
             self._unit_cache = (keep, unit)
+            # dot_maps from the unit signatures: ||s|| (the window's factor in it)
+            self._amp = np.sqrt(out[:, keep]) * wf
+            self._mirrored = mirrored
         # the blocks' signatures without the removal of their mean: what an arc of
         # rotation lets survive is norm2 / norm2_free (the self-subtraction)
         self.norm2_free = free.reshape((q,) + self.grid.shape) * self._wfac[None] ** 2
@@ -199,11 +213,25 @@ class BlockModel(DetectionModel):
         ny, nx = self.grid.shape
         v = np.sqrt(self.frames / self.frames.sum())
         wm, wd = self._weights()
-        out = np.empty((m, q, ny, nx))
+        cached = self.__dict__.get("_unit_cache")
+        out = np.zeros((m, q, ny, nx) if cached is None else (m, q, ny * nx))
 
         def channel(i):
             yd = yb[:, i, rm:].reshape(m, nb, rf)
             yd = yd - v[None, :, None] * np.einsum("mbr,b->mr", yd, v)[:, None, :]
+            if cached is not None:
+                # the cached unit signatures: (positions x dim) per map instead of two
+                # products over (positions x blocks x uv points)
+                keep, unit = cached
+                yi = np.concatenate([yb[:, i, :rm], yd.reshape(m, -1)], axis=1)
+                amp = self._amp[i]
+                with np.errstate(invalid="ignore"):
+                    d = (yi.astype(np.float32) @ unit[i].T).astype(float) * amp
+                d = np.where(amp > 0, d, 0.0)
+                out[:, i, keep] = d
+                if self._mirrored:              # the signature at -pos is minus that at pos
+                    out[:, i, ny * nx - 1 - keep] = -d
+                return
             g = (wd[None, :, None] * yd) @ self._lift_f[i].T                   # (m, B, nuv)
             if self.with_mean:
                 g = g + wm[None, :, None] * (yb[:, i, :rm] @ self._lift_m[i].T)[:, None, :]
@@ -212,11 +240,11 @@ class BlockModel(DetectionModel):
             k = g.shape[1]
             acc = (sx[None] * g[:, None, :]).reshape(m * nx, k) @ cy.T
             acc += (cx[None] * g[:, None, :]).reshape(m * nx, k) @ sy.T
-            out[:, i] = -acc.reshape(m, nx, ny).transpose(0, 2, 1)
+            out[:, i] = -acc.reshape(m, nx, ny).transpose(0, 2, 1) * self._wfac
         # channels side by side, one BLAS thread each (BLAS's threads on a busy machine
         # wait for each other: 0.2 s became 10 s at a load of 9 on 2 cores)
         thread_map(channel, range(q))
-        return (out * self._wfac).reshape(lead + out.shape[1:])
+        return out.reshape(lead + (q, ny, nx))
 
     def key(self):
         if "_digest" in self.__dict__:
@@ -233,12 +261,6 @@ class BlockModel(DetectionModel):
         h.update(self.__dict__.get("_corr_key", "").encode())
         self._digest = h.hexdigest()
         return self._digest
-
-
-def _concat(trig):
-    """Per-pose ``(sx, cx, sy, cy, weight)`` side by side along the uv axis, float32."""
-    return tuple(np.ascontiguousarray(np.concatenate([t[j] for t in trig], axis=1),
-                                      np.float32) for j in range(4))
 
 
 def _compress(w, rank):
@@ -425,47 +447,6 @@ class BlockStack:
         cands["fit_contrast_err"] = np.array(cols["fit_contrast_err"]).reshape(len(cands), q)
         cands["fit_chi2"] = np.array(cols["fit_chi2"])
         return models
-
-
-#: An angular-differential search is refused when it keeps less than this fraction of a
-#: companion's squared signal even at the grid's largest separations, and warned about
-#: when it keeps less than `ADI_WARN` at the smallest.
-ADI_REFUSE, ADI_WARN = 0.05, 0.5
-
-
-def _check_rotation(model, kpd, blocks):
-    """The fraction of signal kept by separation (``[[sep, fraction], ...]``, mas), after
-    refusing or warning when the rotation is too small for the grid."""
-    g = model.grid
-    num, den = np.nansum(model.norm2, axis=0), np.nansum(model.norm2_free, axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        frac = num / den
-    edges = np.linspace(g.sep[g.valid].min(), g.sep[g.valid].max(), 6)
-    curve = []
-    for a, b in zip(edges[:-1], edges[1:]):
-        sel = g.valid & (g.sep >= a) & (g.sep <= b) & np.isfinite(frac)
-        if sel.any():
-            curve.append([round(float(0.5 * (a + b)), 1), round(float(np.median(frac[sel])), 4)])
-    diam = float(np.max(np.hypot(*kpd.kernel_model.uv.value.T)))
-    lam = kpd.wavelengths.max()
-    need = rotation_needed(curve[0][0] * u.mas, lam, diam * u.m)
-    if curve[-1][1] < ADI_REFUSE:
-        raise KpifsError(
-            f"{kpd.name}: {blocks.span:.1f} deg of rotation keep {100 * curve[-1][1]:.1f} % of a "
-            f"companion's signal even at {curve[-1][0]:.0f} mas: an angular-differential search "
-            f"cannot find anything (a companion must move about lambda/D between blocks: "
-            f"{rotation_needed(curve[-1][0] * u.mas, lam, diam * u.m):.0f} deg at "
-            f"{curve[-1][0]:.0f} mas); search with the calibrator instead")
-    if curve[0][1] < ADI_WARN:
-        inner = next((c[0] for c in curve if c[1] >= ADI_WARN), None)
-        warnings.warn(
-            f"{kpd.name}: {blocks.span:.1f} deg of rotation keep {100 * curve[0][1]:.0f} % of a "
-            f"companion's signal at {curve[0][0]:.0f} mas in the angular-differential search "
-            f"(self-subtraction; half of it "
-            + (f"from {inner:.0f} mas" if inner else "nowhere on the grid")
-            + f"); about {need:.0f} deg are needed there: limits and contrasts account for it",
-            KpifsWarning, stacklevel=4)
-    return curve
 
 
 def _rows(comp, rows):
