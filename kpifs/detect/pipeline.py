@@ -197,12 +197,13 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
         the limits and the fits (``meta['excluded_channels']``), unless every
         channel is aliased.
     static : {'auto', 'none'}
-        ``'auto'``: data no calibrator was subtracted from, whose frames cannot
-        show their static aberrations, carry the kernel-phase residual of those
-        in their covariance, its shape imaged through the pupil and its
-        amplitude fitted to the data (`kpifs.aberrations`;
+        ``'auto'``: single-channel data no calibrator was subtracted from, whose
+        frames cannot show their static aberrations, carry the kernel-phase
+        residual of those in their covariance, its shape imaged through the
+        pupil and its amplitude fitted to the data (`kpifs.aberrations`;
         ``result.meta['static']``). (Calibrated data carry the calibrated error
-        model, whose modes the term would not respect.)
+        model, whose modes the term would not respect; several channels are
+        correlated by it, which the term does not model.)
 
     Returns
     -------
@@ -428,7 +429,8 @@ def _wants_static(kpd, static):
     if static not in ("auto", "none"):
         raise KpifsError(f"static must be 'auto' or 'none', got {static!r}")
     adi = getattr(kpd.rotation, "search", None) == "angular-differential"
-    return static == "auto" and not kpd.meta.get("calibrated") and not adi
+    # several channels: the residual correlates them, a per-channel term does not model it
+    return static == "auto" and not kpd.meta.get("calibrated") and not adi and kpd.n_wave == 1
 
 
 def _aliased(kpd):
