@@ -414,9 +414,9 @@ def _detect(command):
                         "contrasts are flagged): searched like the others (keep, the default) "
                         "or left out of the search, limits and fits (exclude)")
     p.add_argument("--static", default="auto", choices=("auto", "none"),
-                   help="single-channel data with no calibrator: add the kernel-phase residual of static "
-                        "aberrations, imaged through the pupil and fitted to the data, to "
-                        "their covariance (auto, the default) or not (none)")
+                   help="single-channel data with no calibrator: add the kernel-phase "
+                        "residual of static aberrations, imaged through the pupil and fitted "
+                        "to the data, to their covariance (auto, the default) or not (none)")
     p.add_argument("--plots", metavar="DIR", help="write PNG figures there (default: none)")
     _output(p, "output detection FITS file (required)")
 
