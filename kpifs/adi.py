@@ -90,6 +90,38 @@ def angular_differential(target, calibrated=None, *, n_modes=NOISE_MODES):
 ADI_REFUSE, ADI_WARN = 0.05, 0.5
 
 
+def inner_separation(model, *, level=ADI_WARN):
+    """The separation (mas) from which the rotation keeps at least *level* of a
+    companion's squared signal in every annulus one grid step wide (median over
+    the annulus; *model*: the angular-differential
+    `~kpifs.detect.blocks.BlockModel`); the grid's own inner edge when it does
+    everywhere, NaN when it never does.
+
+    Inside it the companion hardly moves between blocks: what the model keeps
+    of its signal is a small difference of large terms, and the search there
+    answers to the residual's own structure more than to the noise model
+    (measured: the three false alarms of 20 companion-free 40-frame sequences
+    over 60 deg all lay within 41 mas, where less than 40 % is kept).
+    """
+    g = model.grid
+    num, den = np.nansum(model.norm2, axis=0), np.nansum(model.norm2_free, axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        frac = num / den
+    ok = g.valid & np.isfinite(frac)
+    if not ok.any():
+        return float("nan")
+    step = float(max(abs(g.step[0]), abs(g.step[1])))
+    ring = np.floor((g.sep[ok] - g.sep[ok].min()) / step).astype(int)
+    med = np.array([np.median(frac[ok][ring == k]) if np.any(ring == k) else np.nan
+                    for k in range(ring.max() + 1)])
+    low = np.flatnonzero(~(med >= level))
+    if not low.size:
+        return float(g.sep[ok].min())
+    if low[-1] == len(med) - 1:
+        return float("nan")
+    return float(g.sep[ok].min() + (low[-1] + 1) * step)
+
+
 def _check_rotation(model, kpd, blocks):
     """The fraction of signal kept by separation (``[[sep, fraction], ...]``, mas), after
     refusing or warning when the rotation is too small for the grid (*model*: the

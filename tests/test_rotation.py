@@ -189,3 +189,26 @@ def test_angular_differential_without_calibrator_false_alarms_and_recovery(km):
                                               c["fit_ddec"][0].value - pos[1]) < 20
         found[f] = hits
     assert 2 <= found[1.0] <= 6 and found[2.0] == 8
+
+
+@pytest.mark.filterwarnings("ignore:.*of rotation keep")
+def test_angular_differential_search_starts_where_half_the_signal_is_kept(km):
+    # 40 deg of rotation: near the star a companion hardly moves between blocks and the
+    # search there would answer to the residual's structure; the default grid starts where
+    # the rotation keeps half a companion's squared signal (here ~70 mas, not ~24)
+    from kpifs.adi import inner_separation
+    detpa = np.linspace(100.0, 140.0, 16)
+    wl = [1.55, 1.65, 1.75] * u.um
+    kp = _sequence(km, wl, detpa, (0.0, 120.0), 0.0, 0.01, 3)
+    kpd = angular_differential(KernelPhaseData(kp, wl, 10 * u.mas, km, detpa=detpa))
+    res = detect(kpd, n_draws=1000, seed=0, limits=False)
+    inner = res.meta["blocks"]["inner_separation"]
+    full = detect(kpd, n_draws=1000, seed=0, limits=False,
+                  grid=DetectionGrid.from_separation(float(res.grid.max_sep) * u.mas,
+                                                     abs(float(res.grid.step[0])) * u.mas,
+                                                     min_sep=10 * u.mas, frame="sky"))
+    assert float(res.grid.min_sep) == pytest.approx(inner)
+    assert 50 < inner < 100
+    assert "inner_separation" not in full.meta["blocks"]         # a grid given is kept
+    assert float(full.grid.min_sep) == 10
+    assert inner_separation.__module__ == "kpifs.adi"

@@ -10,8 +10,9 @@ from ..data import DetectionGrid, DetectionResult, KernelPhaseData
 from ..exceptions import KpifsError, KpifsWarning
 from ..kernel import MAS, KernelModel
 from ..aberrations import static_term
+from ..adi import inner_separation
 from ..pupil import make_pupil
-from ..sampling import aliased_channels
+from ._inputs import _aliased, _drop_aliased, _wants_static
 from ._laws import chi2_sf, norm_isf
 from .search import _POWER, _chi2_red, _sequential_search
 from .sky import (add_sky_columns, data_angles, pa_bins,
@@ -243,6 +244,7 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     rank = np.atleast_1d(rank)
     y = whiten(kp, w)
     frame, search_poses, poses = _frame_and_poses(kpd, frame, grid)
+    own_grid = grid is None
     if grid is None:
         grid = default_grid(kpd, frame=frame)
     window = kpd.window
@@ -255,6 +257,13 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
         kp, w, rank, y = stack.kp, stack.whitening, stack.rank, stack.kp
         cov_rows, blk_rows, fit_rows = stack.rows, stack.block_rows, None
         model = stack.detection_model(grid, basis=basis)
+        inner = inner_separation(model) if stack.mode == "angular-differential" else np.nan
+        if own_grid and np.isfinite(inner) and inner > float(grid.min_sep):
+            # the angular-differential search starts where the rotation keeps half a
+            # companion's signal (`kpifs.adi.inner_separation`)
+            grid = default_grid(kpd, frame=frame, min_sep=inner * u.mas)
+            model = stack.detection_model(grid, basis=basis)
+            stack.info["inner_separation"] = inner
     else:
         model = DetectionModel(kpd.kernel_model, kpd.wavelengths, w, grid, pixscale=kpd.pixscale,
                                window=window, dof=rank, detpa=search_poses, basis=basis)
@@ -363,7 +372,8 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
         return _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, {}, cands, threshold,
                        energy, {"frame": frame, "chi2_red": kappa, "noise_scale": scale,
                                 "n_draws": n_draws, "seed": seed, "test": test, "pfa": pfa,
-                                "pd": pd, "null": null_info, "static": static_info})
+                                "pd": pd, "null": null_info, "static": static_info,
+                                "blocks": None if stack is None else stack.info})
     if rows is not None:   # correlated channels: the energy's law from the same null model
         # a one-number statistic: its draws are cheap, and its threshold is read directly
         te = energy_null(rows, max(n_draws, ENERGY_DRAWS), seed)
@@ -423,45 +433,6 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
              len(cands), form, threshold, pfa)
     return _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands,
                    threshold, energy, meta, curves)
-
-
-def _wants_static(kpd, static):
-    if static not in ("auto", "none"):
-        raise KpifsError(f"static must be 'auto' or 'none', got {static!r}")
-    adi = getattr(kpd.rotation, "search", None) == "angular-differential"
-    # several channels: the residual correlates them, a per-channel term does not model it
-    return static == "auto" and not kpd.meta.get("calibrated") and not adi and kpd.n_wave == 1
-
-
-def _aliased(kpd):
-    # interferometric data (OIFITS) have no pixels to alias
-    if kpd.meta.get("closure_phases"):
-        return np.zeros(kpd.n_wave)
-    return aliased_channels(kpd.kernel_model, kpd.wavelengths, kpd.pixscale)
-
-
-def _drop_aliased(kpd, aliased):
-    """*kpd* without its aliased channels (``aliased='exclude'``) and the indices kept,
-    else *kpd* and None."""
-    if aliased not in ("keep", "exclude"):
-        raise KpifsError(f"aliased must be 'keep' or 'exclude', got {aliased!r}")
-    frac = _aliased(kpd)
-    bad = frac > 0
-    numbers = list(kpd.meta.get("channels") or range(1, kpd.n_wave + 1))
-    if bad.any():
-        log.info("%s: channel(s) %s alias %s of their uv points", kpd.name,
-                 [numbers[i] for i in np.flatnonzero(bad)],
-                 [f"{f:.0%}" for f in frac[bad]])
-    if aliased == "keep" or not bad.any():
-        return kpd, None
-    if bad.all():
-        warnings.warn(f"{kpd.name}: every channel aliases some of its uv points (pixels "
-                      f"coarser than the pupil needs): none is left out", KpifsWarning,
-                      stacklevel=3)
-        return kpd, None
-    out = kpd.select_channels(~bad)
-    out.meta["excluded_channels"] = [numbers[i] for i in np.flatnonzero(bad)]
-    return out, np.flatnonzero(~bad)
 
 
 def _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands, threshold,

@@ -1,0 +1,51 @@
+"""What a search is given besides the data: the channels it keeps (aliased ones
+flagged or left out, `kpifs.sampling`) and whether the static-aberration term
+is added (`kpifs.aberrations`)."""
+import logging
+import warnings
+
+import numpy as np
+
+from ..exceptions import KpifsError, KpifsWarning
+from ..sampling import aliased_channels
+
+log = logging.getLogger(__name__)
+
+
+def _wants_static(kpd, static):
+    if static not in ("auto", "none"):
+        raise KpifsError(f"static must be 'auto' or 'none', got {static!r}")
+    adi = getattr(kpd.rotation, "search", None) == "angular-differential"
+    # several channels: the residual correlates them, a per-channel term does not model it
+    return static == "auto" and not kpd.meta.get("calibrated") and not adi and kpd.n_wave == 1
+
+
+def _aliased(kpd):
+    # interferometric data (OIFITS) have no pixels to alias
+    if kpd.meta.get("closure_phases"):
+        return np.zeros(kpd.n_wave)
+    return aliased_channels(kpd.kernel_model, kpd.wavelengths, kpd.pixscale)
+
+
+def _drop_aliased(kpd, aliased):
+    """*kpd* without its aliased channels (``aliased='exclude'``) and the indices kept,
+    else *kpd* and None."""
+    if aliased not in ("keep", "exclude"):
+        raise KpifsError(f"aliased must be 'keep' or 'exclude', got {aliased!r}")
+    frac = _aliased(kpd)
+    bad = frac > 0
+    numbers = list(kpd.meta.get("channels") or range(1, kpd.n_wave + 1))
+    if bad.any():
+        log.info("%s: channel(s) %s alias %s of their uv points", kpd.name,
+                 [numbers[i] for i in np.flatnonzero(bad)],
+                 [f"{f:.0%}" for f in frac[bad]])
+    if aliased == "keep" or not bad.any():
+        return kpd, None
+    if bad.all():
+        warnings.warn(f"{kpd.name}: every channel aliases some of its uv points (pixels "
+                      f"coarser than the pupil needs): none is left out", KpifsWarning,
+                      stacklevel=3)
+        return kpd, None
+    out = kpd.select_channels(~bad)
+    out.meta["excluded_channels"] = [numbers[i] for i in np.flatnonzero(bad)]
+    return out, np.flatnonzero(~bad)
