@@ -422,7 +422,7 @@ class DetectionResult:
     --------
     >>> from kpifs.detect.pipeline import _example_result
     >>> res = _example_result()
-    >>> res.statistic.shape == res.grid.shape, res.limit is res.limits["S"]
+    >>> res.statistic.shape == res.grid.shape, res.limit is res.limits["B"]
     (True, True)
     """
 

@@ -68,7 +68,7 @@ def plot_detection_map(result, *, ax=None, truth=None):
     >>> from kpifs.plotting import plot_detection_map
     >>> fig = plot_detection_map(_example_result(), truth=(60, -40))
     >>> len(fig.axes), fig.axes[1].get_ylabel()
-    (2, 'S statistic / threshold (asinh scale)')
+    (2, 'B statistic / threshold (asinh scale)')
     """
     from matplotlib.colors import AsinhNorm
     from matplotlib.lines import Line2D

@@ -218,7 +218,7 @@ def read_detection_parts(path):
     >>> path = write_detection(_example_result(), tempfile.mkdtemp() + "/det.fits")
     >>> parts = read_detection_parts(path)
     >>> parts["header"]["TEST"], parts["images"]["DETECTION"].ndim, sorted(parts["limits"])
-    ('S', 2, ['B', 'B-paper', 'E', 'NP', 'S'])
+    ('B', 2, ['B', 'B-paper', 'E', 'NP', 'S'])
     """
     path = str(path)
     from astropy.table import QTable     # not at import: the command line's start
