@@ -185,7 +185,8 @@ def _extraction_options(p):
 def _search_options(p, *, draws=5000):
     g = p.add_argument_group("search")
     g.add_argument("--test", default="auto", choices=("auto",) + TESTS,
-                   help="auto: S with several channels, B with one; B: GLR sum "
+                   help="auto: S when --basis has fewer dimensions than the channels, "
+                        "else B; B: GLR sum "
                         "max(z,0)^2; B-paper: the paper's sum max(z,0); S: spectral model "
                         "(GLR for a spectrum in --basis, the channels' correlation "
                         "weighed); NP: matched filter for --spectrum; E: energy detector "
