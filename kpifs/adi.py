@@ -17,7 +17,7 @@ from .exceptions import KpifsError, KpifsWarning
 from .rotation import (NOISE_MODES, _span, noise_whitening, rotation_blocks,
                        rotation_needed)
 
-__all__ = ["angular_differential"]
+__all__ = ["angular_differential", "inner_separation"]
 
 log = logging.getLogger(__name__)
 
