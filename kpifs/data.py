@@ -25,7 +25,8 @@ from .io.kpfits import is_kpfits, read_kpfits_parts, write_kpfits
 from .io.oifits import is_oifits
 from .io.oifits_combine import read_oifits
 from .io.oifits_write import write_oifits
-from .io.products import NULL_CARDS, is_detection, read_detection_parts, write_detection
+from .io.products import (detection_header_meta, is_detection, read_detection_parts,
+                          write_detection)
 from .io.wavelengths import check_wavelengths
 from .kernel import KernelModel
 from .pupil import PupilModel
@@ -471,31 +472,7 @@ def _read_detection(path):
     grid = DetectionGrid(x * u.mas, y * u.mas, min_sep=hdr["GRIDMIN"] * u.mas,
                          max_sep=(hdr["GRIDMAX"] if hdr["GRIDMAX"] >= 0 else np.inf) * u.mas,
                          frame=frame)
-    nwave = sum(1 for k in hdr if k.startswith("WAVE") and k[4:].isdigit())
-    wl = [hdr[f"WAVE{i}"] for i in range(1, nwave + 1)] * u.um
-    energy = {"statistic": hdr["ESTAT"], "dof": hdr["EDOF"], "pfa": hdr["EPFA"],
-              "threshold": hdr.get("ETHRESH", np.nan), "pd": hdr["PD"]}
-    for key, card in (("raw", "ERAW"), ("map_noise", "MAPNOISE"), ("noise_scale", "NOISESC"),
-                      ("subspace_noise", "SUBNOISE")):
-        if card in hdr:
-            energy[key] = hdr[card]
-    meta = {"test": hdr["TEST"], "pfa": hdr["PFA"], "pd": hdr["PD"], "n_draws": hdr["NDRAWS"],
-            "seed": hdr["MCSEED"], "null_channels": hdr["NULLCHAN"],
-            "calibrators": [hdr[k] for k in hdr if k.startswith("KPCAL") and k[5:].isdigit()],
-            "spectrum": [hdr[f"SPEC{i}"] for i in range(1, nwave + 1) if f"SPEC{i}" in hdr],
-            "aliased": [hdr.get(f"ALIAS{i}", 0.0) for i in range(1, nwave + 1)],
-            "channels": [hdr.get(f"CHAN{i}", i) for i in range(1, nwave + 1)],
-            "excluded_channels": [int(v) for v in str(hdr.get("EXCLCHAN", "")).split(",") if v],
-            "source": str(path)}
-    if "CHI2RED" in hdr:
-        meta.update(chi2_red=hdr["CHI2RED"], noise_scale=hdr.get("NOISESC", 1.0))
-    if "STATSHR" in hdr:
-        meta["static"] = {"share": hdr["STATSHR"], "amplitude": hdr.get("STATAMP"),
-                          "pupil": hdr.get("STATPUP")}
-    if "NULLMETH" in hdr:
-        meta["null"] = {"method": hdr["NULLMETH"], "threshold": hdr["THRESH"],
-                        **{key: hdr[name] for key, (name, _) in NULL_CARDS.items()
-                           if name in hdr}}
+    wl, energy, meta = detection_header_meta(hdr, path)
     return DetectionResult(grid=grid, test=hdr["TEST"], pfa=hdr["PFA"], pd=hdr["PD"],
                            statistic=stat, pfa_local=images["PFA_LOCAL"],
                            pfa_global=images["PFA"], contrast=images["CONTRAST"],

@@ -5,6 +5,7 @@ astropy's unified I/O registry (``DetectionResult.read(path)``).
 """
 
 import numpy as np
+from astropy import units as u
 from astropy.io import fits
 
 from .._meta import VERSION
@@ -13,7 +14,8 @@ from ..exceptions import KpifsError
 from .cube import open_fits
 from ._kpfits_common import card
 
-__all__ = ["detection_hdulist", "write_detection", "read_detection_parts"]
+__all__ = ["detection_hdulist", "write_detection", "read_detection_parts",
+           "detection_header_meta"]
 
 
 def _image(data, name, wcs_header, bunit=None, comment=None):
@@ -243,3 +245,46 @@ def read_detection_parts(path):
             raise
         raise KpifsError(f"{path}: cannot read detection products: {exc}") from None
     return out
+
+
+def detection_header_meta(hdr, path):
+    """``(wavelengths, energy, meta)`` of a detection product from its primary header
+    *hdr*: the reverse of the cards `detection_hdulist` writes.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from astropy.io import fits
+    >>> from kpifs.detect.pipeline import _example_result
+    >>> from kpifs.io.products import detection_header_meta, write_detection
+    >>> path = write_detection(_example_result(), tempfile.mkdtemp() + "/det.fits")
+    >>> wl, energy, meta = detection_header_meta(fits.getheader(path), path)
+    >>> len(wl), meta["test"], meta["channels"]
+    (2, 'B', [1, 2])
+    """
+    nwave = sum(1 for k in hdr if k.startswith("WAVE") and k[4:].isdigit())
+    wl = [hdr[f"WAVE{i}"] for i in range(1, nwave + 1)] * u.um
+    energy = {"statistic": hdr["ESTAT"], "dof": hdr["EDOF"], "pfa": hdr["EPFA"],
+              "threshold": hdr.get("ETHRESH", np.nan), "pd": hdr["PD"]}
+    for key, name in (("raw", "ERAW"), ("map_noise", "MAPNOISE"), ("noise_scale", "NOISESC"),
+                      ("subspace_noise", "SUBNOISE")):
+        if name in hdr:
+            energy[key] = hdr[name]
+    meta = {"test": hdr["TEST"], "pfa": hdr["PFA"], "pd": hdr["PD"], "n_draws": hdr["NDRAWS"],
+            "seed": hdr["MCSEED"], "null_channels": hdr["NULLCHAN"],
+            "calibrators": [hdr[k] for k in hdr if k.startswith("KPCAL") and k[5:].isdigit()],
+            "spectrum": [hdr[f"SPEC{i}"] for i in range(1, nwave + 1) if f"SPEC{i}" in hdr],
+            "aliased": [hdr.get(f"ALIAS{i}", 0.0) for i in range(1, nwave + 1)],
+            "channels": [hdr.get(f"CHAN{i}", i) for i in range(1, nwave + 1)],
+            "excluded_channels": [int(v) for v in str(hdr.get("EXCLCHAN", "")).split(",") if v],
+            "source": str(path)}
+    if "CHI2RED" in hdr:
+        meta.update(chi2_red=hdr["CHI2RED"], noise_scale=hdr.get("NOISESC", 1.0))
+    if "STATSHR" in hdr:
+        meta["static"] = {"share": hdr["STATSHR"], "amplitude": hdr.get("STATAMP"),
+                          "pupil": hdr.get("STATPUP")}
+    if "NULLMETH" in hdr:
+        meta["null"] = {"method": hdr["NULLMETH"], "threshold": hdr["THRESH"],
+                        **{key: hdr[name] for key, (name, _) in NULL_CARDS.items()
+                           if name in hdr}}
+    return wl, energy, meta
