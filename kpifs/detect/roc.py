@@ -22,8 +22,7 @@ from ..extract import extract_kernel_phases
 from ..kernel import KernelModel
 from ..pupil import make_pupil
 from ..simulate import simulate_scene
-from . import spectral
-from .stats import TESTS, auc, monte_carlo_roc, roc_curve
+from .stats import TESTS, auc, known_position_subspace, monte_carlo_roc, roc_curve
 
 stats = lazy_module("scipy.stats")
 
@@ -94,13 +93,10 @@ def subspace_mean(norms):
     (4.0, 0.0, 3)
     """
     norms = np.asarray(norms, float)
-    q = len(norms)
-    basis = spectral.smooth_basis(np.arange(1.0, q + 1), max(1, min(3, q - 1)))
-    w = spectral.subspace_weights(norms[:, None] ** 2, basis)[:, :, 0]
-    h = np.linalg.solve((w @ (norms[:, None] * basis)).T, basis.sum(axis=0))
+    w, h = known_position_subspace(norms)
     mu = w @ norms
     mu_h = float(mu @ h / np.linalg.norm(h))
-    return mu_h, float(max(mu @ mu - mu_h ** 2, 0.0)), basis.shape[1]
+    return mu_h, float(max(mu @ mu - mu_h ** 2, 0.0)), len(w)
 
 
 def theory_roc_subspace(mu_h, lam_perp, r, pfa):

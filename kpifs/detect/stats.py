@@ -27,7 +27,7 @@ spectral = lazy_module("kpifs.detect.spectral")
 
 __all__ = ["TESTS", "check_probability", "np_threshold", "np_pd", "energy_threshold",
            "energy_pd", "binary_pfa", "binary_threshold", "binary_statistic", "np_statistic",
-           "energy_statistic", "auc", "roc_curve", "monte_carlo_roc"]
+           "energy_statistic", "auc", "roc_curve", "monte_carlo_roc", "known_position_subspace"]
 
 #: Test names: Neyman-Pearson, energy detector, GLR binary test, the paper's binary form,
 #: the spectral-model (subspace) test.
@@ -264,6 +264,28 @@ def auc(t0, t1):
     return float((r1 - len(t1) * (len(t1) + 1) / 2) / (len(t0) * len(t1)))
 
 
+def known_position_subspace(norms):
+    """Weights ``W`` (r, q) and sign vector ``h`` (r,) of the subspace test at a known
+    position whose channels' signal norms are *norms*: a smooth spectrum over the
+    channels' order, of fewer dimensions than channels (detect's ``'auto'`` rule, else
+    B is the better test), and a spectrum of positive mean only (``h . W z > 0``,
+    `kpifs.detect.spectral.subspace_sign`).
+
+    Examples
+    --------
+    >>> from kpifs.detect.stats import known_position_subspace
+    >>> w, h = known_position_subspace([1.0, 1.0, 1.0, 1.0])
+    >>> w.shape, h.shape
+    ((3, 4), (3,))
+    """
+    norms = np.asarray(norms, float)
+    q = len(norms)
+    basis = spectral.smooth_basis(np.arange(1.0, q + 1), max(1, min(3, q - 1)))
+    n2 = norms[:, None] ** 2
+    w = spectral.subspace_weights(n2, basis)
+    return w[:, :, 0], spectral.subspace_sign(w, n2, basis)[:, 0]
+
+
 def monte_carlo_roc(x, *, n_draws=30000, seed=None, dof=None, tests=TESTS, basis=None):
     """Statistics of every test under H0 and H1 for a signal *x*, by Monte-Carlo.
 
@@ -331,11 +353,6 @@ def monte_carlo_roc(x, *, n_draws=30000, seed=None, dof=None, tests=TESTS, basis
         if form in out:
             out[form] = (binary_statistic(z0, form), binary_statistic(z1, form))
     if "S" in out:      # the subspace test: a smooth spectrum over the channels' order
-        norms = np.linalg.norm(x, axis=1)
-        # fewer dimensions than channels (detect's 'auto' rule): else B is the better test
-        basis = spectral.smooth_basis(np.arange(1.0, q + 1), max(1, min(3, q - 1)))
-        w = spectral.subspace_weights(norms[:, None] ** 2, basis)[:, :, 0]          # (r, q)
-        # a spectrum of positive mean only: h . gamma > 0 (`DetectionModel.subspace_sign`)
-        h = np.linalg.solve((w @ (norms[:, None] * basis)).T, basis.sum(axis=0))
+        w, h = known_position_subspace(np.linalg.norm(x, axis=1))
         out["S"] = tuple(np.sum((z @ w.T) ** 2, axis=1) * ((z @ w.T) @ h > 0) for z in (z0, z1))
     return out
