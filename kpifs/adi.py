@@ -90,6 +90,13 @@ def angular_differential(target, calibrated=None, *, n_modes=NOISE_MODES):
 ADI_REFUSE, ADI_WARN = 0.05, 0.5
 
 
+def _retained(model):
+    """The fraction of a companion's squared signal the rotation keeps, per position."""
+    num, den = np.nansum(model.norm2, axis=0), np.nansum(model.norm2_free, axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return num / den
+
+
 def inner_separation(model, *, level=ADI_WARN):
     """The separation (mas) from which the rotation keeps at least *level* of a
     companion's squared signal in every annulus one grid step wide (median over
@@ -122,9 +129,7 @@ def inner_separation(model, *, level=ADI_WARN):
     (True, True)
     """
     g = model.grid
-    num, den = np.nansum(model.norm2, axis=0), np.nansum(model.norm2_free, axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        frac = num / den
+    frac = _retained(model)
     ok = g.valid & np.isfinite(frac)
     if not ok.any():
         return float("nan")
@@ -145,9 +150,7 @@ def _check_rotation(model, kpd, blocks):
     refusing or warning when the rotation is too small for the grid (*model*: the
     angular-differential `~kpifs.detect.blocks.BlockModel`)."""
     g = model.grid
-    num, den = np.nansum(model.norm2, axis=0), np.nansum(model.norm2_free, axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        frac = num / den
+    frac = _retained(model)
     edges = np.linspace(g.sep[g.valid].min(), g.sep[g.valid].max(), 6)
     curve = []
     for a, b in zip(edges[:-1], edges[1:]):

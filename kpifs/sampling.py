@@ -19,6 +19,7 @@ share of them; detection flags the channels where the share is not zero
 """
 import numpy as np
 from astropy import units as u
+from scipy.spatial.distance import pdist
 
 from ._utils import to_quantity
 
@@ -39,14 +40,7 @@ def pupil_extent(pupil):
     8.6
     """
     xy = np.asarray(u.Quantity(pupil.xy, u.m).value, float)
-    hull = xy
-    if len(xy) > 3:
-        from scipy.spatial import ConvexHull
-        try:
-            hull = xy[ConvexHull(xy).vertices]
-        except Exception:   # degenerate (collinear) layouts: all points
-            hull = xy
-    d = np.hypot(*(hull[:, None, :] - hull[None, :, :]).transpose(2, 0, 1)).max()
+    d = float(pdist(xy).max()) if len(xy) > 1 else 0.0
     step = 0.0 if pupil.step is None else float(pupil.step.to_value(u.m))
     return (d + step) * u.m
 
