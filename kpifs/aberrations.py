@@ -37,7 +37,7 @@ from .covariance import whiten
 from .exceptions import KpifsError
 from .extract import extract_kernel_phases
 from .pupil import pupil_image
-from .simulate import _propagate, phase_screens
+from .simulate import _mft_matrices, phase_screens
 from .window import ExtractionWindow
 
 __all__ = ["static_residual_rows", "fit_static_amplitude", "static_term"]
@@ -126,9 +126,13 @@ def static_residual_rows(kernel_model, wavelengths, pixscale, *, window=None, te
     screens = phase_screens(STATIC_NPUP, dx, n_screens, rms=rms_m, mask=img > 0, seed=seed)
     p = ps.to_value(u.mas) * np.pi / 180 / 3600e3
     cube = np.empty((n_screens, len(wl), size, size))
-    for k, s in enumerate(screens):
-        for i, lam in enumerate(wl):
-            cube[k, i] = _propagate(img * np.exp(2j * np.pi * s / lam), dx, (size, size), p, lam)
+    # one pair of MFT matrices per wavelength for every screen (`kpifs.simulate._propagate`,
+    # batched); the field's energy is the pupil's whatever the phase
+    norm = (p * dx) ** 2 / np.sum(img ** 2)
+    for i, lam in enumerate(wl):
+        ay, ax = _mft_matrices(STATIC_NPUP, dx, (size, size), p, lam)
+        e = ay @ (img * np.exp(2j * np.pi * screens / lam)) @ ax.T
+        cube[:, i] = (e.real ** 2 + e.imag ** 2) * (norm / lam ** 2)
     kpd = extract_kernel_phases(cube, kernel_model, wavelengths=wl * u.m, pixscale=ps,
                                 window=window, keep_phases=False, source="static residual")
     kp = kpd.kp - kpd.kp.mean(axis=0)
