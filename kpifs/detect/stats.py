@@ -268,7 +268,7 @@ def known_position_subspace(norms):
     """Weights ``W`` (r, q) and sign vector ``h`` (r,) of the subspace test at a known
     position whose channels' signal norms are *norms*: a smooth spectrum over the
     channels' order, of fewer dimensions than channels (detect's ``'auto'`` rule, else
-    B is the better test), and a spectrum of positive mean only (``h . W z > 0``,
+    B is the better test), and a spectrum of positive mean only (``h^T W z > 0``,
     `kpifs.detect.spectral.subspace_sign`).
 
     Examples
