@@ -203,6 +203,14 @@ class KernelPhaseData:
         return self.kp.shape[2]
 
     @property
+    def channel_n_kp(self):
+        """Kernel phases each channel measures, shape (nwave,): the first ones of the
+        kernel (`~kpifs.sampling.nested_kernel`; all of them unless channels sample
+        different uv points)."""
+        n = self.meta.get("channel_n_kp")
+        return np.full(self.n_wave, self.n_kp) if n is None else np.asarray(n, int)
+
+    @property
     def name(self):
         """The data's name for messages (its source file)."""
         return self.meta.get("source", "<kernel-phase data>")
@@ -243,6 +251,8 @@ class KernelPhaseData:
         meta = dict(self.meta)
         numbers = list(self.meta.get("channels") or range(1, self.n_wave + 1))
         meta["channels"] = [int(numbers[i]) for i in idx]
+        if self.meta.get("channel_n_kp") is not None:
+            meta["channel_n_kp"] = [int(self.channel_n_kp[i]) for i in idx]
         bw = self.bandwidth
         if bw is not None and np.ndim(bw) > 0:
             bw = bw[idx]

@@ -2,13 +2,16 @@
 
 Each filter has its own wavelength, pixel scale and sampling limit, and its
 own integrations (exposures in different filters are neither simultaneous
-nor equally many). Until kpifs has blocks whose kernels differ (DESIGN.md §6),
-the filters share **one kernel**: the pupil model restricted to the uv points
-that every filter samples (``|b| <= lambda / (2 pixscale)`` in each), so that
-the calibrated kernel phases of every filter are the same combinations of
-baseline phases and stack as channels, each with its own wavelength.
+nor equally many). Each filter keeps **its own kernel**: the kernel of the uv
+points it samples (``|b| <= lambda / (2 pixscale)``). Those sets are nested,
+so one kernel serves all (`~kpifs.sampling.nested_kernel`, DESIGN.md section 6):
+its first rows are the kernel of the filter that samples least, the next ones
+complete it to the next filter's, and so on. A filter measures its first
+``n`` kernel phases (``meta['channel_n_kp']``, cards ``NKPCH<i>``); its other
+rows are zero with zero covariance, and the whitening leaves them out, so
+every test, limit and fit sees each filter's own kernel phases only.
 
-- Each filter is extracted with that model and a window of the same
+- Each filter is extracted with its own model and a window of the same
   *angular* radius (its pixel radius scaled by the pixel scales), then
   calibrated by the same filter's calibrator frames (`~kpifs.workflow`).
 - The product carries the finest pixel scale and that filter's window: the
@@ -19,13 +22,15 @@ baseline phases and stack as channels, each with its own wavelength.
   (the error-model rows of each filter are zero in the others').
 - Refused: one filter without calibrator frames, files of different targets,
   filters observed at different detector angles (field rotation between
-  filters needs blocks), and a common kernel with no kernel phase left.
+  filters needs blocks), and a filter with no kernel phase.
 
-What this loses: a filter's long baselines beyond another's sampling limit
-(NIRCam F150W at 31 mas samples 5.03 m: F480M keeps those baselines only).
+``filter_kernels='common'`` (``--filter-kernels common``) gives every filter
+the kernel of the uv points they all sample instead. With few frames that
+can go deeper: the error model keeps the leading modes of the frames'
+scatter, and the long baselines, near the pupil's edge, add noisy ones (see
+docs/user/jwst.rst for the measured depths).
 """
 import logging
-import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -33,9 +38,10 @@ from astropy import units as u
 from astropy.io import fits
 
 from .data import KernelPhaseData
-from .exceptions import KpifsError, KpifsWarning
+from .exceptions import KpifsError
 from .io.jwst import JWST_FILTERS, JWST_PIXSCALES, jwst_mode
-from .kernel import nyquist_usable
+from .kernel import KernelModel, nyquist_usable
+from .sampling import nested_kernel
 from .window import DEFAULT_WINDOW_RADIUS, ExtractionWindow
 from .workflow import calibrate_observation, extract_observation, kernel_model_for
 
@@ -136,28 +142,52 @@ def extract_filters(targets, calibrators, options, *, progress=False):
     order = sorted(groups, key=lambda f: scales[f][0])
     first = groups[order[0]][0]
     km = kernel_model_for(options, "jwst", fits.getheader(first))
-    usable = np.all([nyquist_usable(km.uv, [scales[f][0]] * u.um, scales[f][1] * u.mas)[0]
-                     for f in order], axis=0)
-    sub = km.subset(usable) if usable.sum() >= 2 else None
-    if sub is None or sub.n_kp == 0:
-        raise KpifsError(f"{first}: filters {', '.join(order)}: the {int(usable.sum())} uv "
-                         f"points every filter samples give no kernel phase")
-    if not usable.all():
-        warnings.warn(f"{first}: filters {', '.join(order)} share one kernel: "
-                      f"{int((~usable).sum())} of {km.n_uv} uv points are beyond some "
-                      f"filter's sampling limit and dropped for all ({sub.n_kp} kernel "
-                      f"phases left)", KpifsWarning, stacklevel=2)
+    usable = np.array([nyquist_usable(km.uv, [scales[f][0]] * u.um, scales[f][1] * u.mas)[0]
+                       for f in order])
+    for f, m in zip(order, usable):
+        if m.sum() < 2:
+            raise KpifsError(f"{groups[f][0]}: filter {f}: {int(m.sum())} of {km.n_uv} uv "
+                             f"points within its sampling limit "
+                             f"({_limit(scales[f]):.2f} m at {scales[f][1]:g} mas pixels): "
+                             f"no kernel phase")
+    if options.filter_kernels not in ("own", "common"):
+        raise KpifsError(f"filter kernels must be 'own' or 'common', got "
+                         f"{options.filter_kernels!r}")
+    if options.filter_kernels == "common":      # every filter the uv points all sample
+        usable = np.broadcast_to(usable.all(axis=0), usable.shape)
+    model, counts = nested_kernel(km, usable)
+    for f, m, n in zip(order, usable, counts):
+        if n == 0:
+            raise KpifsError(f"{groups[f][0]}: filter {f}: the {int(m.sum())} uv points "
+                             f"within its sampling limit ({_limit(scales[f]):.2f} m at "
+                             f"{scales[f][1]:g} mas pixels) give no kernel phase")
+    log.info("filters %s: %s kernel phases (each its own uv points, of %d)", ", ".join(order),
+             ", ".join(map(str, counts)), model.n_uv)
+    own = {f: _channel_model(model, n, m[usable.any(axis=0)])
+           for f, m, n in zip(order, usable, counts)}
     # windows of one angular radius: the default radius of the finest sampled filter
     radius_mas = min(DEFAULT_WINDOW_RADIUS * min(scales[f][2], 64) / 2 * scales[f][1]
                      for f in order) if options.window_radius is None else None
     products = []
     for f in order:
         opts = _with_window(options, radius_mas, scales[f][1])
-        t = extract_observation(groups[f], opts, model=sub, progress=progress)
-        cals = [extract_observation(cg[f], opts, model=sub, progress=progress)
+        t = extract_observation(groups[f], opts, model=own[f], progress=progress)
+        cals = [extract_observation(cg[f], opts, model=own[f], progress=progress)
                 for cg in cal_groups]
         products.append(calibrate_observation(t, cals, opts))
-    return stack_filters(products, order)
+    return stack_filters(products, order, kernel_model=model)
+
+
+def _limit(scale):
+    """A filter's sampling limit (m): the longest baseline it samples."""
+    wl_um, pix_mas = scale[0], scale[1]
+    return wl_um * 1e-6 / (2 * pix_mas * np.pi / 180 / 3600e3)
+
+
+def _channel_model(model, n, mask):
+    """One filter's own model: its uv points and the nested kernel's first *n* rows."""
+    return KernelModel(model.pupil, model.uv[mask], model.redundancy[mask], model.blm[mask],
+                       kernel=model.kernel[:n][:, mask], meta=model.meta)
 
 
 def _with_window(options, radius_mas, pixscale):
@@ -166,8 +196,19 @@ def _with_window(options, radius_mas, pixscale):
     return replace(options, window_radius=radius_mas / pixscale)
 
 
-def stack_filters(products, names):
-    """Calibrated one-filter products sharing one kernel as the channels of one.
+def stack_filters(products, names, *, kernel_model=None):
+    """Calibrated one-filter products as the channels of one.
+
+    Parameters
+    ----------
+    products : list of `~kpifs.data.KernelPhaseData`
+        One calibrated frame per filter.
+    names : list of str
+        The filters' names.
+    kernel_model : `~kpifs.kernel.KernelModel`, optional
+        The nested kernel (`~kpifs.sampling.nested_kernel`) when the filters have
+        their own: each product's kernel must be its first rows on the product's
+        uv points. Default: the products share one kernel.
 
     Examples
     --------
@@ -182,12 +223,14 @@ def stack_filters(products, names):
     >>> kpd.shape, kpd.covariance_rows.shape, kpd.pixscale
     ((1, 2, 15), (30, 2, 15), <Quantity 31. mas>)
     """
-    km = products[0].kernel_model
+    km = products[0].kernel_model if kernel_model is None else kernel_model
+    counts = []
     for p, name in zip(products, names):
         if p.n_frame != 1 or not p.meta.get("calibrated"):
             raise KpifsError(f"{p.name}: filter {name} is not one calibrated frame")
-        if p.kernel_model.n_kp != km.n_kp or not np.allclose(p.kernel_model.kernel, km.kernel):
+        if not _first_rows(km, p.kernel_model):
             raise KpifsError(f"{p.name}: filter {name} has another kernel model")
+        counts.append(p.n_kp)
     pas = [None if p.detpa is None else float(p.detpa[0]) for p in products]
     known = [a for a in pas if a is not None and np.isfinite(a)]
     if known and (len(known) < len(pas) or np.ptp(np.unwrap(np.deg2rad(known))) * 180 / np.pi
@@ -197,8 +240,12 @@ def stack_filters(products, names):
             + "): one product needs one angle (field rotation between filters needs "
             "blocks: DESIGN.md 6)")
     nk, nf = km.n_kp, len(products)
-    kp = np.concatenate([p.kp for p in products], axis=1)
-    cov = np.concatenate([p.covariance for p in products])
+    # a filter's rows beyond its own kernel phases: zero data, zero covariance
+    kp = np.zeros((1, nf, nk))
+    cov = np.zeros((nf, nk, nk))
+    for j, (p, n) in enumerate(zip(products, counts)):
+        kp[:, j, :n] = p.kp[:, 0]
+        cov[j, :n, :n] = p.covariance[0]
 
     def rows(attr):
         parts = [getattr(p, attr) for p in products]
@@ -206,8 +253,8 @@ def stack_filters(products, names):
             return None
         out = np.zeros((sum(len(r) for r in parts), nf, nk))
         i = 0
-        for j, r in enumerate(parts):
-            out[i:i + len(r), j] = r[:, 0]
+        for j, (r, n) in enumerate(zip(parts, counts)):
+            out[i:i + len(r), j, :n] = r[:, 0]
             i += len(r)
         return out
 
@@ -220,6 +267,8 @@ def stack_filters(products, names):
     meta["filter_pixscales"] = {n: float(p.pixscale.to_value(u.mas))
                                 for n, p in zip(names, products)}
     meta["source"] = ", ".join(p.name for p in products)
+    if any(n != nk for n in counts):
+        meta["channel_n_kp"] = counts
     header = products[0].header.copy()
     header["KPFILTER"] = ("+".join(names), "filters as channels")
     bw = [p.bandwidth for p in products]
@@ -233,5 +282,25 @@ def stack_filters(products, names):
                           fit_covariance_rows=rows("fit_covariance_rows"),
                           block_rows=rows("block_rows"), header=header,
                           detpa=None if not known else [known[0]], bandwidth=band, meta=meta)
-    log.info("filters %s as %d channels of %d kernel phases", "+".join(names), nf, nk)
+    log.info("filters %s as %d channels of %s kernel phases", "+".join(names), nf,
+             "/".join(map(str, counts)))
     return out
+
+
+def _first_rows(model, own):
+    """Whether *own*'s kernel is *model*'s first rows on *own*'s uv points (and those rows
+    touch no other uv point)."""
+    if own is model:
+        return True
+    n = own.n_kp
+    if n > model.n_kp or own.n_uv > model.n_uv:
+        return False
+    uv, sub = model.uv.to_value(u.m), own.uv.to_value(u.m)
+    d = np.hypot(*(uv[None, :, :] - sub[:, None, :]).transpose(2, 0, 1))
+    idx = np.argmin(d, axis=1)
+    if np.any(d[np.arange(len(idx)), idx] > 1e-9) or len(set(idx.tolist())) != len(idx):
+        return False
+    k = model.kernel[:n]
+    rest = np.delete(k, idx, axis=1)
+    return bool(np.allclose(k[:, idx], own.kernel, atol=1e-8)
+                and (rest.size == 0 or np.abs(rest).max() < 1e-8))

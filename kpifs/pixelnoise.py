@@ -11,9 +11,17 @@ each frame's own variance, cut around its own centre, gives its errors.
 ``kp_err`` (per frame, stored as KP-SIGM, as jwst-kpi writes it from
 ``ERR``) and ``meta['pixel_covariance']`` (one frame's covariance per
 channel, ``(nwave, nkp, nkp)``), with ``meta['pixel_noise']`` naming the
-source. The frames' error model (`kpifs.errormodel`) does not use them yet:
-they are the floor that model can be checked against (``kpifs info`` prints
-the ratio of the frames' scatter to it).
+source.
+
+The frames' error model (`kpifs.errormodel`) keeps only the leading modes of
+the frames' scatter, about half as many as the frames' degrees of freedom:
+from few frames no more directions are measured. The rest of the kernel
+phases is thrown away, and where the kernel phases' noise is uneven (the
+uv points near the pupil's edge, where the transfer function is small) the
+leading modes are the noisiest directions. `complement_rows` gives the
+calibrated mean the propagated pixel noise in the directions the modes leave
+out, so that a calibration keeps every kernel phase, each weighted by its
+own noise (`~kpifs.calibrate.calibrate`, ``pixel_noise='auto'``).
 """
 import logging
 
@@ -23,7 +31,8 @@ from astropy import units as u
 from .covariance import kernel_jacobian
 from .prepare import cut_out
 
-__all__ = ["attach_pixel_noise", "pixel_noise"]
+__all__ = ["attach_pixel_noise", "pixel_noise", "calibrated_pixel_covariance",
+           "complement_rows"]
 
 log = logging.getLogger(__name__)
 
@@ -134,6 +143,98 @@ def attach_pixel_noise(kpd, cube):
     log.info("%s: per-pixel noise (%s) propagated: median kernel-phase error %.3g rad per "
              "frame", cube.name, kpd.meta["pixel_noise"], float(np.median(kpd.kp_err)))
     return kpd
+
+
+def calibrated_pixel_covariance(target, calibrators):
+    """The pixel noise of a calibrated mean, per channel, or None when a star has none.
+
+    ``P_t / N_t + sum_m P_m / (M^2 N_m)`` from each star's
+    ``meta['pixel_covariance']`` (one frame's, `attach_pixel_noise`).
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs.pixelnoise import calibrated_pixel_covariance
+    >>> km = KernelModel.from_pupil(make_pupil("niriss_nrm"))
+    >>> def star(n):
+    ...     return KernelPhaseData(np.zeros((n, 1, 15)), [4.8] * u.um, 65.6 * u.mas, km,
+    ...                            meta={"pixel_covariance": np.eye(15)[None]})
+    >>> float(calibrated_pixel_covariance(star(10), [star(5)])[0, 0, 0])
+    0.30000000000000004
+    """
+    stars = [target, *calibrators]
+    if any(k.meta.get("pixel_covariance") is None for k in stars):
+        return None
+    m = len(calibrators)
+    out = np.asarray(target.meta["pixel_covariance"], float) / target.n_frame
+    for c in calibrators:
+        out = out + np.asarray(c.meta["pixel_covariance"], float) / (m * m * c.n_frame)
+    return out
+
+
+def complement_rows(rows, pixel_covariance, *, data=None, groups=8, rtol=1e-9):
+    """Rows of the pixel noise in the directions an error model's rows leave out.
+
+    Pixel noise is a floor: the frames' scatter there is mostly pixel noise, but
+    a calibrated mean also carries the target's and calibrator's static
+    difference. Given the calibrated *data*, each channel's rows are scaled by
+    the data's own mean square there, whitened by that floor (at least 1): a
+    companion raises it too, which makes the term conservative, never
+    optimistic.
+
+    Parameters
+    ----------
+    rows : ndarray, shape (nrow, q, p)
+        The error model's covariance rows (`~kpifs.errormodel.ErrorModel.rows`).
+    pixel_covariance : ndarray, shape (q, p, p)
+        The calibrated mean's pixel noise (`calibrated_pixel_covariance`).
+    data : ndarray, shape (q, p), optional
+        The calibrated mean kernel phases.
+
+    Returns
+    -------
+    rows : ndarray, shape (n, q, p)
+        ``R^T R = Q P Q`` per channel (``Q`` the projector on the complement of
+        the rows' span), zero across channels (pixel noise is independent
+        between them); to be appended to *rows*.
+    scale : ndarray, shape (q,)
+        The factor applied to each channel's pixel noise (1 without *data*).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.pixelnoise import complement_rows
+    >>> rows = np.zeros((1, 1, 3)); rows[0, 0, 0] = 2.0          # one mode: the first axis
+    >>> extra, scale = complement_rows(rows, np.eye(3)[None])
+    >>> extra.shape, np.round(extra[:, 0].T @ extra[:, 0], 12)[0].tolist()
+    ((2, 1, 3), [0.0, 0.0, 0.0])
+    """
+    rows = np.asarray(rows, float)
+    _, q, p = rows.shape
+    parts, scale = [], np.ones(q)
+    for i in range(q):
+        _, s, vt = np.linalg.svd(rows[:, i], full_matrices=False)
+        basis = vt[s > 1e-10 * s.max()] if s.size and s.max() > 0 else np.zeros((0, p))
+        proj = np.eye(p) - basis.T @ basis
+        c = proj @ pixel_covariance[i] @ proj
+        vals, vecs = np.linalg.eigh(0.5 * (c + c.T))
+        keep = vals > rtol * max(float(vals.max()), 0.0) if vals.max() > 0 else vals > np.inf
+        fac = np.ones(int(keep.sum()))
+        if data is not None and keep.any():
+            z2 = ((vecs[:, keep].T @ np.asarray(data, float)[i]) / np.sqrt(vals[keep])) ** 2
+            # groups of directions by their pixel noise: where the uv points' transfer
+            # function is small, the static difference is large too
+            for g in np.array_split(np.arange(len(z2)), max(1, min(groups, len(z2) // 20))):
+                fac[g] = max(1.0, float(np.mean(z2[g])))
+            scale[i] = float(np.mean(fac))
+        parts.append((vecs[:, keep] * np.sqrt(fac * vals[keep])).T)
+    out = np.zeros((sum(len(r) for r in parts), q, p))
+    i0 = 0
+    for i, r in enumerate(parts):
+        out[i0:i0 + len(r), i] = r
+        i0 += len(r)
+    return out, scale
 
 
 class _Channels:

@@ -16,14 +16,20 @@ the frames' covariance (the search stays honest).
 `aliased_uv` marks those points, `aliased_channels` gives each channel's
 share of them; detection flags the channels where the share is not zero
 (`kpifs.detect.detect`'s ``aliased`` option).
+
+Channels at different pixel scales (JWST filters as channels) sample different
+uv points. `nested_kernel` gives them one kernel whose first rows are each
+channel's own (DESIGN.md section 6: channels whose kernels differ).
 """
 import numpy as np
 from astropy import units as u
 from scipy.spatial.distance import pdist
 
 from ._utils import to_quantity
+from .exceptions import KpifsError
 
-__all__ = ["aliased_uv", "aliased_channels", "pupil_extent"]
+__all__ = ["aliased_uv", "aliased_channels", "pupil_extent", "nested_kernel",
+           "channel_uv_mask"]
 
 MAS = np.pi / 180 / 3600 / 1000
 
@@ -84,8 +90,11 @@ def aliased_uv(uv, wavelengths, pixscale, *, diameter):
     return out
 
 
-def aliased_channels(kernel_model, wavelengths, pixscale):
+def aliased_channels(kernel_model, wavelengths, pixscale, *, uv_mask=None):
     """Fraction of the model's uv points, per channel, that the sampling aliases.
+
+    *uv_mask* (nwave, nuv), when the channels measure different uv points
+    (`channel_uv_mask`), restricts each channel to its own.
 
     Examples
     --------
@@ -101,4 +110,94 @@ def aliased_channels(kernel_model, wavelengths, pixscale):
         return np.zeros(len(np.atleast_1d(wavelengths)))
     hit = aliased_uv(kernel_model.uv, wavelengths, pixscale,
                      diameter=pupil_extent(kernel_model.pupil))
-    return hit.mean(axis=1)
+    if uv_mask is None:
+        return hit.mean(axis=1)
+    mask = np.asarray(uv_mask, bool)
+    return (hit & mask).sum(axis=1) / np.maximum(mask.sum(axis=1), 1)
+
+
+def nested_kernel(kernel_model, usable):
+    """One kernel for channels that sample nested sets of uv points.
+
+    A channel samples the uv points within its limit ``lam / (2 p)``
+    (`~kpifs.kernel.nyquist_usable`), so the channels' sets are nested. The
+    kernel of a smaller set, extended by zeros, lies in the kernel of a larger
+    one. The rows returned are the smallest set's kernel, then the rows that
+    complete it to the next set's kernel, and so on: channel ``c``'s kernel
+    phases are the first ``counts[c]`` rows, which touch only its uv points.
+    Every channel keeps all the kernel phases its own sampling allows.
+
+    Parameters
+    ----------
+    kernel_model : `~kpifs.kernel.KernelModel`
+    usable : array-like of bool, shape (nchan, nuv)
+        The uv points each channel samples.
+
+    Returns
+    -------
+    model : `~kpifs.kernel.KernelModel`
+        The model on the uv points some channel samples, with the nested kernel.
+    counts : ndarray of int, shape (nchan,)
+        Each channel's number of kernel phases (0 where it has none).
+
+    Examples
+    --------
+    >>> import astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.kernel import nyquist_usable
+    >>> from kpifs.sampling import nested_kernel
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> usable = nyquist_usable(km.uv, [1.2, 2.2] * u.um, 20 * u.mas)
+    >>> model, counts = nested_kernel(km, usable)
+    >>> int(counts[0]) < int(counts[1]) == km.n_kp
+    True
+    """
+    usable = np.atleast_2d(np.asarray(usable, bool))
+    if usable.shape[1:] != (kernel_model.n_uv,):
+        raise KpifsError(f"uv selection has shape {usable.shape}, expected (nchan, "
+                         f"{kernel_model.n_uv})")
+    union = usable.any(axis=0)
+    model = kernel_model.subset(union)
+    masks = usable[:, union]
+    counts = np.zeros(len(masks), int)
+    rows = np.zeros((0, model.n_uv))
+    done = np.zeros(model.n_uv, bool)
+    for i in np.argsort(masks.sum(axis=1), kind="stable"):
+        m = masks[i]
+        if np.any(done & ~m):
+            raise KpifsError("the channels' uv points are not nested: no kernel whose first "
+                             "rows are each channel's own")
+        if m.sum() >= 2 and (m & ~done).any():
+            full = np.zeros((0, model.n_uv))
+            own = model.subset(m).kernel
+            if len(own):
+                full = np.zeros((len(own), model.n_uv))
+                full[:, m] = own
+            # the part of this set's kernel not yet spanned: singular values 1 (new) or 0
+            rest = full - (full @ rows.T) @ rows
+            if len(rest):
+                _, s, vt = np.linalg.svd(rest, full_matrices=False)
+                rows = np.vstack([rows, vt[s > 0.5]])
+            done = m
+        counts[i] = len(rows)
+    out = type(model)(model.pupil, model.uv, model.redundancy, model.blm, kernel=rows,
+                      rtol=model.meta.get("rtol", 1e-9), meta=model.meta)
+    out.meta["nested_counts"] = counts.tolist()
+    return out, counts
+
+
+def channel_uv_mask(kernel_model, counts):
+    """The uv points each channel's kernel phases touch (the first *counts* rows).
+
+    Examples
+    --------
+    >>> import astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.sampling import channel_uv_mask
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> channel_uv_mask(km, [km.n_kp]).shape == (1, km.n_uv)
+    True
+    """
+    k = np.abs(kernel_model.kernel)
+    tol = 1e-9 * max(float(k.max(initial=0.0)), 1e-300)
+    return np.array([np.any(k[:int(n)] > tol, axis=0) for n in np.atleast_1d(counts)])

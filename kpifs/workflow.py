@@ -80,7 +80,6 @@ class ExtractOptions:
     ('auto', 'com')
     """
 
-    # reading
     instrument: str = "auto"
     wavelengths: object = None
     pixscale: object = None
@@ -96,7 +95,6 @@ class ExtractOptions:
     min_redundancy: float = None
     rotation: object = None
     hexagonal: bool = False
-    # extraction
     window_size: int = None
     window_radius: float = None
     window_order: float = 4.0
@@ -106,10 +104,11 @@ class ExtractOptions:
     on_nyquist: str = "drop"
     mask: object = None
     precision: str = "double"
-    # covariance
     shrinkage: str = "auto"
     joint_covariance: bool = False
     covariance: bool = False
+    pixel_noise: str = "auto"       # `~kpifs.calibrate.calibrate`: beyond the modes
+    filter_kernels: str = "own"     # `~kpifs.filters.extract_filters`
 
     def window_for(self, image_shape):
         """The `~kpifs.window.ExtractionWindow` these options give for images of a shape."""
@@ -344,16 +343,18 @@ def calibrate_observation(target, calibrators=(), options=None):
         check_calibration(target, calibrators)
         target, calibrators = _checks.match_dead_channels(target, calibrators)
         result = calibrate(target, calibrators, shrinkage=options.shrinkage,
-                           joint=options.joint_covariance)
+                           joint=options.joint_covariance, pixel_noise=options.pixel_noise)
         em = result.meta.get("error_model") or {}
         if em.get("model") == "modes" and em.get("dof", np.inf) < target.n_kp:
+            rest = ("the others carry the pixel noise (ERR)" if em.get("pixel_modes") else
+                    "its scale is measured on the calibrated data when detecting")
             frames = [k.n_frame for k in [target] + calibrators]
             warnings.warn(f"{target.name}: too few frames ({frames}, {em['dof']} degrees of "
-                          f"freedom) for the covariance of {target.n_kp} kernel phases per "
-                          f"channel: it is modelled on its {em['n_modes']} best-measured modes "
-                          f"only, and its scale is measured on the calibrated data when "
-                          f"detecting (use several times more frames than kernel phases, or "
-                          f"a coarser pupil model, --step)", KpifsWarning, stacklevel=2)
+                          f"freedom) for the covariance of "
+                          f"{target.n_kp} kernel phases per channel: it is modelled on its "
+                          f"{em['n_modes']} best-measured modes only, and {rest} (use several "
+                          f"times more frames than kernel phases, or a coarser pupil model, "
+                          f"--step)", KpifsWarning, stacklevel=2)
         digest = combined_digest([k.header.get("KPINHASH", k.name)
                                   for k in [target] + calibrators])
         result.header["KPINHASH"] = (digest, "digest of the input files")

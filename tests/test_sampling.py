@@ -6,6 +6,8 @@ import pytest
 from astropy import units as u
 
 from kpifs import KernelModel, KernelPhaseData, make_pupil
+from kpifs.exceptions import KpifsError
+from kpifs.kernel import nyquist_usable
 from kpifs.detect import detect
 from kpifs.extract import extract_kernel_phases
 from kpifs.sampling import aliased_channels, aliased_uv, pupil_extent
@@ -127,3 +129,73 @@ def test_detect_aliased_keep_and_exclude(tmp_path):
     assert back.meta["channels"] == out.meta["channels"]
     with pytest.raises(Exception, match="aliased must be"):
         detect(kpd, aliased="drop")
+
+
+# --- channels whose kernels differ (issue 27: filters as channels) ---------------------
+def test_nested_kernel_first_rows_are_each_channels_own():
+    """Three sampling limits: each channel's kernel is the first rows, spans exactly the
+    kernel of its own uv points, and touches no other uv point."""
+    from kpifs.sampling import channel_uv_mask, nested_kernel
+    km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    usable = nyquist_usable(km.uv, [1.0, 1.3, 2.4] * u.um, 20 * u.mas)
+    model, counts = nested_kernel(km, usable)
+    k = model.kernel
+    assert counts[-1] == km.n_kp and counts[0] < counts[1] < counts[2]
+    assert np.abs(k @ k.T - np.eye(len(k))).max() < 1e-12          # orthonormal rows
+    assert np.abs(k @ model.tfm).max() < 1e-12                      # kernel phases
+    mask = channel_uv_mask(model, counts)
+    assert not (mask & ~usable).any() and mask[-1].sum() > mask[0].sum()
+    for m, n in zip(usable, counts):
+        own = km.subset(m)
+        assert own.n_kp == n
+        # same span as the channel's own kernel: projections agree
+        sub = k[:n][:, m]
+        assert np.abs(sub.T @ sub - own.kernel.T @ own.kernel).max() < 1e-10
+
+
+def test_nested_kernel_refuses_sets_that_are_not_nested():
+    from kpifs.sampling import nested_kernel
+    km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    a = np.zeros(km.n_uv, bool)
+    b = a.copy()
+    a[: km.n_uv // 2], b[km.n_uv // 3:] = True, True
+    with pytest.raises(KpifsError, match="not nested"):
+        nested_kernel(km, [a, b])
+
+
+def test_unmeasured_rows_are_not_data(tmp_path):
+    """A two-channel product whose channel 1 measures the first kernel phases only: what its
+    other rows hold never changes the search (the whitening leaves them out), the
+    degrees of freedom are the measured rows', and the counts survive a round trip."""
+    from kpifs.detect import detect
+    from kpifs.sampling import nested_kernel
+    km0 = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    usable = nyquist_usable(km0.uv, [1.2, 2.2] * u.um, 20 * u.mas)
+    km, counts = nested_kernel(km0, usable)
+    rng = np.random.default_rng(4)
+    p = km.n_kp
+    rows = np.zeros((2 * p, 2, p))
+    rows[:counts[0], 0, :counts[0]] = np.eye(counts[0]) * 0.01
+    rows[p:, 1] = np.eye(p) * 0.01
+    kp = np.zeros((1, 2, p))
+    kp[0, 0, :counts[0]] = rng.normal(0, 0.01, counts[0])
+    kp[0, 1] = rng.normal(0, 0.01, p)
+    cov = np.matmul(rows.transpose(1, 2, 0), rows.transpose(1, 0, 2))
+
+    def product(fill):
+        x, c = kp.copy(), cov.copy()
+        x[0, 0, counts[0]:] = fill           # another tool's file may hold anything there
+        c[0, counts[0]:, counts[0]:] += np.eye(p - counts[0]) * (fill * 1e-4)
+        return KernelPhaseData(x, [1.2, 2.2] * u.um, 20 * u.mas, km, covariance=c,
+                               covariance_rows=rows, meta={"calibrated": True,
+                                                           "channel_n_kp": counts.tolist()})
+    res = [detect(product(f), pfa=1e-2, n_draws=1000, seed=1, limits=False, fit=False)
+           for f in (0.0, 5.0)]
+    assert res[0].energy["dof"] == counts.sum()
+    assert res[0].energy["raw"] == pytest.approx(res[1].energy["raw"])
+    assert np.allclose(res[0].statistic, res[1].statistic, equal_nan=True)
+    assert np.isfinite(res[0].statistic).sum() > 100
+    out = product(0.0).write(tmp_path / "kp.fits")
+    back = KernelPhaseData.read(out)
+    assert back.channel_n_kp.tolist() == counts.tolist()
+    assert back.select_channels([1]).channel_n_kp.tolist() == [p]

@@ -16,7 +16,8 @@ def extract_options(args):
         ("window_radius", "window_radius"), ("centroid", "centroid"),
         ("bad_pixels", "bad_pixels"), ("bad_frames", "bad_frames"),
         ("on_nyquist", "nyquist"), ("precision", "precision"), ("shrinkage", "shrinkage"),
-        ("joint_covariance", "joint_covariance"), ("covariance", "covariance"))
+        ("joint_covariance", "joint_covariance"), ("covariance", "covariance"),
+        ("pixel_noise", "pixel_noise"), ("filter_kernels", "filter_kernels"))
         if hasattr(args, a)}
     return ExtractOptions(**get)
 

@@ -103,6 +103,14 @@ def _extraction_options(p):
                    help="also estimate the joint covariance across channels")
     g.add_argument("--covariance", action="store_true",
                    help="store the frames' covariance even without a calibrator")
+    g.add_argument("--pixel-noise", default="auto", choices=("auto", "none"),
+                   help="auto: with per-pixel noise (JWST ERR), the kernel phases beyond the "
+                        "error model's modes carry it, scaled to the calibrated data; none: "
+                        "the modes only (default %(default)s)")
+    g.add_argument("--filter-kernels", default="own", choices=("own", "common"),
+                   help="JWST filters as channels: each filter the kernel of the uv points "
+                        "it samples, or all the kernel of those every filter samples "
+                        "(default %(default)s)")
 
 
 def _search_options(p, *, draws=5000):

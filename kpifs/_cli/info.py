@@ -86,6 +86,9 @@ def _kpfits(path):
     print(f"  {kpd.n_frame} frame(s) x {kpd.n_wave} channel(s) x {kpd.n_kp} kernel phases; "
           f"{wl.min():.4f}-{wl.max():.4f} um; {kpd.pixscale:.2f}")
     print(f"  model: {kpd.kernel_model!r}")
+    if meta.get("channel_n_kp") is not None:
+        print("  each channel its own kernel (its first kernel phases): "
+              + ", ".join(f"{w:.4f} um {n}" for w, n in zip(wl, kpd.channel_n_kp)))
     cals = ", ".join(meta.get("calibrators", []))
     print(f"  calibrated: {'yes, with ' + cals if meta.get('calibrated') else 'no'}")
     cov = "per channel" if kpd.covariance is not None else "none"

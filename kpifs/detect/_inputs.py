@@ -1,13 +1,14 @@
 """What a search is given besides the data: the channels it keeps (aliased ones
-flagged or left out, `kpifs.sampling`) and whether the static-aberration term
-is added (`kpifs.aberrations`)."""
+flagged or left out, `kpifs.sampling`), each channel's own kernel phases (filters
+as channels), and whether the static-aberration term is added
+(`kpifs.aberrations`)."""
 import logging
 import warnings
 
 import numpy as np
 
 from ..exceptions import KpifsError, KpifsWarning
-from ..sampling import aliased_channels
+from ..sampling import aliased_channels, channel_uv_mask
 
 log = logging.getLogger(__name__)
 
@@ -24,7 +25,32 @@ def _aliased(kpd):
     # interferometric data (OIFITS) have no pixels to alias
     if kpd.meta.get("closure_phases"):
         return np.zeros(kpd.n_wave)
-    return aliased_channels(kpd.kernel_model, kpd.wavelengths, kpd.pixscale)
+    mask = None
+    if kpd.meta.get("channel_n_kp") is not None:
+        mask = channel_uv_mask(kpd.kernel_model, kpd.channel_n_kp)
+    return aliased_channels(kpd.kernel_model, kpd.wavelengths, kpd.pixscale, uv_mask=mask)
+
+
+def _measured(kpd, kp, cov):
+    """*kp* and *cov* with each channel's rows beyond its own kernel phases (filters as
+    channels, `kpifs.sampling.nested_kernel`) set to zero: the whitening then leaves them
+    out, and a model signature there (a uv point that channel does not sample) is never
+    compared with anything."""
+    n = kpd.channel_n_kp
+    if np.all(n == kpd.n_kp):
+        return kp, cov
+    q, p = kp.shape
+    off = np.arange(p)[None, :] >= n[:, None]             # (q, p): not measured
+    kp = np.where(off, 0.0, kp)
+    cov = np.array(cov, float)
+    if cov.shape == (q, p, p):
+        cov[off[:, :, None] | off[:, None, :]] = 0.0
+    else:                                                    # joint (q p, q p)
+        flat = off.ravel()
+        cov[flat, :] = 0.0
+        cov[:, flat] = 0.0
+    log.info("%s: channels measure %s of %d kernel phases", kpd.name, n.tolist(), p)
+    return kp, cov
 
 
 def _drop_aliased(kpd, aliased):

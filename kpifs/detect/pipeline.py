@@ -12,7 +12,7 @@ from ..kernel import MAS, KernelModel
 from ..aberrations import static_term
 from ..adi import inner_separation
 from ..pupil import make_pupil
-from ._inputs import _aliased, _drop_aliased, _wants_static
+from ._inputs import _aliased, _drop_aliased, _measured, _wants_static
 from ._laws import chi2_sf, norm_isf
 from .search import _POWER, _chi2_red, _sequential_search
 from .sky import (add_sky_columns, data_angles, pa_bins,
@@ -230,6 +230,7 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
         if isinstance(basis, np.ndarray) and basis.ndim == 2 and len(basis) == q0:
             basis = basis[kept]
     kp, cov, kpd = _prepare(kpd, shrinkage, allow_uncalibrated)
+    kp, cov = _measured(kpd, kp, cov)
     static_rows, static_info = None, None
     if _wants_static(kpd, static):
         cov, static_rows, static_info = static_term(

@@ -23,6 +23,8 @@ _ERROR_MODEL_CARDS = {
     "tau_mean": ("EMTAU", "mean autocorrelation time (frames)"),
     "inflation": ("EMINFL", "variance / independent-frame variance (mean)"),
     "hartlap": ("EMHARTL", "Hartlap factor applied (frames model)"),
+    "pixel_modes": ("EMPIXMOD", "directions beyond the modes given pixel noise"),
+    "pixel_scale": ("EMPIXSCL", "pixel noise there x this (calibrated data's)"),
 }
 # telescope name -> diameter (m), the table fouriever uses when DIAM is absent
 _TELESCOPE_DIAMETERS = (("ESO-VLT", 8.2), ("KECK", 10.95))

@@ -147,6 +147,13 @@ def _primary_header(kpd, inputs, history):
     hdr["NWAVE"] = (nwave, "number of wavelengths")
     hdr["NKP"] = (nkp, "number of kernel phases")
     hdr["NUV"] = (km.n_uv, "number of uv points")
+    for key in [k for k in hdr if k.startswith("NKPCH")]:
+        del hdr[key]                         # the input's, if any: rewritten from the data
+    if kpd.meta.get("channel_n_kp") is not None:
+        # channels that sample different uv points: each measures the first n kernel
+        # phases (kpifs.sampling.nested_kernel); its other rows are zero, not data
+        for i, n in enumerate(kpd.meta["channel_n_kp"], 1):
+            hdr[f"NKPCH{i}"] = (int(n), f"kernel phases channel {i} measures (first ones)")
     if kpd.meta.get("bad_frames"):
         dropped = list(kpd.meta.get("dropped_frames") or [])
         hdr["BADFRMS"] = (str(kpd.meta["bad_frames"]), "bad-frame policy (drop or fail)")

@@ -393,6 +393,12 @@ def _read_data(hdul, path, detpa):
         meta["error_model"] = em
     if "DETPA-FR" in hdul and hdul["DETPA-FR"].data is not None:
         meta["detpa_frames"] = [float(v) for v in np.ravel(hdul["DETPA-FR"].data)]
+    if "NKPCH1" in hdr:
+        meta["channel_n_kp"] = [int(hdr[f"NKPCH{i}"]) for i in range(1, len(wl) + 1)
+                                if f"NKPCH{i}" in hdr]
+        if len(meta["channel_n_kp"]) != len(wl) or max(meta["channel_n_kp"]) > kp.shape[-1]:
+            raise KpifsError(f"{path}: NKPCH<i> cards do not give one count of at most "
+                             f"{kp.shape[-1]} kernel phases per channel ({len(wl)})")
     if "BADFRMS" in hdr:
         meta["bad_frames"] = str(hdr["BADFRMS"])
         meta["n_dropped_frames"] = int(hdr.get("NDROPFR", 0))
