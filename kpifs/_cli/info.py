@@ -86,9 +86,7 @@ def _kpfits(path):
     print(f"  {kpd.n_frame} frame(s) x {kpd.n_wave} channel(s) x {kpd.n_kp} kernel phases; "
           f"{wl.min():.4f}-{wl.max():.4f} um; {kpd.pixscale:.2f}")
     print(f"  model: {kpd.kernel_model!r}")
-    if meta.get("channel_n_kp") is not None:
-        print("  each channel its own kernel (its first kernel phases): "
-              + ", ".join(f"{w:.4f} um {n}" for w, n in zip(wl, kpd.channel_n_kp)))
+    _print_own_kernels(wl, meta.get("channel_n_kp"))
     cals = ", ".join(meta.get("calibrators", []))
     print(f"  calibrated: {'yes, with ' + cals if meta.get('calibrated') else 'no'}")
     cov = "per channel" if kpd.covariance is not None else "none"
@@ -119,6 +117,13 @@ def _oifits(path):
     for note in kpd.meta.get("notes", []):
         print(f"  note: {note}")
     print(f"  next: kpifs detect {path} -o detection.fits")
+
+
+def _print_own_kernels(wl, counts):
+    """Channels with their own kernels (JWST filters): each one's number of kernel phases."""
+    if counts is not None and all(n is not None for n in counts):
+        print("  each channel its own kernel (its first kernel phases): "
+              + ", ".join(f"{w:.4f} um {int(n)}" for w, n in zip(wl, counts)))
 
 
 def _print_angles(pa, source):
@@ -194,6 +199,7 @@ def _kpfits_headers(path, hdul):
     print(f"  model: <KernelModel {str(ap.get('PUPNAME', 'pupil')).strip()!r}: "
           f"{ap.get('NAXIS2', 0)} sub-apertures, {n_uv} uv points, rank {rank}, {nkp} kernel "
           f"phases>")
+    _print_own_kernels(wl, [hdr.get(f"NKPCH{i}") for i in range(1, nwave + 1)])
     cals = [str(hdr[k]) for k in hdr if k.startswith("KPCAL") and k[5:].isdigit()]
     print(f"  calibrated: {'yes, with ' + ', '.join(cals) if hdr.get('CALFLAG') else 'no'}")
     cov = "per channel" if "KP-COV" in names else "none"
