@@ -411,7 +411,7 @@ def test_two_filters_go_deeper(tmp_path):
     res = [detect(k, pfa=1e-3, n_draws=1000, seed=0)
            for k in (both.select_channels([0]), both.select_channels([1]), both)]
     assert [len(r.candidates) for r in res] == [0, 0, 1]
-    assert abs(res[2].candidates[0]["fit_separation"].to_value(u.mas) - 84.0) < 10
+    assert abs(res[2].candidates[0]["fit_separation"].to_value(u.mas) - 84.0) < 5
     for lo, hi in ((60, 90), (90, 120)):
         lim = [np.nanmedian(r.limit[(r.grid.sep >= lo) & (r.grid.sep < hi)]) for r in res]
         assert lim[2] < 0.7 * min(lim[:2])
