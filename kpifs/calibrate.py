@@ -21,6 +21,7 @@ from .covariance import calibrated_covariance, empirical_covariance, hartlap_fac
 from .data import KernelPhaseData
 from .errormodel import fit_error_model
 from .exceptions import KpifsError, KpifsWarning
+from .outliers import THRESHOLD as OUTLIER_THRESHOLD, without_outlier_frames
 from .pixelnoise import calibrated_pixel_covariance, complement_rows
 from .rotation import rotation_blocks
 
@@ -245,6 +246,7 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True
         error_model = "modes" if min(k.n_frame for k in [target, *calibrators]) > 1 \
             else "frames"
     if error_model == "modes":
+        target, *calibrators = [_drop_outliers(k) for k in [target, *calibrators]]
         return _calibrate_modes(target, calibrators, n_modes=n_modes, residual=residual,
                                 joint=joint, fit_modes=fit_modes, pixel_noise=pixel_noise)
     t_mean, t_cov, n_t = _mean_and_cov(target, shrinkage, False, False)
@@ -311,6 +313,18 @@ def _calibrate_modes(target, calibrators, *, n_modes, residual, joint, fit_modes
     if fit_rows is not None:
         out.meta["error_model"]["fit_modes"] = fit_modes
     return out
+
+
+def _drop_outliers(kpd):
+    """*kpd* without frames far from the rest (`kpifs.outliers`), with a warning."""
+    kept, dropped = without_outlier_frames(kpd)
+    if dropped and kept.n_frame >= MIN_FRAMES:
+        warnings.warn(f"{_name(kpd)}: frame(s) {dropped} (0-based, of {kpd.n_frame}) left out: "
+                      f"their kernel phases stand {OUTLIER_THRESHOLD:g}x or more farther from "
+                      f"the median frame than a typical frame's (phase wrapping or a failed "
+                      f"centring)", KpifsWarning, stacklevel=3)
+        return kept
+    return kpd
 
 
 def _pixel_term(target, calibrators, pixel_noise):

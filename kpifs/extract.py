@@ -32,6 +32,7 @@ from .io.pages import release_pages
 from .io.wavelengths import check_wavelengths
 from .kernel import MAS, KernelModel, load_kernel_model
 from .prepare import CENTROID_METHODS, cut_out, fill_bad_pixels, find_centres
+from .sampling import measured_rows
 from .window import WINDOW_QUANTUM, ExtractionWindow
 
 __all__ = ["extract_kernel_phases"]
@@ -135,15 +136,13 @@ def _check_inputs(data, pupil, *, wavelengths, pixscale, centres, mask, window, 
 #: the 300 x 22 x 64^2 benchmark cube: 2e-4 of the frames' photon-noise scatter).
 PRECISIONS = {"double": np.float64, "single": np.float32}
 
-#: Pages of a memory-mapped input are given back (`~kpifs.io.pages.release_pages`)
-#: each time this many bytes have been read: the resident input stays below it
-#: whatever the cube's size, without a system call per batch.
+#: Pages of a memory-mapped input are given back (`~kpifs.io.pages.release_pages`) each time
+#: this many bytes have been read: the resident input stays below it, at any cube's size.
 RELEASE_BYTES = 32 * 2 ** 20
 
 #: A slice with more than this fraction of non-finite pixels is a bad frame.
 MAX_BAD_FRACTION = 0.5
-#: Negative pixels summing to more than this fraction of the positive flux of a
-#: slice are worth a warning (over-subtracted background, wrong sign).
+#: Negative pixels over this fraction of a slice's positive flux: a warning (background).
 NEGATIVE_FLUX_WARN = 0.1
 #: The fewest good frames a cube of at least that many frames must keep.
 MIN_GOOD_FRAMES = 3
@@ -171,9 +170,8 @@ def _slice_quality(sl, finite, all_finite, total=None):
     return why, total, negative
 
 
-#: Interpolated (bad) pixels carrying more than this fraction of a slice's flux
-#: (a NaN patch on the PSF core) are worth a warning; a lone dead spaxel off the
-#: peak carries a few per cent and is filled well from its neighbours.
+#: Interpolated (bad) pixels carrying more than this fraction of a slice's flux (a NaN
+#: patch on the core) are worth a warning; a lone dead spaxel off the peak carries a few %.
 CORE_FLUX_WARN = 0.1
 
 
@@ -241,8 +239,7 @@ def _extract_batch(plan, iw, f0, f1, op):
             return res
     if not all_finite:
         filled = fill_bad_pixels(sl if plan.bad_pixels == "fill" else sl.copy())
-        # interpolated (or missing) flux is invented data: say so when it is a good part
-        # of the PSF
+        # interpolated (or missing) flux is invented data: say so when it is much of the PSF
         made = np.where(finite, 0.0, np.abs(filled)).sum(axis=(1, 2))
         res.core_nan = int(np.sum(made > CORE_FLUX_WARN * np.abs(filled).sum(axis=(1, 2))))
         if plan.bad_pixels != "fill":
@@ -365,9 +362,10 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
         ``'fill'``: interpolate bad pixels from their neighbours
         (`~kpifs.prepare.fill_bad_pixels`); ``'exclude'``: leave them out of the
         Fourier sums (set to zero).
-    on_nyquist : {'drop', 'raise'}
+    on_nyquist : {'drop', 'raise', 'own'}
         What to do with uv points beyond the Nyquist limit of some channel
-        (see `~kpifs.kernel.KernelModel.for_wavelengths`).
+        (see `~kpifs.kernel.KernelModel.for_wavelengths`; ``'own'``: each
+        channel keeps its own, ``meta['channel_n_kp']``).
     batch_size : int
         Frames processed together (bounds the memory in use).
     header : `~astropy.io.fits.Header`, optional
@@ -493,8 +491,10 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
         phases, amps = (None, None) if not keep_phases else (phases[keep], amps[keep])
         detpa = None if detpa is None else detpa[keep]
     ctab = functools.partial(_centre_table, keep, wl, used_centres)
+    kp, own = measured_rows(kp, km, dead)      # --nyquist own: each channel its first rows
     meta = {"source": str(source), "centroid": centroid if centres is None else "given",
             "n_bad_pixels": count["n_bad_pixels"], "bad_pixels": bad_pixels, "bad_frames":
-            bad_frames, "dropped_frames": list(map(int, drop)), "dropped_channels": dead}
+            bad_frames, "dropped_frames": list(map(int, drop)), "dropped_channels": dead,
+            "channel_n_kp": own}
     return KernelPhaseData(kp, wl, plan.pixscale, km, window=win, phases=phases,
                            amplitudes=amps, centres=ctab, header=header, detpa=detpa, meta=meta)

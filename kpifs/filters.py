@@ -186,8 +186,9 @@ def _limit(scale):
 
 def _channel_model(model, n, mask):
     """One filter's own model: its uv points and the nested kernel's first *n* rows."""
+    meta = {k: v for k, v in model.meta.items() if k != "nested_counts"}
     return KernelModel(model.pupil, model.uv[mask], model.redundancy[mask], model.blm[mask],
-                       kernel=model.kernel[:n][:, mask], meta=model.meta)
+                       kernel=model.kernel[:n][:, mask], meta=meta)
 
 
 def _with_window(options, radius_mas, pixscale):

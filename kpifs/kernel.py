@@ -276,7 +276,9 @@ class KernelModel:
         ``on_nyquist='drop'`` they are removed (one common model for every
         channel, so that kernel phases stay comparable across wavelength) with a
         `~kpifs.KpifsWarning` saying how many and at which channels; with
-        ``'raise'`` a `~kpifs.KpifsError` is raised.
+        ``'raise'`` a `~kpifs.KpifsError` is raised; with ``'own'`` each channel
+        keeps the uv points it samples: the model's kernel is nested
+        (`~kpifs.sampling.nested_kernel`, counts in ``meta['nested_counts']``).
 
         Examples
         --------
@@ -286,8 +288,8 @@ class KernelModel:
         >>> km.for_wavelengths([1.6] * u.um, 16.2 * u.mas) is km
         True
         """
-        if on_nyquist not in ("drop", "raise"):
-            raise KpifsError(f"on_nyquist must be 'drop' or 'raise', got {on_nyquist!r}")
+        if on_nyquist not in ("drop", "raise", "own"):
+            raise KpifsError(f"on_nyquist must be 'drop', 'raise' or 'own', got {on_nyquist!r}")
         wl = np.atleast_1d(to_quantity(wavelengths, u.um, name="wavelengths"))
         usable = nyquist_usable(self.uv, wl, pixscale)
         bad = ~usable.all(axis=1)
@@ -300,6 +302,13 @@ class KernelModel:
                f"pixels at {bad.sum()} channel(s), wavelengths in um (uv points lost): {lost}")
         if on_nyquist == "raise":
             raise KpifsError(msg + "; use on_nyquist='drop' (--nyquist drop) to remove them")
+        if on_nyquist == "own" and usable.sum(axis=1).min() >= 2:
+            from .sampling import nested_kernel      # sampling's helpers need no kernel
+            model, counts = nested_kernel(self, usable)
+            if counts.min() > 0:
+                log.info("%seach channel its own uv points: %s kernel phases", where,
+                         counts.tolist())
+                return model
         keep = usable.all(axis=0)
         sub = self.subset(keep) if keep.sum() >= 2 else None
         if sub is None or sub.n_kp == 0:

@@ -137,6 +137,10 @@ def attach_pixel_noise(kpd, cube):
     images = _Channels(cube.data, chans)
     variance = _Channels(cube.variance, chans)
     kpd.kp_err, cov = pixel_noise(images, variance, kpd)
+    if kpd.meta.get("channel_n_kp") is not None:      # rows a channel does not measure
+        off = np.arange(kpd.n_kp)[None, :] >= kpd.channel_n_kp[:, None]
+        kpd.kp_err = np.where(off, 0.0, kpd.kp_err)
+        cov[off[:, :, None] | off[:, None, :]] = 0.0
     kpd.meta["pixel_covariance"] = cov
     kpd.meta["pixel_noise"] = cube.variance_source or "variance"
     kpd.header["KPPIXNOI"] = (kpd.meta["pixel_noise"], "per-pixel noise propagated to KP-SIGM")

@@ -29,7 +29,7 @@ from ._utils import to_quantity
 from .exceptions import KpifsError
 
 __all__ = ["aliased_uv", "aliased_channels", "pupil_extent", "nested_kernel",
-           "channel_uv_mask"]
+           "channel_uv_mask", "measured_rows"]
 
 MAS = np.pi / 180 / 3600 / 1000
 
@@ -201,3 +201,31 @@ def channel_uv_mask(kernel_model, counts):
     k = np.abs(kernel_model.kernel)
     tol = 1e-9 * max(float(k.max(initial=0.0)), 1e-300)
     return np.array([np.any(k[:int(n)] > tol, axis=0) for n in np.atleast_1d(counts)])
+
+
+def measured_rows(kp, kernel_model, dropped=()):
+    """Kernel phases ``(nframe, nwave, nkp)`` of a nested model (`nested_kernel`) with each
+    channel's rows beyond its own set to zero, and the counts (None for other models).
+
+    *dropped* are channels left out of *kp* since the model was made (dead channels).
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.kernel import nyquist_usable
+    >>> from kpifs.sampling import measured_rows, nested_kernel
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> model, counts = nested_kernel(km, nyquist_usable(km.uv, [1.2, 2.2] * u.um, 20 * u.mas))
+    >>> kp, own = measured_rows(np.ones((1, 2, model.n_kp)), model)
+    >>> own == counts.tolist(), int(kp[0, 0].sum()) == counts[0]
+    (True, True)
+    """
+    counts = kernel_model.meta.get("nested_counts")
+    if counts is None:
+        return kp, None
+    counts = np.delete(np.asarray(counts, int), list(dropped))
+    if len(counts) != kp.shape[1] or np.all(counts == kp.shape[2]):
+        return kp, None
+    off = np.arange(kp.shape[2])[None, :] >= counts[:, None]
+    return np.where(off, 0.0, kp), counts.tolist()

@@ -274,3 +274,26 @@ def test_calibrate_with_pixel_noise_keeps_every_kernel_phase():
             assert int(whitening_matrix(alone.covariance, return_rank=True)[1][0]) == \
                 em["n_modes"] == 11
     assert 0.8 < np.mean(energy) < 1.05
+
+
+def test_a_wrapped_frame_is_left_out():
+    """One frame of 20 whose kernel phases jumped by ~1 rad (phases wrapped): calibrate
+    leaves it out with a warning naming it; kept, it inflated every mode's held-out
+    variance (here x30 and more), and the whitened energy fell far below its dof."""
+    from kpifs import KpifsWarning
+    from kpifs.outliers import outlier_frames
+    km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    rng = np.random.default_rng(7)
+    mix = rng.standard_normal((M_AB, 2 * km.n_kp))
+    frames = [_frames(rng, 20, mix, 0.3 * rng.standard_normal(M_AB)) for _ in range(2)]
+    clean = fit_error_model(frames[0], [frames[1]])
+    frames[0][13] += rng.choice([-1.0, 1.0], frames[0][13].shape) * 0.8
+    assert np.flatnonzero(outlier_frames(frames[0])[0]).tolist() == [13]
+    spoilt = fit_error_model(frames[0], [frames[1]])
+    assert spoilt.inflation > 30 * clean.inflation
+    t, c = (KernelPhaseData(f, [1.6, 1.7] * u.um, 10 * u.mas, km,
+                            meta={"source": name}) for f, name in zip(frames, ("t.fits", "c.fits")))
+    with pytest.warns(KpifsWarning, match=r"t.fits: frame\(s\) \[13\] \(0-based, of 20\) left out"):
+        res = calibrate(t, [c])
+    assert res.meta["n_target_frames"] == 19
+    assert res.meta["error_model"]["inflation"] < 3 * clean.inflation

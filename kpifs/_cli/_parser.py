@@ -89,9 +89,10 @@ def _extraction_options(p):
     g.add_argument("--bad-frames", default="drop", choices=("drop", "fail"),
                    help="frames empty, mostly NaN or without flux: drop them with a warning "
                         "or refuse the cube (default %(default)s)")
-    g.add_argument("--nyquist", default="drop", choices=("drop", "raise"),
-                   help="uv points beyond the Nyquist limit: drop (warn) or refuse (default "
-                        "%(default)s)")
+    g.add_argument("--nyquist", default="drop", choices=("drop", "raise", "own"),
+                   help="uv points beyond some channel's Nyquist limit: drop them for every "
+                        "channel (warn), refuse, or drop each for the channels that do not "
+                        "sample it only (own; default %(default)s)")
     g.add_argument("--precision", default="double", choices=("double", "single"),
                    help="Fourier products in double or single precision (~2x faster, ~1e-6 "
                         "rad added to the kernel phases; default %(default)s)")
