@@ -23,6 +23,7 @@ from .exceptions import KpifsError, KpifsWarning
 from .fourier import fourier_operator
 from .io.kpfits import has_kernel_model, model_hdulist, read_model_file, read_model_parts
 from .pupil import PupilModel, make_pupil
+from .sampling import nested_kernel
 
 __all__ = ["KernelModel", "nyquist_usable", "load_kernel_model"]
 
@@ -303,7 +304,6 @@ class KernelModel:
         if on_nyquist == "raise":
             raise KpifsError(msg + "; use on_nyquist='drop' (--nyquist drop) to remove them")
         if on_nyquist == "own" and usable.sum(axis=1).min() >= 2:
-            from .sampling import nested_kernel      # sampling's helpers need no kernel
             model, counts = nested_kernel(self, usable)
             if counts.min() > 0:
                 log.info("%seach channel its own uv points: %s kernel phases", where,
