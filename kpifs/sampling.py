@@ -218,7 +218,7 @@ def measured_rows(kp, kernel_model, dropped=()):
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     >>> model, counts = nested_kernel(km, nyquist_usable(km.uv, [1.2, 2.2] * u.um, 20 * u.mas))
     >>> kp, own = measured_rows(np.ones((1, 2, model.n_kp)), model)
-    >>> own == counts.tolist(), int(kp[0, 0].sum()) == counts[0]
+    >>> own == counts.tolist(), int(kp[0, 0].sum()) == int(counts[0])
     (True, True)
     """
     counts = kernel_model.meta.get("nested_counts")
