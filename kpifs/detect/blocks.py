@@ -15,9 +15,11 @@ The calibrated product of a pupil-tracking sequence keeps its time blocks
 
 Tests, limits, fits and the null see one whitened vector per channel, of
 dimension ``r_m + B r_f`` (``B`` blocks): the blocks' correlations add up
-instead of a smeared mean's. Without the mean part (angular-differential mode)
-only what turns is searched, with no calibrator or static residual; a map
-costs one projection per block.
+instead of a smeared mean's. The angular-differential mode searches what turns,
+with no calibrator or static residual, and the calibrated mean (if any) scaled
+by its own reduced chi-square; a map costs one projection per block. A block's
+signature is the mean of two poses at its angle -/+ the spread of its frames'
+angles: a companion far out moves within a block.
 """
 import hashlib
 import logging
@@ -25,27 +27,26 @@ import logging
 import numpy as np
 from astropy import units as u
 
-from .._lazy import lazy_module
-from .._utils import one_blas_thread, thread_map, to_quantity
+from .._utils import thread_map, to_quantity
 from ..adi import _check_rotation
 from ..exceptions import KpifsError
 from ..kernel import MAS
 from ..rotation import noise_whitening
-from .fit import fit_errors
+from ._blockfit import refine_stack
 from ._blocktrig import block_trig
 from ._signatures import _norm_chunks, _unit
 from .maps import UNIT_CACHE_BYTES, DetectionModel
 from .sky import sky_to_detector
 from .spectral import spectral_basis
 
-optimize = lazy_module("scipy.optimize")
 
 __all__ = ["BlockModel", "BlockStack", "block_stack", "MODES"]
 
 log = logging.getLogger(__name__)
 
-#: Block searches: the mean and the blocks' contrasts, the contrasts only, or the mean only
-#: (the blocks ignored: the model averaged over the angles, as before issue 29).
+#: Block searches: the mean and the blocks' contrasts, the contrasts (and a calibrated mean
+#: at its own scale), or the mean only (the blocks ignored: the model averaged over the
+#: angles, as before issue 29).
 MODES = ("rotation", "angular-differential", "mean")
 
 
@@ -333,7 +334,10 @@ class BlockStack:
         else:                                   # the blocks' mean angles only
             self._frame_angles = np.asarray(rb.angles, float)
             self._block_frames = [np.array([b]) for b in range(rb.n_blocks)]
-        self.with_mean = mode == "rotation"
+        # the angular-differential search of calibrated data keeps the calibrated mean too,
+        # weighted by its own excess (below): where the rotation moves a companion little
+        # the calibrator still finds it, and a static residual shows in the mean alone
+        self.with_mean = mode == "rotation" or bool(rb.calibrated)
         rank = np.atleast_1d(rank)
         q = kpd.n_wave
         nb = rb.n_blocks
@@ -352,12 +356,21 @@ class BlockStack:
         hmat = _complement(np.sqrt(rb.frames / rb.frames.sum()))
         dev_rows = np.einsum("jb,fia->jfiba", hmat, noise).reshape(-1, q, nb * rf)
         dev = np.einsum("iap,bip->iba", cf, rb.contrasts()).reshape(q, nb * rf)
-        self.comp_mean = None
+        self.comp_mean, self.mean_scale = None, None
         pieces, rows = [dev], [dev_rows]
         if self.with_mean:
             self.comp_mean = cm = _compress(w, rank)
             rm = cm.shape[1]
-            pieces.insert(0, np.einsum("iap,ip->ia", cm, kp))
+            ym = np.einsum("iap,ip->ia", cm, kp)
+            if mode == "angular-differential":
+                # the one-calibrator residual (target minus calibrator, fixed on the detector)
+                # is in the mean only: its reduced chi-square scales the mean's part alone,
+                # while the departures keep the frames' noise (a common scale would also
+                # inflate their noise, and spare the mean)
+                self.mean_scale = max(1.0, float(np.sum(ym ** 2) / max(np.sum(rank), 1)))
+                self.comp_mean = cm = cm / np.sqrt(self.mean_scale)
+                ym = ym / np.sqrt(self.mean_scale)
+            pieces.insert(0, ym)
             rows = [_pad(_rows(cm, kpd.covariance_rows), nb * rf, after=True)] \
                 if kpd.covariance_rows is not None else []
             rows.append(_pad(dev_rows, rm, after=False))
@@ -383,7 +396,8 @@ class BlockStack:
         self.info = {"mode": self.mode, "n_blocks": int(self.blocks.n_blocks),
                      "frames": self.blocks.frames.tolist(),
                      "angles": np.round(self.blocks.angles, 4).tolist(),
-                     "span": self.blocks.span, "frame_modes": int(self.comp_frame.shape[1])}
+                     "span": self.blocks.span, "frame_modes": int(self.comp_frame.shape[1]),
+                     "mean_scale": self.mean_scale}
         if not self.with_mean:
             self.info["retained"] = _check_rotation(model, kpd, self.blocks)
         return model
@@ -439,53 +453,7 @@ class BlockStack:
     def refine(self, cands, residual, noise_rows=None, box=20.0):
         """Fit each candidate's sky offset and contrasts to the stacked data (in place, as
         `~kpifs.detect.fit.refine_candidates`); returns the fitted models."""
-        q = residual.shape[0]
-        cols = {k: [] for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err", "fit_contrast",
-                                "fit_contrast_err", "fit_chi2")}
-        models = []
-        for row in cands:
-            x0, y0 = row["x"].to_value(u.mas), row["y"].to_value(u.mas)
-            c0 = np.asarray(row["contrast"], float)
-            scale_c = max(float(np.max(np.abs(c0))), 1e-6)
-
-            def resid(par):
-                c = par[2:] * scale_c * self._attenuation(par[0], par[1])
-                return (residual - self.model_kp(par[:2], c)).ravel()
-
-            def jac(par, step=1e-3):
-                # contrasts: exact (channel by channel); position: central differences
-                att = self._attenuation(par[0], par[1])
-                _, dc = self.model_kp(par[:2], par[2:] * scale_c * att, derivative=True)
-                out = np.zeros((q, dc.shape[1], len(par)))
-                out[np.arange(q), :, 2 + np.arange(q)] = -dc * scale_c * att
-                for j in range(2):
-                    d = np.zeros(len(par))
-                    d[j] = step
-                    out[:, :, j] = ((resid(par + d) - resid(par - d)) / (2 * step)).reshape(
-                        q, -1)
-                return out.reshape(-1, len(par))
-
-            start = np.concatenate([[x0, y0], c0 / scale_c])
-            lo = np.concatenate([[x0 - box, y0 - box], np.full(q, -np.inf)])
-            hi = np.concatenate([[x0 + box, y0 + box], np.full(q, np.inf)])
-            with one_blas_thread():          # small products: BLAS's threads only wait
-                res = optimize.least_squares(resid, start, bounds=(lo, hi), jac=jac)
-            err = fit_errors(res.jac, noise_rows)
-            cols["fit_x"].append(res.x[0])
-            cols["fit_y"].append(res.x[1])
-            cols["fit_x_err"].append(err[0])
-            cols["fit_y_err"].append(err[1])
-            cols["fit_contrast"].append(res.x[2:] * scale_c)
-            cols["fit_contrast_err"].append(err[2:] * scale_c)
-            cols["fit_chi2"].append(float(2 * res.cost))
-            att = self._attenuation(res.x[0], res.x[1])
-            models.append(self.model_kp(res.x[:2], res.x[2:] * scale_c * att))
-        for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err"):
-            cands[k] = np.array(cols[k]) * u.mas
-        cands["fit_contrast"] = np.array(cols["fit_contrast"]).reshape(len(cands), q)
-        cands["fit_contrast_err"] = np.array(cols["fit_contrast_err"]).reshape(len(cands), q)
-        cands["fit_chi2"] = np.array(cols["fit_chi2"])
-        return models
+        return refine_stack(self, cands, residual, noise_rows, box)
 
 
 def _rows(comp, rows):
