@@ -151,23 +151,25 @@ class BlockModel(DetectionModel):
         runs = [(a, b, ix[a], iy[a]) for a, b in zip(np.r_[0, cut], np.r_[cut, len(rows)])]
         sin = np.empty((len(rows), nuv), np.float32)
         tmp = np.empty_like(sin)
-        # block by block: the work arrays (npos x nuv) stay in the processor's cache
+        # block by block: the work arrays (npos x nuv) stay in the processor's cache; a
+        # block's poses (two: its frames' spread) summed, their mean's 1/2 in the products
         ns = self._sub
+        lift = lift / np.float32(ns)
         for b in range(len(self.frames)):
-            sin[:] = 0.0
-            for k in range(ns):               # the block's poses (two: its frames' spread)
+            for k in range(ns):
                 uv = slice((b * ns + k) * nuv, (b * ns + k + 1) * nuv)
                 for a, e, x0, y0 in runs:
                     xs = slice(x0, x0 + e - a)
-                    np.multiply(sx[xs, uv], cy[y0, uv], out=tmp[a:e])
-                    sin[a:e] += tmp[a:e]
+                    if k == 0:
+                        np.multiply(sx[xs, uv], cy[y0, uv], out=sin[a:e])
+                    else:
+                        np.multiply(sx[xs, uv], cy[y0, uv], out=tmp[a:e])
+                        sin[a:e] += tmp[a:e]
                     np.multiply(cx[xs, uv], sy[y0, uv], out=tmp[a:e])
                     sin[a:e] += tmp[a:e]
-            if ns == 2:
-                sin *= np.float32(0.5)
             per[b] = sin @ lift
             if sbar is not None:
-                sin *= np.float32(wm[b])
+                sin *= np.float32(wm[b] / ns)
                 sbar += sin
         md = np.tensordot(wm, per, axes=(0, 0))
         parts = list(wd[:, None, None] * (per - md))
