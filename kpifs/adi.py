@@ -27,7 +27,10 @@ def angular_differential(target, calibrated=None, *, n_modes=NOISE_MODES):
     --angular-differential``).
 
     With *calibrated* (the target calibrated by `~kpifs.calibrate.calibrate`) its
-    blocks are marked for the angular-differential search; without, the
+    blocks are marked for the angular-differential search, which then keeps the
+    calibrated mean too, scaled by its own reduced chi-square (a static
+    target-calibrator difference is in the mean alone; where the rotation moves
+    a companion little, the calibrator still finds it); without, the
     target's own frames make the product: their mean (searched not at all), a
     covariance on the leading *n_modes* (fraction of the degrees of freedom
     within the blocks) modes of the frames' scatter within their blocks, and

@@ -176,9 +176,10 @@ def _extract(command):
                         "of the target alone)")
     _cube_options(p)
     p.add_argument("--angular-differential", action="store_true",
-                   help="keep the time blocks of a rotating sequence and search only what "
-                        "turns with the sky (what stays on the detector removed: with or "
-                        "without --calibrator; refused when the angles do not turn)")
+                   help="keep the time blocks of a rotating sequence and search what "
+                        "turns with the sky (what stays on the detector removed; with "
+                        "--calibrator also the calibrated mean, scaled by its own reduced "
+                        "chi-square; refused when the angles do not turn)")
     p.add_argument("--pa", metavar="DEG|LIST|FILE",
                    help="detector position angle of the target's frames (deg, East of North "
                         "of the detector +y axis): one value, a comma list with one per "
@@ -339,7 +340,8 @@ def _detect(command):
     p.add_argument("--blocks", default="auto",
                    choices=("auto", "rotation", "angular-differential", "mean"),
                    help="a rotating sequence's time blocks: the calibrated mean and what "
-                        "turns (rotation), what turns only (angular-differential), or the "
+                        "turns (rotation), what turns (angular-differential; with a "
+                        "calibrator, and the mean at its own scale), or the "
                         "mean with the model averaged over the angles (mean); default: the "
                         "data's own (%(default)s)")
     p.add_argument("--aliased", default="keep", choices=("keep", "exclude"),

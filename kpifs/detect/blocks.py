@@ -15,9 +15,11 @@ The calibrated product of a pupil-tracking sequence keeps its time blocks
 
 Tests, limits, fits and the null see one whitened vector per channel, of
 dimension ``r_m + B r_f`` (``B`` blocks): the blocks' correlations add up
-instead of a smeared mean's. Without the mean part (angular-differential mode)
-only what turns is searched, with no calibrator or static residual; a map
-costs one projection per block.
+instead of a smeared mean's. The angular-differential mode searches what turns,
+with no calibrator or static residual, and the calibrated mean (if any) scaled
+by its own reduced chi-square; a map costs one projection per block. A block's
+signature is the mean of two poses at its angle -/+ the spread of its frames'
+angles: a companion far out moves within a block.
 """
 import hashlib
 import logging
@@ -25,27 +27,26 @@ import logging
 import numpy as np
 from astropy import units as u
 
-from .._lazy import lazy_module
-from .._utils import one_blas_thread, thread_map, to_quantity
+from .._utils import thread_map, to_quantity
 from ..adi import _check_rotation
 from ..exceptions import KpifsError
 from ..kernel import MAS
 from ..rotation import noise_whitening
-from .fit import fit_errors
+from ._blockfit import refine_stack
 from ._blocktrig import block_trig
 from ._signatures import _norm_chunks, _unit
 from .maps import UNIT_CACHE_BYTES, DetectionModel
 from .sky import sky_to_detector
 from .spectral import spectral_basis
 
-optimize = lazy_module("scipy.optimize")
 
 __all__ = ["BlockModel", "BlockStack", "block_stack", "MODES"]
 
 log = logging.getLogger(__name__)
 
-#: Block searches: the mean and the blocks' contrasts, the contrasts only, or the mean only
-#: (the blocks ignored: the model averaged over the angles, as before issue 29).
+#: Block searches: the mean and the blocks' contrasts, the contrasts (and a calibrated mean
+#: at its own scale), or the mean only (the blocks ignored: the model averaged over the
+#: angles, as before issue 29).
 MODES = ("rotation", "angular-differential", "mean")
 
 
@@ -62,7 +63,13 @@ class BlockModel(DetectionModel):
     comp_frame : ndarray (q, r_f, p)
         One frame's whitening in its modes (`~kpifs.rotation.noise_whitening`).
     angles, frames : ndarray (B,)
-        The blocks' detector angles (deg) and frames.
+        The blocks' detector angles (deg; their frames' mean) and frames.
+    spread : ndarray (B,), optional
+        The r.m.s. of each block's frames' angles about its angle (deg): a block's
+        signature is then the mean of two poses at ``angle -/+ spread`` (the
+        frames' mean and second moment; exact for two frames), not one pose at
+        its angle, which overstates a companion that moves within the block
+        (the squared norm by 1/0.69 at 300 mas for 4 frames over 6 deg).
 
     Examples
     --------
@@ -79,7 +86,7 @@ class BlockModel(DetectionModel):
     """
 
     def __init__(self, kernel_model, wavelengths, grid, comp_mean, comp_frame, angles, frames,
-                 *, pixscale=None, window=None, dof=None, basis=None):
+                 *, spread=None, pixscale=None, window=None, dof=None, basis=None):
         self.kernel_model = kernel_model
         self.wavelengths = np.atleast_1d(to_quantity(wavelengths, u.um, name="wavelengths"))
         self.basis = spectral_basis(basis, self.wavelengths)
@@ -99,6 +106,13 @@ class BlockModel(DetectionModel):
         self.window = window if (window is not None and pixscale is not None) else None
         self._poses = [(float(a), 1.0) for a in angles]
         self.detpa = (np.asarray(angles, float), self.frames / self.frames.sum())
+        spread = np.zeros(len(self.frames)) if spread is None else np.asarray(spread, float)
+        # the poses whose signatures average to a block's: one per block when no block
+        # spreads (no cost), else two, block by block along the trig factors' uv axis
+        self.spread = spread
+        self._sub = 2 if np.any(spread > 0) else 1
+        pose = self.detpa[0][:, None] + (spread[:, None] * [-1.0, 1.0] if self._sub == 2
+                                         else np.zeros((len(spread), 1)))
         self.whitening = None
         self._check_grid()
         self._wfac = (np.ones_like(grid.sep) if self.window is None
@@ -111,7 +125,7 @@ class BlockModel(DetectionModel):
         # per channel, the poses' separable factors side by side (float32): a map is two
         # products over (poses x uv points)
         uv = kernel_model.uv.value
-        self._trig = thread_map(lambda lam: block_trig(grid, uv, self.detpa[0], lam),
+        self._trig = thread_map(lambda lam: block_trig(grid, uv, pose.ravel(), lam),
                                 self.wavelengths.to_value(u.m))
         self.norm2 = self._signature_norms()
 
@@ -131,14 +145,31 @@ class BlockModel(DetectionModel):
         lift = self._lift_f[i].astype(np.float32)
         per = np.empty((len(self.frames), len(rows), lift.shape[1]))
         sbar = np.zeros((len(rows), nuv), np.float32) if self.with_mean else None
-        # block by block: the work arrays (npos x nuv) stay in the processor's cache
+        # runs of consecutive positions along one grid line: slices of the x factors times
+        # one line of the y factors (no gathered copies of either)
+        cut = np.flatnonzero((np.diff(iy) != 0) | (np.diff(ix) != 1)) + 1
+        runs = [(a, b, ix[a], iy[a]) for a, b in zip(np.r_[0, cut], np.r_[cut, len(rows)])]
+        sin = np.empty((len(rows), nuv), np.float32)
+        tmp = np.empty_like(sin)
+        # block by block: the work arrays (npos x nuv) stay in the processor's cache; a
+        # block's poses (two: its frames' spread) summed, their mean's 1/2 in the products
+        ns = self._sub
+        lift = lift / np.float32(ns)
         for b in range(len(self.frames)):
-            uv = slice(b * nuv, (b + 1) * nuv)
-            sin = sx[ix, uv] * cy[iy, uv]
-            sin += cx[ix, uv] * sy[iy, uv]
+            for k in range(ns):
+                uv = slice((b * ns + k) * nuv, (b * ns + k + 1) * nuv)
+                for a, e, x0, y0 in runs:
+                    xs = slice(x0, x0 + e - a)
+                    if k == 0:
+                        np.multiply(sx[xs, uv], cy[y0, uv], out=sin[a:e])
+                    else:
+                        np.multiply(sx[xs, uv], cy[y0, uv], out=tmp[a:e])
+                        sin[a:e] += tmp[a:e]
+                    np.multiply(cx[xs, uv], sy[y0, uv], out=tmp[a:e])
+                    sin[a:e] += tmp[a:e]
             per[b] = sin @ lift
             if sbar is not None:
-                sin *= np.float32(wm[b])
+                sin *= np.float32(wm[b] / ns)
                 sbar += sin
         md = np.tensordot(wm, per, axes=(0, 0))
         parts = list(wd[:, None, None] * (per - md))
@@ -235,6 +266,8 @@ class BlockModel(DetectionModel):
             g = (wd[None, :, None] * yd) @ self._lift_f[i].T                   # (m, B, nuv)
             if self.with_mean:
                 g = g + wm[None, :, None] * (yb[:, i, :rm] @ self._lift_m[i].T)[:, None, :]
+            if self._sub == 2:                  # each block's two poses, half each
+                g = np.repeat(0.5 * g, 2, axis=1)
             g = g.reshape(m, -1).astype(np.float32)
             sx, cx, sy, cy = self._trig[i]
             k = g.shape[1]
@@ -252,7 +285,8 @@ class BlockModel(DetectionModel):
         h = hashlib.sha1(b"blocks")
         for arr in (self.kernel_model.kernel, self.kernel_model.uv.value,
                     np.zeros(0) if self.comp_mean is None else self.comp_mean,
-                    self.comp_frame, self.frames, self.detpa[0], self.wavelengths.value,
+                    self.comp_frame, self.frames, self.detpa[0], self.spread,
+                    self.wavelengths.value,
                     self._wfac, self.basis):
             h.update(np.ascontiguousarray(arr).tobytes())
         for part in self.grid.key():
@@ -302,7 +336,10 @@ class BlockStack:
         else:                                   # the blocks' mean angles only
             self._frame_angles = np.asarray(rb.angles, float)
             self._block_frames = [np.array([b]) for b in range(rb.n_blocks)]
-        self.with_mean = mode == "rotation"
+        # the angular-differential search of calibrated data keeps the calibrated mean too,
+        # weighted by its own excess (below): where the rotation moves a companion little
+        # the calibrator still finds it, and a static residual shows in the mean alone
+        self.with_mean = mode == "rotation" or bool(rb.calibrated)
         rank = np.atleast_1d(rank)
         q = kpd.n_wave
         nb = rb.n_blocks
@@ -321,12 +358,21 @@ class BlockStack:
         hmat = _complement(np.sqrt(rb.frames / rb.frames.sum()))
         dev_rows = np.einsum("jb,fia->jfiba", hmat, noise).reshape(-1, q, nb * rf)
         dev = np.einsum("iap,bip->iba", cf, rb.contrasts()).reshape(q, nb * rf)
-        self.comp_mean = None
+        self.comp_mean, self.mean_scale = None, None
         pieces, rows = [dev], [dev_rows]
         if self.with_mean:
             self.comp_mean = cm = _compress(w, rank)
             rm = cm.shape[1]
-            pieces.insert(0, np.einsum("iap,ip->ia", cm, kp))
+            ym = np.einsum("iap,ip->ia", cm, kp)
+            if mode == "angular-differential":
+                # the one-calibrator residual (target minus calibrator, fixed on the detector)
+                # is in the mean only: its reduced chi-square scales the mean's part alone,
+                # while the departures keep the frames' noise (a common scale would also
+                # inflate their noise, and spare the mean)
+                self.mean_scale = max(1.0, float(np.sum(ym ** 2) / max(np.sum(rank), 1)))
+                self.comp_mean = cm = cm / np.sqrt(self.mean_scale)
+                ym = ym / np.sqrt(self.mean_scale)
+            pieces.insert(0, ym)
             rows = [_pad(_rows(cm, kpd.covariance_rows), nb * rf, after=True)] \
                 if kpd.covariance_rows is not None else []
             rows.append(_pad(dev_rows, rm, after=False))
@@ -347,14 +393,23 @@ class BlockStack:
         kpd = self.kpd
         model = BlockModel(kpd.kernel_model, kpd.wavelengths, grid, self.comp_mean,
                            self.comp_frame, self.blocks.angles, self.blocks.frames,
-                           pixscale=kpd.pixscale, window=kpd.window, dof=self.rank, basis=basis)
+                           spread=self.spread(), pixscale=kpd.pixscale, window=kpd.window,
+                           dof=self.rank, basis=basis)
         self.info = {"mode": self.mode, "n_blocks": int(self.blocks.n_blocks),
                      "frames": self.blocks.frames.tolist(),
                      "angles": np.round(self.blocks.angles, 4).tolist(),
-                     "span": self.blocks.span, "frame_modes": int(self.comp_frame.shape[1])}
+                     "span": self.blocks.span, "frame_modes": int(self.comp_frame.shape[1]),
+                     "mean_scale": self.mean_scale}
         if not self.with_mean:
             self.info["retained"] = _check_rotation(model, kpd, self.blocks)
         return model
+
+    def spread(self):
+        """The r.m.s. of each block's frames' angles about the block's angle (deg; zeros
+        when the frames' angles are not known)."""
+        rb = self.blocks
+        return np.array([np.sqrt(np.mean(((self._frame_angles[lab] - a + 180) % 360 - 180) ** 2))
+                         for a, lab in zip(rb.angles, self._block_frames)])
 
     def model_kp(self, sky, contrast, *, derivative=False):
         """Whitened stacked model (q, dim) of a companion at *sky* (dRA, dDec; mas) of
@@ -400,53 +455,7 @@ class BlockStack:
     def refine(self, cands, residual, noise_rows=None, box=20.0):
         """Fit each candidate's sky offset and contrasts to the stacked data (in place, as
         `~kpifs.detect.fit.refine_candidates`); returns the fitted models."""
-        q = residual.shape[0]
-        cols = {k: [] for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err", "fit_contrast",
-                                "fit_contrast_err", "fit_chi2")}
-        models = []
-        for row in cands:
-            x0, y0 = row["x"].to_value(u.mas), row["y"].to_value(u.mas)
-            c0 = np.asarray(row["contrast"], float)
-            scale_c = max(float(np.max(np.abs(c0))), 1e-6)
-
-            def resid(par):
-                c = par[2:] * scale_c * self._attenuation(par[0], par[1])
-                return (residual - self.model_kp(par[:2], c)).ravel()
-
-            def jac(par, step=1e-3):
-                # contrasts: exact (channel by channel); position: central differences
-                att = self._attenuation(par[0], par[1])
-                _, dc = self.model_kp(par[:2], par[2:] * scale_c * att, derivative=True)
-                out = np.zeros((q, dc.shape[1], len(par)))
-                out[np.arange(q), :, 2 + np.arange(q)] = -dc * scale_c * att
-                for j in range(2):
-                    d = np.zeros(len(par))
-                    d[j] = step
-                    out[:, :, j] = ((resid(par + d) - resid(par - d)) / (2 * step)).reshape(
-                        q, -1)
-                return out.reshape(-1, len(par))
-
-            start = np.concatenate([[x0, y0], c0 / scale_c])
-            lo = np.concatenate([[x0 - box, y0 - box], np.full(q, -np.inf)])
-            hi = np.concatenate([[x0 + box, y0 + box], np.full(q, np.inf)])
-            with one_blas_thread():          # small products: BLAS's threads only wait
-                res = optimize.least_squares(resid, start, bounds=(lo, hi), jac=jac)
-            err = fit_errors(res.jac, noise_rows)
-            cols["fit_x"].append(res.x[0])
-            cols["fit_y"].append(res.x[1])
-            cols["fit_x_err"].append(err[0])
-            cols["fit_y_err"].append(err[1])
-            cols["fit_contrast"].append(res.x[2:] * scale_c)
-            cols["fit_contrast_err"].append(err[2:] * scale_c)
-            cols["fit_chi2"].append(float(2 * res.cost))
-            att = self._attenuation(res.x[0], res.x[1])
-            models.append(self.model_kp(res.x[:2], res.x[2:] * scale_c * att))
-        for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err"):
-            cands[k] = np.array(cols[k]) * u.mas
-        cands["fit_contrast"] = np.array(cols["fit_contrast"]).reshape(len(cands), q)
-        cands["fit_contrast_err"] = np.array(cols["fit_contrast_err"]).reshape(len(cands), q)
-        cands["fit_chi2"] = np.array(cols["fit_chi2"])
-        return models
+        return refine_stack(self, cands, residual, noise_rows, box)
 
 
 def _rows(comp, rows):
