@@ -184,8 +184,9 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
         Data carrying the time blocks of a rotating sequence (`kpifs.rotation`)
         are searched on the sky block by block (`kpifs.detect.blocks`): the
         calibrated mean and the blocks' departures from it (``'rotation'``), or
-        the departures alone (``'angular-differential'``: no calibrator, nothing
-        fixed on the detector). ``'auto'``: the data's own choice.
+        (``'angular-differential'``) the departures, nothing fixed on the
+        detector, with a calibrated mean, when there is one, at its own reduced
+        chi-square. ``'auto'``: the data's own choice.
     limits : bool
         Compute the detection limits (default). Without (as the injection
         curves do, which only need the candidates) ``result.limits`` is empty.
