@@ -17,7 +17,8 @@ import warnings
 import numpy as np
 from astropy import units as u
 
-from .covariance import calibrated_covariance, empirical_covariance, hartlap_factor
+from .covariance import (calibrated_covariance, empirical_covariance, hartlap_factor,
+                         rows_covariance)
 from .data import KernelPhaseData
 from .errormodel import fit_error_model
 from .exceptions import KpifsError, KpifsWarning
@@ -302,12 +303,8 @@ def _calibrate_modes(target, calibrators, *, n_modes, residual, joint, fit_modes
         log.info("%s: pixel noise (%s) x %s in the %d directions the error model's modes "
                  "leave out, per channel", _name(target), target.meta.get("pixel_noise"),
                  np.round(scale, 2).tolist(), em_meta["pixel_modes"])
-    cov = np.matmul(rows.transpose(1, 2, 0), rows.transpose(1, 0, 2))
-    jcov = None
-    if joint:
-        flat = rows.reshape(len(rows), -1)
-        jcov = flat.T @ flat
-    out = _result(target, calibrators, d, cov, jcov, rows, extra,
+    out = _result(target, calibrators, d, rows_covariance(rows),
+                  rows_covariance(rows, joint=True) if joint else None, rows, extra,
                   [c.n_frame for c in calibrators])
     out.fit_covariance_rows = fit_rows
     if fit_rows is not None:

@@ -254,6 +254,25 @@ def whitening_matrix(cov, *, rtol=1e-6, return_rank=False, source="covariance"):
     return w
 
 
+def rows_covariance(rows, *, joint=False):
+    """The covariance ``R^T R`` that covariance rows ``(nrow, nwave, nkp)`` carry: per
+    channel ``(nwave, nkp, nkp)``, or across channels ``(nwave*nkp, nwave*nkp)``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.covariance import rows_covariance
+    >>> rows = np.zeros((2, 1, 2)); rows[0, 0, 0], rows[1, 0, 1] = 2.0, 3.0
+    >>> rows_covariance(rows)[0].tolist(), rows_covariance(rows, joint=True).shape
+    ([[4.0, 0.0], [0.0, 9.0]], (2, 2))
+    """
+    rows = np.asarray(rows, float)
+    if joint:
+        flat = rows.reshape(len(rows), -1)
+        return flat.T @ flat
+    return np.matmul(rows.transpose(1, 2, 0), rows.transpose(1, 0, 2))
+
+
 def whiten(kp, w):
     """Apply whitening operators: ``y = W k`` per channel, or jointly.
 

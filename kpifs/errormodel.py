@@ -57,6 +57,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ._utils import thread_map
+from .covariance import rows_covariance
 from .exceptions import KpifsError
 
 __all__ = ["ErrorModel", "fit_error_model", "RESIDUAL_METHODS"]
@@ -118,11 +119,7 @@ class ErrorModel:
 
     def covariance(self, *, joint=False):
         """Per-channel covariances (q, p, p), or the joint one (q p, q p) with *joint*."""
-        k, q, p = self.rows.shape
-        if joint:
-            r = self.rows.reshape(k, q * p)
-            return r.T @ r
-        return np.matmul(self.rows.transpose(1, 2, 0), self.rows.transpose(1, 0, 2))
+        return rows_covariance(self.rows, joint=joint)
 
     def meta(self):
         """Plain numbers for product headers and ``meta['error_model']``."""

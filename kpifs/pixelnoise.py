@@ -30,6 +30,7 @@ from astropy import units as u
 
 from .covariance import kernel_jacobian
 from .prepare import cut_out
+from .sampling import unmeasured
 
 __all__ = ["attach_pixel_noise", "pixel_noise", "calibrated_pixel_covariance",
            "complement_rows"]
@@ -138,7 +139,7 @@ def attach_pixel_noise(kpd, cube):
     variance = _Channels(cube.variance, chans)
     kpd.kp_err, cov = pixel_noise(images, variance, kpd)
     if kpd.meta.get("channel_n_kp") is not None:      # rows a channel does not measure
-        off = np.arange(kpd.n_kp)[None, :] >= kpd.channel_n_kp[:, None]
+        off = unmeasured(kpd.channel_n_kp, kpd.n_kp)
         kpd.kp_err = np.where(off, 0.0, kpd.kp_err)
         cov[off[:, :, None] | off[:, None, :]] = 0.0
     kpd.meta["pixel_covariance"] = cov
@@ -223,7 +224,7 @@ def complement_rows(rows, pixel_covariance, *, data=None, groups=8, rtol=1e-9):
         proj = np.eye(p) - basis.T @ basis
         c = proj @ pixel_covariance[i] @ proj
         vals, vecs = np.linalg.eigh(0.5 * (c + c.T))
-        keep = vals > rtol * max(float(vals.max()), 0.0) if vals.max() > 0 else vals > np.inf
+        keep = vals > rtol * max(float(vals.max()), 0.0)       # none when all vanish
         fac = np.ones(int(keep.sum()))
         if data is not None and keep.any():
             z2 = ((vecs[:, keep].T @ np.asarray(data, float)[i]) / np.sqrt(vals[keep])) ** 2

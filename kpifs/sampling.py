@@ -29,7 +29,7 @@ from ._utils import to_quantity
 from .exceptions import KpifsError
 
 __all__ = ["aliased_uv", "aliased_channels", "pupil_extent", "nested_kernel",
-           "channel_uv_mask", "measured_rows"]
+           "channel_uv_mask", "unmeasured", "measured_rows"]
 
 MAS = np.pi / 180 / 3600 / 1000
 
@@ -168,11 +168,9 @@ def nested_kernel(kernel_model, usable):
             raise KpifsError("the channels' uv points are not nested: no kernel whose first "
                              "rows are each channel's own")
         if m.sum() >= 2 and (m & ~done).any():
-            full = np.zeros((0, model.n_uv))
             own = model.subset(m).kernel
-            if len(own):
-                full = np.zeros((len(own), model.n_uv))
-                full[:, m] = own
+            full = np.zeros((len(own), model.n_uv))
+            full[:, m] = own
             # the part of this set's kernel not yet spanned: singular values 1 (new) or 0
             rest = full - (full @ rows.T) @ rows
             if len(rest):
@@ -203,6 +201,19 @@ def channel_uv_mask(kernel_model, counts):
     return np.array([np.any(k[:int(n)] > tol, axis=0) for n in np.atleast_1d(counts)])
 
 
+def unmeasured(counts, n_kp):
+    """``(nwave, n_kp)``: True where a channel measuring its first *counts* kernel phases
+    has none.
+
+    Examples
+    --------
+    >>> from kpifs.sampling import unmeasured
+    >>> unmeasured([1, 2], 2).tolist()
+    [[False, True], [False, False]]
+    """
+    return np.arange(n_kp)[None, :] >= np.asarray(counts, int)[:, None]
+
+
 def measured_rows(kp, kernel_model, dropped=()):
     """Kernel phases ``(nframe, nwave, nkp)`` of a nested model (`nested_kernel`) with each
     channel's rows beyond its own set to zero, and the counts (None for other models).
@@ -227,5 +238,4 @@ def measured_rows(kp, kernel_model, dropped=()):
     counts = np.delete(np.asarray(counts, int), list(dropped))
     if len(counts) != kp.shape[1] or np.all(counts == kp.shape[2]):
         return kp, None
-    off = np.arange(kp.shape[2])[None, :] >= counts[:, None]
-    return np.where(off, 0.0, kp), counts.tolist()
+    return np.where(unmeasured(counts, kp.shape[2]), 0.0, kp), counts.tolist()

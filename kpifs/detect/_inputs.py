@@ -8,7 +8,7 @@ import warnings
 import numpy as np
 
 from ..exceptions import KpifsError, KpifsWarning
-from ..sampling import aliased_channels, channel_uv_mask
+from ..sampling import aliased_channels, channel_uv_mask, unmeasured
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +40,7 @@ def _measured(kpd, kp, cov):
     if np.all(n == kpd.n_kp):
         return kp, cov
     q, p = kp.shape
-    off = np.arange(p)[None, :] >= n[:, None]             # (q, p): not measured
+    off = unmeasured(n, p)
     kp = np.where(off, 0.0, kp)
     cov = np.array(cov, float)
     if cov.shape == (q, p, p):

@@ -5,7 +5,7 @@ import warnings
 import numpy as np
 from astropy import units as u
 
-from ..covariance import empirical_covariance, whiten, whitening_matrix
+from ..covariance import empirical_covariance, rows_covariance, whiten, whitening_matrix
 from ..data import DetectionGrid, DetectionResult, KernelPhaseData
 from ..exceptions import KpifsError, KpifsWarning
 from ..kernel import MAS, KernelModel
@@ -301,10 +301,9 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     if fit and cov_rows is not None and fit_rows is not None:
         # positions and contrasts from the error model with more modes (calibrate's
         # fit_modes), whose rows also carry its channel correlations
-        fr = fit_rows
-        fcov = np.matmul(fr.transpose(1, 2, 0), fr.transpose(1, 0, 2))       # (q, p, p)
-        fw, frank = whitening_matrix(fcov, return_rank=True, source="characterisation covariance")
-        characterise = (fw, whiten(fr, fw), int(np.sum(frank)))
+        fw, frank = whitening_matrix(rows_covariance(fit_rows), return_rank=True,
+                                     source="characterisation covariance")
+        characterise = (fw, whiten(fit_rows, fw), int(np.sum(frank)))
     map_low = float(np.quantile(null.noise_draws(), NOISE_CONFIDENCE))
     last = {}
 
