@@ -11,6 +11,7 @@ import json
 import os
 import socket
 import time
+import uuid
 import warnings
 from pathlib import Path
 
@@ -58,7 +59,9 @@ class FolderLock:
         self.info = None
 
     def _create(self):
-        info = {"pid": os.getpid(), "host": socket.gethostname(), "time": time.time()}
+        # the token tells a batch's workers that they see this very folder (`kpifs.batch`)
+        info = {"pid": os.getpid(), "host": socket.gethostname(), "time": time.time(),
+                "token": uuid.uuid4().hex}
         fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
         with os.fdopen(fd, "w") as f:
             json.dump(info, f)
