@@ -101,6 +101,16 @@ class FolderLock:
                              f"that run is dead")
         raise KpifsError(f"{self.path.parent}: cannot take the batch lock {self.path}")
 
+    def retire_token(self):
+        """Give the lock a new token: tasks of this run still running elsewhere no longer
+        publish (`kpifs.batch`), while the folder stays locked."""
+        if self.info is None:
+            return
+        self.info = dict(self.info, token=uuid.uuid4().hex)
+        tmp = self.path.with_name(self.path.name + ".new")
+        tmp.write_text(json.dumps(self.info))
+        os.replace(tmp, self.path)
+
     def release(self):
         if self.info is None:
             return

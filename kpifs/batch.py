@@ -544,14 +544,14 @@ def run_batch(entries, outdir, *, extract_options=None, detect_options=None, ove
         try:
             return _run_locked(entries, outdir, xo, do, overwrite=overwrite,
                                scheduler=scheduler, n_workers=n_workers, processes=processes,
-                               progress=progress,
+                               progress=progress, lock=lock,
                                run=RunContext(lock.info["token"], int(blas_threads)))
         finally:
             shutil.rmtree(outdir / PARTIAL, ignore_errors=True)
 
 
 def _run_locked(entries, outdir, xo, do, *, overwrite, scheduler, n_workers, processes,
-                progress, run):
+                progress, lock, run):
     """`run_batch` once the output folder's lock is held."""
     summary = _Summary(entries, outdir, xo, do)
     stopped = None
@@ -567,6 +567,9 @@ def _run_locked(entries, outdir, xo, do, *, overwrite, scheduler, n_workers, pro
         stopped = "interrupted"
     except _cluster.SchedulerLost as exc:
         stopped = f"lost the Dask scheduler at {scheduler} ({exc})"
+    # tasks still running on a cluster that outlives this run (a remote one: Ctrl-C, the
+    # scheduler lost) must not publish once the summary is written
+    lock.retire_token()
     table = summary.close(overwrite=overwrite, lost=stopped not in (None, "interrupted"))
     if stopped is not None:
         n = int(np.sum(table["status"] == "interrupted"))

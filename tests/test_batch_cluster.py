@@ -210,3 +210,35 @@ def test_batch_on_a_real_cluster(cluster, archive, tmp_path):
     assert after["home"] == before["home"]
     assert after["arch"] == before["arch"]
     assert {k.split("/")[0] for k in set(after["client"]) - set(before["client"])} == {"out"}
+
+
+def test_scheduler_lost_stops_with_a_summary(cluster, archive):
+    """The scheduler killed mid-run: a one-line message naming it, exit 2, and a summary
+    written as entries finished: what finished is 'ok', the rest 'interrupted'; a rerun on
+    a new cluster would resume (the products are whole)."""
+    _, client, _ = archive
+    proc = _batch(client, "--scheduler", cluster["address"], "-o", "out")
+    out = client / "out"
+    try:
+        t0 = time.time()
+        while time.time() - t0 < 300 and proc.poll() is None:
+            if (out / "summary.ecsv").exists():       # written as the first entry finished
+                early = Table.read(out / "summary.ecsv")
+                if "ok" in set(early["status"]):
+                    break
+            time.sleep(0.05)
+        assert "pending" in set(early["status"]), list(early["status"])
+        cluster["procs"][0].kill()                     # the scheduler
+        _, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 2, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert f"lost the Dask scheduler at {cluster['address']}" in err
+    assert "summary.ecsv" in err and "rerun to resume" in err
+    summary = Table.read(out / "summary.ecsv")
+    assert set(summary["status"]) <= {"ok", "interrupted"} and "ok" in set(summary["status"])
+    for row in summary:
+        assert (out / row["name"] / "detection.fits").exists() == (row["status"] == "ok")
+    assert not (out / ".kpifs-batch.lock").exists()
