@@ -56,7 +56,8 @@ from .workflow import (DetectOptions, ExtractOptions, observation_digest, option
                        process_observation)
 
 __all__ = ["BatchEntry", "read_manifest", "entries_from_glob", "check_entry_name",
-           "absolute_file", "absolute_options", "absolute_entry", "process_entry", "run_batch"]
+           "absolute_file", "absolute_options", "absolute_entry", "RunContext", "process_entry",
+           "run_batch", "BatchInterrupted"]
 
 log = logging.getLogger(__name__)
 
@@ -119,7 +120,7 @@ def absolute_file(value, base):
 
 def absolute_options(options, base="."):
     """*options* (`~kpifs.workflow.ExtractOptions` or `~kpifs.workflow.DetectOptions`)
-    with every file they name made absolute against *base* (`FILE_OPTIONS`).
+    with every file they name made absolute against *base* (``FILE_OPTIONS``).
 
     Examples
     --------
@@ -295,7 +296,14 @@ PARTIAL = ".kpifs-partial"
 class RunContext:
     """What the client sends with every entry besides its options: the token of the
     output folder's lock (so that a worker can tell it sees the client's folder) and
-    the BLAS threads of a worker's task."""
+    the BLAS threads of a worker's task.
+
+    Examples
+    --------
+    >>> from kpifs.batch import RunContext
+    >>> RunContext().blas_threads
+    1
+    """
 
     token: str = None
     blas_threads: int = 1
@@ -512,7 +520,7 @@ def run_batch(entries, outdir, *, extract_options=None, detect_options=None, ove
     a second run on it is refused, naming the holder (pid, host, start time); the
     lock of a run that was killed is taken over with a warning. Entry names are
     plain folder names inside *outdir*. Losing the scheduler stops the run with
-    a `~kpifs.exceptions.KpifsError` after the summary is written; Ctrl-C raises
+    a `~kpifs.KpifsError` after the summary is written; Ctrl-C raises
     `BatchInterrupted` after it is.
 
     Examples
