@@ -11,6 +11,7 @@ import json
 import os
 import socket
 import time
+import uuid
 import warnings
 from pathlib import Path
 
@@ -58,7 +59,9 @@ class FolderLock:
         self.info = None
 
     def _create(self):
-        info = {"pid": os.getpid(), "host": socket.gethostname(), "time": time.time()}
+        # the token tells a batch's workers that they see this very folder (`kpifs.batch`)
+        info = {"pid": os.getpid(), "host": socket.gethostname(), "time": time.time(),
+                "token": uuid.uuid4().hex}
         fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
         with os.fdopen(fd, "w") as f:
             json.dump(info, f)
@@ -97,6 +100,16 @@ class FolderLock:
                              f"({_holder_text(info)}); wait for it, or remove {self.path} if "
                              f"that run is dead")
         raise KpifsError(f"{self.path.parent}: cannot take the batch lock {self.path}")
+
+    def retire_token(self):
+        """Give the lock a new token: tasks of this run still running elsewhere no longer
+        publish (`kpifs.batch`), while the folder stays locked."""
+        if self.info is None:
+            return
+        self.info = dict(self.info, token=uuid.uuid4().hex)
+        tmp = self.path.with_name(self.path.name + ".new")
+        tmp.write_text(json.dumps(self.info))
+        os.replace(tmp, self.path)
 
     def release(self):
         if self.info is None:

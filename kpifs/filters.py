@@ -13,7 +13,10 @@ every test, limit and fit sees each filter's own kernel phases only.
 
 - Each filter is extracted with its own model and a window of the same
   *angular* radius (its pixel radius scaled by the pixel scales), then
-  calibrated by the same filter's calibrator frames (`~kpifs.workflow`).
+  calibrated by the same filter's calibrator frames: the driver,
+  `kpifs.workflow.extract_filters`, runs those steps with the pieces here
+  (`filter_groups`, `filter_models`, `filter_window_radius`, `stack_filters`),
+  which import nothing of the driver's.
 - The product carries the finest pixel scale and that filter's window: the
   window's attenuation of a companion, a function of angle, is then right in
   every channel, and its gain is computed on a grid where every filter's PSF
@@ -31,7 +34,6 @@ scatter, and the long baselines, near the pupil's edge, add noisy ones (see
 docs/user/jwst.rst for the measured depths).
 """
 import logging
-from dataclasses import replace
 
 import numpy as np
 from astropy import units as u
@@ -43,9 +45,9 @@ from .io.jwst import JWST_FILTERS, JWST_PIXSCALES, jwst_mode
 from .kernel import KernelModel, nyquist_usable
 from .sampling import nested_kernel
 from .window import DEFAULT_WINDOW_RADIUS, ExtractionWindow
-from .workflow import calibrate_observation, extract_observation, kernel_model_for
 
-__all__ = ["jwst_filters", "extract_filters", "stack_filters"]
+__all__ = ["jwst_filters", "filter_groups", "filter_models", "filter_window_radius",
+           "stack_filters"]
 
 log = logging.getLogger(__name__)
 
@@ -82,41 +84,24 @@ def _scale(path):
     return wl, JWST_PIXSCALES.get((inst, chan)), fits.getval(path, "NAXIS1", "SCI")
 
 
-def extract_filters(targets, calibrators, options, *, progress=False):
-    """Target and calibrator files in several JWST filters as one calibrated product.
+def filter_groups(targets, calibrators):
+    """The filters of a target's JWST files, their files and facts, after the refusals.
 
-    Parameters
-    ----------
-    targets : list of str
-        The target's files, in two or more filters.
-    calibrators : list of list of str
-        Each calibrator star's files (in the same filters).
-    options : `~kpifs.workflow.ExtractOptions`
-
-    Returns
-    -------
-    `~kpifs.data.KernelPhaseData`
-        One frame, one channel per filter (by wavelength), calibrated.
+    Returns ``(order, groups, cal_groups, scales)``: the filters by wavelength,
+    ``{filter: [target files]}``, one such dict per calibrator star, and
+    ``{filter: (wavelength um, pixel scale mas, image side px)}``. Refused:
+    fewer than two filters, files of different targets, no calibrator, and a
+    calibrator without one of the target's filters.
 
     Examples
     --------
-    >>> import tempfile, warnings, astropy.units as u
-    >>> from kpifs.filters import extract_filters
-    >>> from kpifs.io import write_observation
-    >>> from kpifs.simulate import simulate_scene
-    >>> from kpifs.workflow import ExtractOptions
-    >>> d, files = tempfile.mkdtemp(), {"t": [], "c": []}
-    >>> for wl, ps in ((1.5106, 31.0), (4.8213, 63.0)):
-    ...     obs = simulate_scene("nircam", wavelengths=[wl] * u.um, pixscale=ps * u.mas,
-    ...                          n_frames=6, npup=32, shape=(32, 32), seed=int(ps))
-    ...     f = write_observation(obs, f"{d}/{ps}", layout="jwst")
-    ...     files["t"] += f["target"]
-    ...     files["c"] += f["calibrator"]
-    >>> with warnings.catch_warnings():
-    ...     warnings.simplefilter("ignore")
-    ...     kpd = extract_filters(files["t"], [files["c"]], ExtractOptions(pupil="niriss_nrm"))
-    >>> kpd.n_wave, kpd.meta["filters"]
-    (2, ['F150W', 'F480M'])
+    >>> from kpifs.filters import filter_groups
+    >>> from kpifs.exceptions import KpifsError
+    >>> try:
+    ...     filter_groups([], [])
+    ... except KpifsError as err:
+    ...     print(err)                                       # doctest: +ELLIPSIS
+    no files: filters as channels need JWST files in two filters or more
     """
     groups = jwst_filters(targets)
     if len(groups) < 2:
@@ -140,42 +125,79 @@ def extract_filters(targets, calibrators, options, *, progress=False):
                              f"{', '.join(missing)} of the target")
     scales = {f: _scale(files[0]) for f, files in groups.items()}
     order = sorted(groups, key=lambda f: scales[f][0])
-    first = groups[order[0]][0]
-    km = kernel_model_for(options, "jwst", fits.getheader(first))
+    return order, groups, cal_groups, scales
+
+
+def filter_models(km, order, groups, scales, *, filter_kernels="own"):
+    """The nested kernel of the filters and each filter's own model.
+
+    *km* is the pupil's kernel model (`kpifs.workflow.kernel_model_for`);
+    ``order``, ``groups`` and ``scales`` come from `filter_groups`. Returns
+    ``(model, {filter: own model})``: each filter keeps the kernel of the uv
+    points it samples (``filter_kernels='own'``), or every filter the kernel
+    of those all sample (``'common'``). A filter without kernel phase is
+    refused.
+
+    Examples
+    --------
+    >>> import astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.filters import filter_models
+    >>> km = KernelModel.from_pupil(make_pupil("niriss_nrm"))
+    >>> scales = {"F277W": (2.8, 65.55, 80), "F480M": (4.82, 65.55, 80)}
+    >>> model, own = filter_models(km, ["F277W", "F480M"], {}, scales)
+    >>> [own[f].n_kp for f in ("F277W", "F480M")]
+    [6, 15]
+    """
     usable = np.array([nyquist_usable(km.uv, [scales[f][0]] * u.um, scales[f][1] * u.mas)[0]
                        for f in order])
     for f, m in zip(order, usable):
         if m.sum() < 2:
-            raise KpifsError(f"{groups[f][0]}: filter {f}: {int(m.sum())} of {km.n_uv} uv "
+            raise KpifsError(f"{_first(groups, f)}: filter {f}: {int(m.sum())} of {km.n_uv} uv "
                              f"points within its sampling limit "
                              f"({_limit(scales[f]):.2f} m at {scales[f][1]:g} mas pixels): "
                              f"no kernel phase")
-    if options.filter_kernels not in ("own", "common"):
-        raise KpifsError(f"filter kernels must be 'own' or 'common', got "
-                         f"{options.filter_kernels!r}")
-    if options.filter_kernels == "common":      # every filter the uv points all sample
+    if filter_kernels not in ("own", "common"):
+        raise KpifsError(f"filter kernels must be 'own' or 'common', got {filter_kernels!r}")
+    if filter_kernels == "common":      # every filter the uv points all sample
         usable = np.broadcast_to(usable.all(axis=0), usable.shape)
     model, counts = nested_kernel(km, usable)
     for f, m, n in zip(order, usable, counts):
         if n == 0:
-            raise KpifsError(f"{groups[f][0]}: filter {f}: the {int(m.sum())} uv points "
+            raise KpifsError(f"{_first(groups, f)}: filter {f}: the {int(m.sum())} uv points "
                              f"within its sampling limit ({_limit(scales[f]):.2f} m at "
                              f"{scales[f][1]:g} mas pixels) give no kernel phase")
     log.info("filters %s: %s kernel phases (each its own uv points, of %d)", ", ".join(order),
              ", ".join(map(str, counts)), model.n_uv)
     own = {f: _channel_model(model, n, m[usable.any(axis=0)])
            for f, m, n in zip(order, usable, counts)}
-    # windows of one angular radius: the default radius of the finest sampled filter
+    return model, own
+
+
+def _first(groups, f):
+    return groups[f][0] if groups.get(f) else f"filter {f}"
+
+
+def filter_window_radius(order, scales, window_radius=None):
+    """``{filter: window radius in its pixels}``: one *angular* radius for every filter.
+
+    Without *window_radius* (pixels), the default radius of the finest
+    sampled filter, in mas, expressed in each filter's pixels; with it, that
+    radius in every filter.
+
+    Examples
+    --------
+    >>> from kpifs.filters import filter_window_radius
+    >>> r = filter_window_radius(["F150W", "F480M"], {"F150W": (1.5, 31.0, 64),
+    ...                                                "F480M": (4.8, 63.0, 64)})
+    >>> round(r["F150W"] * 31.0, 6) == round(r["F480M"] * 63.0, 6)
+    True
+    """
+    if window_radius is not None:
+        return {f: window_radius for f in order}
     radius_mas = min(DEFAULT_WINDOW_RADIUS * min(scales[f][2], 64) / 2 * scales[f][1]
-                     for f in order) if options.window_radius is None else None
-    products = []
-    for f in order:
-        opts = _with_window(options, radius_mas, scales[f][1])
-        t = extract_observation(groups[f], opts, model=own[f], progress=progress)
-        cals = [extract_observation(cg[f], opts, model=own[f], progress=progress)
-                for cg in cal_groups]
-        products.append(calibrate_observation(t, cals, opts))
-    return stack_filters(products, order, kernel_model=model)
+                     for f in order)
+    return {f: radius_mas / scales[f][1] for f in order}
 
 
 def _limit(scale):
@@ -189,12 +211,6 @@ def _channel_model(model, n, mask):
     meta = {k: v for k, v in model.meta.items() if k != "nested_counts"}
     return KernelModel(model.pupil, model.uv[mask], model.redundancy[mask], model.blm[mask],
                        kernel=model.kernel[:n][:, mask], meta=meta)
-
-
-def _with_window(options, radius_mas, pixscale):
-    if radius_mas is None:
-        return options
-    return replace(options, window_radius=radius_mas / pixscale)
 
 
 def stack_filters(products, names, *, kernel_model=None):

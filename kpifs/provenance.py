@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 from astropy import units as u
 
-__all__ = ["options_record", "combined_digest", "inputs_digest", "observation_digest",
-           "products_digest"]
+__all__ = ["options_record", "file_digest", "combined_digest", "inputs_digest",
+           "observation_digest", "products_digest"]
 
 
 def options_record(options):
@@ -38,22 +38,51 @@ def options_record(options):
         if isinstance(v, str) and v and os.path.isfile(v):
             # an option given as a file (wavelengths, pupil, spectrum, angles): its content
             # counts, so that a rerun after the file changed redoes the work
-            v = f"{v} (sha256:{_file_sha256(v)})"
+            v = f"{os.path.abspath(v)} (sha256:{_file_sha256(v)})"
         elif not isinstance(v, (int, float, str, bool, list, tuple, type(None))):
             v = repr(v)
         out[f.name] = v
     return out
 
 
-def _file_sha256(path):
-    h = hashlib.sha256()
+#: sha256 of files already read by this process, by their status (device, inode, size,
+#: modification and change times): a file replaced or rewritten, even with its size and
+#: modification time put back, has another change time and is read again.
+_DIGESTS = {}
+
+
+def file_digest(path):
+    """The sha256 of a file's content (hex), or None when it cannot be read.
+
+    Read once per process while the file's status is unchanged (``_DIGESTS``).
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> from kpifs.provenance import file_digest
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "a.txt"
+    >>> _ = p.write_bytes(b"x")
+    >>> file_digest(p)[:16]
+    '2d711642b726b044'
+    """
     try:
-        with open(path, "rb") as f:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
-                h.update(chunk)
+        st = os.stat(path)
+        key = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+        if key not in _DIGESTS:
+            h = hashlib.sha256()
+            with open(path, "rb") as f:
+                for chunk in iter(lambda: f.read(1 << 22), b""):
+                    h.update(chunk)
+            if len(_DIGESTS) > 100000:
+                _DIGESTS.clear()
+            _DIGESTS[key] = h.hexdigest()
+        return _DIGESTS[key]
     except OSError:
-        return "unreadable"
-    return h.hexdigest()[:16]
+        return None
+
+
+def _file_sha256(path):
+    return (file_digest(path) or "unreadable")[:16]
 
 
 def combined_digest(payload):
@@ -71,7 +100,8 @@ def combined_digest(payload):
 
 
 def inputs_digest(files):
-    """A digest of input files: their absolute paths, sizes and modification times.
+    """A digest of input files: their absolute paths and contents (sha256, `file_digest`),
+    so that a file replaced with the same size and modification time counts as changed.
 
     Examples
     --------
@@ -82,14 +112,7 @@ def inputs_digest(files):
     >>> inputs_digest([p]) == inputs_digest([str(p)]), len(inputs_digest([p]))
     (True, 20)
     """
-    stats = []
-    for f in files:
-        try:
-            st = os.stat(f)
-            stats.append([os.path.abspath(f), st.st_size, st.st_mtime_ns])
-        except OSError:
-            stats.append([os.path.abspath(f), None, None])
-    return combined_digest(stats)
+    return combined_digest([[os.path.abspath(f), file_digest(f)] for f in files])
 
 
 def observation_digest(target, calibrators, extract_options, detect_options):
@@ -102,7 +125,10 @@ def observation_digest(target, calibrators, extract_options, detect_options):
     >>> len(observation_digest(["t.fits"], [["c.fits"]], ExtractOptions(), DetectOptions()))
     20
     """
-    inputs = combined_digest([inputs_digest(target)] + [inputs_digest(c) for c in calibrators])
+    # as the product's KPINHASH: the target's own digest alone without calibrator (an
+    # angular-differential product), else combined with the calibrators'
+    inputs = (combined_digest([inputs_digest(target)] + [inputs_digest(c) for c in calibrators])
+              if calibrators else inputs_digest(target))
     return products_digest(options_record(extract_options), inputs,
                            options_record(detect_options))
 

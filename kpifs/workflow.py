@@ -9,6 +9,9 @@ are searched). The steps are functions that every interface calls:
 - `extract_observation`: read cube file(s) and extract kernel phases;
 - `calibrate_observation`: the one place a calibrator is subtracted (else the covariance);
 - `detect_observation`: the search, maps, candidates and limits;
+- `extract_filters`: JWST files in several filters as the channels of one product;
+- `reduce_observation`: the product of one target and its calibrators, every option
+  included (filters, angular-differential): what ``kpifs extract`` writes;
 - `process_observation`: all of them for one target and its calibrators, writing
   ``calibrated_kp.fits`` and ``detection.fits`` as ``kpifs extract … --calibrator …``
   and ``kpifs detect`` would.
@@ -22,10 +25,14 @@ from pathlib import Path
 
 import numpy as np
 from astropy import units as u
+from astropy.io import fits
 
 from . import _checks
+from . import filters as _filters
+from ._defaults import DETECT as _DETECT, EXTRACT as _EXTRACT
 from ._lazy import lazy_module
 from ._utils import check_output_dir, check_output_path, to_quantity
+from .adi import angular_differential
 from .calibrate import calibrate, check_calibration
 from .covariance import empirical_covariance
 from .data import KernelPhaseData
@@ -43,7 +50,8 @@ from .window import ExtractionWindow
 __all__ = ["ExtractOptions", "DetectOptions", "DEFAULT_PUPIL", "kernel_model_for",
            "default_pupil",
            "calibrator_options",
-           "extract_observation", "calibrate_observation", "detect_observation",
+           "extract_observation", "calibrate_observation", "extract_filters",
+           "reduce_observation", "detect_observation",
            "process_observation", "options_record", "inputs_digest",
            "products_digest", "observation_digest"]
 
@@ -70,7 +78,11 @@ class ExtractOptions:
     accepted wherever a Quantity is (``step="0.38m"``). ``pa`` overrides the
     detector position angles of the cubes read (deg: one value, one per
     frame, or a text/FITS file; see `kpifs.io.parse_angles`); calibrators are
-    read without it (`calibrator_options`).
+    read without it (`calibrator_options`). ``filter_kernels`` applies to
+    JWST files in several filters (`extract_filters`), and
+    ``angular_differential`` makes the product of a rotating sequence that is
+    searched by what turns with the sky (`reduce_observation`). The defaults
+    are written once, in ``kpifs._defaults``, for the command line too.
 
     Examples
     --------
@@ -80,35 +92,36 @@ class ExtractOptions:
     ('auto', 'com')
     """
 
-    instrument: str = "auto"
-    wavelengths: object = None
-    pixscale: object = None
-    pa: object = None
-    dq_bits: object = None          # JWST: DQ flags read as bad (`kpifs.io.jwst.parse_dq_bits`)
+    instrument: str = _EXTRACT["instrument"]
+    wavelengths: object = _EXTRACT["wavelengths"]
+    pixscale: object = _EXTRACT["pixscale"]
+    pa: object = _EXTRACT["pa"]
+    dq_bits: object = _EXTRACT["dq_bits"]      # JWST: DQ flags read as bad (`jwst.parse_dq_bits`)
     # pupil (None: the instrument's telescope) and model (None: `pupil.MODEL_DEFAULTS`)
-    pupil: object = None
-    pupil_scale: object = None
-    step: object = None
-    offset: object = None
-    min_transmission: float = None
-    grey: bool = None
-    min_redundancy: float = None
-    rotation: object = None
-    hexagonal: bool = False
-    window_size: int = None
-    window_radius: float = None
-    window_order: float = 4.0
-    centroid: str = "com"
-    bad_pixels: str = "fill"
-    bad_frames: str = "drop"
-    on_nyquist: str = "drop"
-    mask: object = None
-    precision: str = "double"
-    shrinkage: str = "auto"
-    joint_covariance: bool = False
-    covariance: bool = False
-    pixel_noise: str = "auto"       # `~kpifs.calibrate.calibrate`: beyond the modes
-    filter_kernels: str = "own"     # `~kpifs.filters.extract_filters`
+    pupil: object = _EXTRACT["pupil"]
+    pupil_scale: object = _EXTRACT["pupil_scale"]
+    step: object = _EXTRACT["step"]
+    offset: object = _EXTRACT["offset"]
+    min_transmission: float = _EXTRACT["min_transmission"]
+    grey: bool = _EXTRACT["grey"]
+    min_redundancy: float = _EXTRACT["min_redundancy"]
+    rotation: object = _EXTRACT["rotation"]
+    hexagonal: bool = _EXTRACT["hexagonal"]
+    window_size: int = _EXTRACT["window_size"]
+    window_radius: float = _EXTRACT["window_radius"]
+    window_order: float = _EXTRACT["window_order"]
+    centroid: str = _EXTRACT["centroid"]
+    bad_pixels: str = _EXTRACT["bad_pixels"]
+    bad_frames: str = _EXTRACT["bad_frames"]
+    on_nyquist: str = _EXTRACT["on_nyquist"]
+    mask: object = _EXTRACT["mask"]
+    precision: str = _EXTRACT["precision"]
+    shrinkage: str = _EXTRACT["shrinkage"]
+    joint_covariance: bool = _EXTRACT["joint_covariance"]
+    covariance: bool = _EXTRACT["covariance"]
+    pixel_noise: str = _EXTRACT["pixel_noise"]      # `~kpifs.calibrate.calibrate`: beyond modes
+    filter_kernels: str = _EXTRACT["filter_kernels"]   # `extract_filters`
+    angular_differential: bool = _EXTRACT["angular_differential"]   # `reduce_observation`
 
     def window_for(self, image_shape):
         """The `~kpifs.window.ExtractionWindow` these options give for images of a shape."""
@@ -133,25 +146,25 @@ class DetectOptions:
     ('auto', 'keep')
     """
 
-    test: str = "auto"
-    pfa: float = 1e-3
-    pd: float = 0.5
-    max_sep: object = None
-    min_sep: object = None
-    grid_step: object = None
-    spectrum: object = None
-    basis: object = None
-    draws: int = 5000
-    seed: int = 0
-    shrinkage: str = "auto"
-    fit: bool = True
-    max_candidates: int = 20
-    allow_uncalibrated: bool = False
-    frame: str = "auto"
-    null: str = "auto"
-    blocks: str = "auto"
-    aliased: str = "keep"
-    static: str = "auto"
+    test: str = _DETECT["test"]
+    pfa: float = _DETECT["pfa"]
+    pd: float = _DETECT["pd"]
+    max_sep: object = _DETECT["max_sep"]
+    min_sep: object = _DETECT["min_sep"]
+    grid_step: object = _DETECT["grid_step"]
+    spectrum: object = _DETECT["spectrum"]
+    basis: object = _DETECT["basis"]
+    draws: int = _DETECT["draws"]
+    seed: int = _DETECT["seed"]
+    shrinkage: str = _DETECT["shrinkage"]
+    fit: bool = _DETECT["fit"]
+    max_candidates: int = _DETECT["max_candidates"]
+    allow_uncalibrated: bool = _DETECT["allow_uncalibrated"]
+    frame: str = _DETECT["frame"]
+    null: str = _DETECT["null"]
+    blocks: str = _DETECT["blocks"]
+    aliased: str = _DETECT["aliased"]
+    static: str = _DETECT["static"]
 
     def validate(self):
         """Refuse options no search can run with (before any work); return self."""
@@ -370,6 +383,125 @@ def calibrate_observation(target, calibrators=(), options=None):
     return target
 
 
+def extract_filters(targets, calibrators, options=None, *, progress=False):
+    """Target and calibrator files in several JWST filters as one calibrated product.
+
+    Each filter is extracted with its own kernel (`kpifs.filters`) and a
+    window of one angular radius, calibrated by the same filter's calibrator
+    frames, and the filters are stacked as the channels of one product.
+
+    Parameters
+    ----------
+    targets : list of str
+        The target's files, in two or more filters.
+    calibrators : list of list of str
+        Each calibrator star's files (in the same filters).
+    options : `ExtractOptions`
+
+    Returns
+    -------
+    `~kpifs.data.KernelPhaseData`
+        One frame, one channel per filter (by wavelength), calibrated.
+
+    Examples
+    --------
+    >>> import tempfile, warnings, astropy.units as u
+    >>> from kpifs.io import write_observation
+    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.workflow import ExtractOptions, extract_filters
+    >>> d, files = tempfile.mkdtemp(), {"t": [], "c": []}
+    >>> for wl, ps in ((1.5106, 31.0), (4.8213, 63.0)):
+    ...     obs = simulate_scene("nircam", wavelengths=[wl] * u.um, pixscale=ps * u.mas,
+    ...                          n_frames=6, npup=32, shape=(32, 32), seed=int(ps))
+    ...     f = write_observation(obs, f"{d}/{ps}", layout="jwst")
+    ...     files["t"] += f["target"]
+    ...     files["c"] += f["calibrator"]
+    >>> with warnings.catch_warnings():
+    ...     warnings.simplefilter("ignore")
+    ...     kpd = extract_filters(files["t"], [files["c"]], ExtractOptions(pupil="niriss_nrm"))
+    >>> kpd.n_wave, kpd.meta["filters"]
+    (2, ['F150W', 'F480M'])
+    """
+    options = options or ExtractOptions()
+    order, groups, cal_groups, scales = _filters.filter_groups(list(targets), list(calibrators))
+    km = kernel_model_for(options, "jwst", fits.getheader(groups[order[0]][0]))
+    model, own = _filters.filter_models(km, order, groups, scales,
+                                        filter_kernels=options.filter_kernels)
+    radius = _filters.filter_window_radius(order, scales, options.window_radius)
+    products = []
+    for f in order:
+        opts = dataclasses.replace(options, window_radius=radius[f])
+        t = extract_observation(groups[f], opts, model=own[f], progress=progress)
+        cals = [extract_observation(cg[f], opts, model=own[f], progress=progress)
+                for cg in cal_groups]
+        products.append(calibrate_observation(t, cals, opts))
+    kpd = _filters.stack_filters(products, order, kernel_model=model)
+    # the options as given (each filter's window radius follows from them) and every file
+    kpd.header["KPXOPTS"] = (json.dumps(options_record(options), sort_keys=True),
+                             "kpifs extraction options")
+    kpd.header["KPINHASH"] = (combined_digest([inputs_digest(list(targets))] + [
+        inputs_digest(c) for c in calibrators]), "digest of the input files")
+    return kpd
+
+
+def reduce_observation(target, calibrators=(), options=None, *, progress=False):
+    """The product ``kpifs extract TARGET [--calibrator CAL ...]`` writes, every option
+    included: the one place where extraction meets calibration.
+
+    - JWST files of the target in two filters or more: `extract_filters`;
+    - else the target's kernel phases, calibrated by *calibrators* when given
+      (`calibrate_observation`), or alone (with the frames' covariance when
+      ``options.covariance`` asks for it);
+    - ``options.angular_differential``: the product of a rotating sequence
+      searched by what turns with the sky (`kpifs.adi.angular_differential`),
+      with or without calibrators.
+
+    Parameters
+    ----------
+    target : str or list of str
+        The target's cube files.
+    calibrators : list of list of str
+        Cube files of each calibrator star (may be empty).
+    options : `ExtractOptions`
+
+    Returns
+    -------
+    product : `~kpifs.data.KernelPhaseData`
+    stars : list of `~kpifs.data.KernelPhaseData`
+        The target's and each calibrator's own kernel phases (empty for JWST
+        filters, whose stars are per filter).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from kpifs.io import write_observation
+    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.workflow import ExtractOptions, reduce_observation
+    >>> files = write_observation(simulate_scene("paper", n_frames=40, npup=32),
+    ...                           tempfile.mkdtemp())
+    >>> kpd, stars = reduce_observation(files["target"], [files["calibrator"]],
+    ...                                 ExtractOptions(step="1.2m"))
+    >>> kpd.meta["calibrated"], len(stars)
+    (True, 2)
+    """
+    options = options or ExtractOptions()
+    target = [str(target)] if isinstance(target, (str, Path)) else [str(f) for f in target]
+    calibrators = [[str(f) for f in files] for files in calibrators]
+    if len(_filters.jwst_filters(target)) > 1:     # JWST filters as the channels of one product
+        if options.angular_differential:
+            raise KpifsError(f"{target[0]}: --angular-differential needs one rotating "
+                             f"sequence; JWST files in several filters make one calibrated "
+                             f"frame per filter (reduce each filter on its own)")
+        return extract_filters(target, calibrators, options, progress=progress), []
+    tkp = extract_observation(target, options, progress=progress)
+    cals = [extract_observation(files, calibrator_options(options), model=tkp.kernel_model,
+                                progress=progress) for files in calibrators]
+    kpd = calibrate_observation(tkp, cals, options)
+    if options.angular_differential:               # issue 29
+        kpd = angular_differential(tkp, kpd if cals else None)
+    return kpd, [tkp] + cals
+
+
 def _mas(value, name):
     return None if value is None else to_quantity(value, u.mas, name=name)
 
@@ -430,17 +562,19 @@ def process_observation(target, calibrators, outdir, *, extract_options=None,
     """Extract, calibrate and search one observation; write its products in *outdir*.
 
     Writes ``calibrated_kp.fits`` (as ``kpifs extract TARGET --calibrator CAL``
-    would) and ``detection.fits`` (as ``kpifs detect calibrated_kp.fits``
-    would: from the file just written); with *keep_stars* also
-    ``target_kp.fits`` and ``calibrator_kp.fits`` (``calibrator<i>_kp.fits``
-    for several calibrators).
+    would, through `reduce_observation`: JWST filters and the
+    angular-differential mode included) and ``detection.fits`` (as ``kpifs
+    detect calibrated_kp.fits`` would: from the file just written); with
+    *keep_stars* also ``target_kp.fits`` and ``calibrator_kp.fits``
+    (``calibrator<i>_kp.fits`` for several calibrators; none for JWST filters).
 
     Parameters
     ----------
     target : list of str
         The target's cube files.
     calibrators : list of list of str
-        Cube files of each calibrator star.
+        Cube files of each calibrator star (none only with
+        ``extract_options.angular_differential``).
     outdir : str or Path
     extract_options, detect_options : `ExtractOptions`, `DetectOptions`
     overwrite : bool
@@ -473,8 +607,9 @@ def process_observation(target, calibrators, outdir, *, extract_options=None,
     target = [str(f) for f in target]
     calibrators = [[str(f) for f in files] for files in calibrators]
     _checks.check_inputs(target, calibrators)
-    if not calibrators:
-        raise KpifsError(f"{target[0] if target else outdir}: no calibrator")
+    if not calibrators and not xo.angular_differential:
+        raise KpifsError(f"{target[0] if target else outdir}: no calibrator (only an "
+                         f"angular-differential reduction searches a target alone)")
     paths = {"calibrated": outdir / "calibrated_kp.fits", "detection": outdir / "detection.fits"}
     names = ["target_kp.fits"] + (["calibrator_kp.fits"] if len(calibrators) == 1 else
                                   [f"calibrator{i}_kp.fits" for i in
@@ -482,19 +617,16 @@ def process_observation(target, calibrators, outdir, *, extract_options=None,
     star_paths = [outdir / n for n in names] if keep_stars else []
     for p in list(paths.values()) + star_paths:   # refuse before any work
         check_output_path(p, overwrite=overwrite)
-    tkp = extract_observation(target, xo, progress=progress)
-    ckps = [extract_observation(files, calibrator_options(xo), model=tkp.kernel_model,
-                                progress=progress) for files in calibrators]
-    for kpd, files, p in zip([tkp] + ckps, [target] + calibrators, star_paths):
+    cal, stars = reduce_observation(target, calibrators, xo, progress=progress)
+    star_paths = star_paths[:len(stars)]           # JWST filters: no single-star products
+    for kpd, files, p in zip(stars, [target] + calibrators, star_paths):
         kpd.write(p, overwrite=overwrite, inputs=files)
-    cal = calibrate_observation(tkp, ckps, xo)
     cal.write(paths["calibrated"], overwrite=overwrite,
               inputs=target + [f for files in calibrators for f in files])
     # detection from the file, as `kpifs detect` does, so both give the same products
     cal = KernelPhaseData.read(paths["calibrated"])
     result = detect_observation(cal, do, progress=progress)
     result.write(paths["detection"], inputs=[str(paths["calibrated"])], overwrite=overwrite)
-    if keep_stars:
-        paths.update(zip(("target",) + tuple(f"calibrator{i}" for i in range(len(ckps))),
-                         star_paths))
+    paths.update(zip(("target",) + tuple(f"calibrator{i}" for i in range(len(calibrators))),
+                     star_paths))
     return {"calibrated": cal, "result": result, "paths": paths}

@@ -129,8 +129,21 @@ def test_batch_rerun_is_keyed_on_options(small_archive, tmp_path, capsys):
     with fits.open(tmp_path / "out" / "s0" / "detection.fits") as h:
         assert h[0].header["KPHASH"] == third["options_hash"][0]
         assert h[0].header["PFA"] == 0.02
-    # an input changed on disk: redone too
-    (small_archive / "s1" / "target.fits").touch()
+    # an input touched, its content the same: the same products, skipped (issue 37 #15)
+    import os
+    path = small_archive / "s1" / "target.fits"
+    path.touch()
+    assert main(["batch", manifest, *[a if a != "0.01" else "0.02" for a in SMALL],
+                 "-o", out]) == 0
+    assert set(Table.read(tmp_path / "out" / "summary.ecsv")["status"]) == {"skipped"}
+    # an input replaced by another of the same size and modification time: redone
+    st, data = os.stat(path), bytearray(path.read_bytes())
+    with fits.open(path) as h:
+        start = h[0]._data_offset if h[0].data is not None else h[1]._data_offset
+    data[start + 1000] ^= 1                 # one bit of one pixel
+    path.write_bytes(bytes(data))
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert os.stat(path).st_size == st.st_size and os.stat(path).st_mtime_ns == st.st_mtime_ns
     assert main(["batch", manifest, *[a if a != "0.01" else "0.02" for a in SMALL],
                  "-o", out]) == 0
     fourth = Table.read(tmp_path / "out" / "summary.ecsv")

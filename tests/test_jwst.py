@@ -400,7 +400,7 @@ def test_two_filters_go_deeper(tmp_path):
     does (the same product, one channel); median B limits at 60-90 / 90-120 mas: 5.9e-4 /
     3.5e-4 for the pair against 1.2e-3 / 9.1e-4 (F150W) and 2.2e-3 / 1.1e-3 (F480M)."""
     from kpifs.detect import detect
-    from kpifs.filters import extract_filters
+    from kpifs.workflow import extract_filters
     from kpifs.workflow import ExtractOptions
     t, c = _nircam_pair(tmp_path, (8e-4, 8e-4))
     with warnings.catch_warnings():

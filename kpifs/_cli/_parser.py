@@ -10,6 +10,7 @@ says its default.
 """
 import argparse
 
+from .._defaults import DETECT, EXTRACT
 from .._meta import VERSION
 from ._epilogs import (EPILOG_BATCH, EPILOG_DETECT, EPILOG_EXTRACT, EPILOG_INFO,
                        EPILOG_INJECT, EPILOG_KERNEL, EPILOG_MODELCHECK, EPILOG_SIMULATE)
@@ -28,7 +29,7 @@ ROC_PRESETS = ("paper", "charis", "sphere", "sphere-sam")
 
 def _cube_options(p):
     g = p.add_argument_group("input cubes")
-    g.add_argument("--instrument", default="auto", choices=INSTRUMENTS,
+    g.add_argument("--instrument", default=EXTRACT["instrument"], choices=INSTRUMENTS,
                    help="file format (default auto: recognised from the header)")
     g.add_argument("--wavelengths", help="list (1.52um,1.60um) or file (text/FITS, um or nm); "
                                          "default: from the file's header")
@@ -43,7 +44,7 @@ def _cube_options(p):
 def _pupil_options(p, *, model_files=True):
     g = p.add_argument_group("pupil model")
     files = " or a kernel-model FITS" if model_files else ""
-    g.add_argument("--pupil", default=None,
+    g.add_argument("--pupil", default=EXTRACT["pupil"],
                    help="telescope: subaru (aliases scexao, charis), vlt (alias sphere), "
                         "pharo, jwst (alias nircam_clear), niriss_clearp, gpi (alias "
                         "gemini_south); a mask: niriss_nrm, sphere_sam7, gpi_nrm ('-' for "
@@ -54,23 +55,24 @@ def _pupil_options(p, *, model_files=True):
                         "default: the instrument's telescope, subaru for plain cubes")
     g.add_argument("--pupil-scale", help="pixel size of a pupil image, m if no unit, e.g. "
                                          "0.02m (default: its PUPSCALE keyword)")
-    g.add_argument("--step", default=None,
+    g.add_argument("--step", default=EXTRACT["step"],
                    help="pupil model's grid step, m if no unit (default: the pupil's, 0.38m "
                         "for subaru and vlt, 0.16m for pharo)")
-    g.add_argument("--offset", default=None,
+    g.add_argument("--offset", default=EXTRACT["offset"],
                    help="grid offset x,y, m if no unit (default 0.17m,0.11m; 0,0 gives a "
                         "centro-symmetric model)")
-    g.add_argument("--min-transmission", type=float, default=None,
+    g.add_argument("--min-transmission", type=float, default=EXTRACT["min_transmission"],
                    help="keep cells at least this much inside the pupil (default 0.2 for a "
                         "grey model, 0.9 for a binary one)")
-    g.add_argument("--min-redundancy", type=float, default=None,
+    g.add_argument("--min-redundancy", type=float, default=EXTRACT["min_redundancy"],
                    help="grey model: leave out uv points of smaller redundancy (default 0.5)")
     kind = g.add_mutually_exclusive_group()
-    kind.add_argument("--grey", dest="grey", action="store_const", const=True, default=None,
+    kind.add_argument("--grey", dest="grey", action="store_const", const=True,
+                      default=EXTRACT["grey"],
                       help="keep fractional transmissions (the default)")
     kind.add_argument("--binary", dest="grey", action="store_const", const=False,
                       help="binary model: every kept cell counts 1")
-    g.add_argument("--rotation", default=None,
+    g.add_argument("--rotation", default=EXTRACT["rotation"],
                    help="turn of the whole model to the pupil on the detector, deg if no "
                         "unit, e.g. -2deg (kpifs model-check measures it; default 0)")
     g.add_argument("--hexagonal", action="store_true", help="hexagonal grid (default square)")
@@ -82,56 +84,59 @@ def _extraction_options(p):
                    help="cut-out size in pixels (default: the image size, at most 64)")
     g.add_argument("--window-radius", type=float,
                    help="super-Gaussian radius in pixels (default 0.8 x half the cut-out)")
-    g.add_argument("--centroid", default="com", choices=("com", "peak", "quadratic", "2dg"),
+    g.add_argument("--centroid", default=EXTRACT["centroid"],
+                   choices=("com", "peak", "quadratic", "2dg"),
                    help="star-centre method (default %(default)s)")
-    g.add_argument("--bad-pixels", default="fill", choices=("fill", "exclude"),
+    g.add_argument("--bad-pixels", default=EXTRACT["bad_pixels"], choices=("fill", "exclude"),
                    help="interpolate bad pixels or leave them out (default %(default)s)")
-    g.add_argument("--bad-frames", default="drop", choices=("drop", "fail"),
+    g.add_argument("--bad-frames", default=EXTRACT["bad_frames"], choices=("drop", "fail"),
                    help="frames empty, mostly NaN or without flux: drop them with a warning "
                         "or refuse the cube (default %(default)s)")
-    g.add_argument("--nyquist", default="drop", choices=("drop", "raise", "own"),
+    g.add_argument("--nyquist", default=EXTRACT["on_nyquist"], choices=("drop", "raise", "own"),
                    help="uv points beyond some channel's Nyquist limit: drop them for every "
                         "channel (warn), refuse, or drop each for the channels that do not "
                         "sample it only (own; default %(default)s)")
-    g.add_argument("--precision", default="double", choices=("double", "single"),
+    g.add_argument("--precision", default=EXTRACT["precision"], choices=("double", "single"),
                    help="Fourier products in double or single precision (~2x faster, ~1e-6 "
                         "rad added to the kernel phases; default %(default)s)")
     g = p.add_argument_group("covariance")
-    g.add_argument("--shrinkage", default="auto", choices=("auto", "ledoit-wolf", "none"),
+    g.add_argument("--shrinkage", default=EXTRACT["shrinkage"],
+                   choices=("auto", "ledoit-wolf", "none"),
                    help="covariance estimator (default auto: Ledoit-Wolf when frames are too "
                         "few)")
     g.add_argument("--joint-covariance", action="store_true",
                    help="also estimate the joint covariance across channels")
     g.add_argument("--covariance", action="store_true",
                    help="store the frames' covariance even without a calibrator")
-    g.add_argument("--pixel-noise", default="auto", choices=("auto", "none"),
+    g.add_argument("--pixel-noise", default=EXTRACT["pixel_noise"], choices=("auto", "none"),
                    help="auto: with per-pixel noise (JWST ERR), the kernel phases beyond the "
                         "error model's modes carry it, scaled to the calibrated data; none: "
                         "the modes only (default %(default)s)")
-    g.add_argument("--filter-kernels", default="own", choices=("own", "common"),
+    g.add_argument("--filter-kernels", default=EXTRACT["filter_kernels"], choices=("own", "common"),
                    help="JWST filters as channels: each filter the kernel of the uv points "
                         "it samples, or all the kernel of those every filter samples "
                         "(default %(default)s)")
 
 
-def _search_options(p, *, draws=5000):
+def _search_options(p):
     g = p.add_argument_group("search")
-    g.add_argument("--test", default="auto", choices=("auto",) + TESTS,
+    g.add_argument("--test", default=DETECT["test"], choices=("auto",) + TESTS,
                    help="auto: S when --basis has fewer dimensions than the channels, "
                         "else B; B: GLR sum "
                         "max(z,0)^2; B-paper: the paper's sum max(z,0); S: spectral model "
                         "(GLR for a spectrum in --basis, the channels' correlation "
                         "weighed); NP: matched filter for --spectrum; E: energy detector "
                         "(default %(default)s)")
-    g.add_argument("--pfa", type=float, default=1e-3,
+    g.add_argument("--pfa", type=float, default=DETECT["pfa"],
                    help="global false-alarm probability of the search (default %(default)s)")
-    g.add_argument("--pd", type=float, default=0.5,
+    g.add_argument("--pd", type=float, default=DETECT["pd"],
                    help="detection probability of the limits (default %(default)s)")
-    g.add_argument("--frame", default="auto", choices=("auto", "sky", "detector"),
+    g.add_argument("--frame", default=DETECT["frame"], choices=("auto", "sky", "detector"),
                    help="search and map on the sky (dRA East-positive, dDec; the model turned "
                         "by each frame's detector angle; celestial WCS) or the detector "
                         "(default auto: the sky when every frame's angle is known)")
-    g.add_argument("--null", default="auto", choices=("auto", "gaussian", "empirical", "both"),
+    g.add_argument("--null", default=DETECT["null"],
+                   choices=("auto", "gaussian", "empirical", "both"),
                    help="null of the grid maximum: Gaussian Monte Carlo of the error model, "
                         "sign flips of the stars' time blocks (empirical), or the more "
                         "conservative of the two (both; default auto: both when the data carry "
@@ -149,10 +154,48 @@ def _search_options(p, *, draws=5000):
                                    "R in wavelength), blackbody, or a file of template "
                                    "spectra (ECSV with a wavelength column, FITS) (default "
                                    "smooth:3)")
-    g.add_argument("--draws", type=int, default=draws,
+    g.add_argument("--draws", type=int, default=DETECT["draws"],
                    help="Monte-Carlo draws calibrating the grid search (default %(default)s)")
-    g.add_argument("--seed", type=int, default=0,
+    g.add_argument("--seed", type=int, default=DETECT["seed"],
                    help="seed of those draws (default %(default)s)")
+
+
+def _product_options(p):
+    """How a product's search treats what its reduction left (detect and batch)."""
+    g = p.add_argument_group("search of the product")
+    g.add_argument("--allow-uncalibrated", action="store_true",
+                   help="search data that no calibrator was subtracted from (refused "
+                        "otherwise: aberrations look like companions)")
+    g.add_argument("--blocks", default=DETECT["blocks"],
+                   choices=("auto", "rotation", "angular-differential", "mean"),
+                   help="a rotating sequence's time blocks: the calibrated mean and what "
+                        "turns (rotation), what turns (angular-differential; with a "
+                        "calibrator, and the mean at its own scale), or the "
+                        "mean with the model averaged over the angles (mean); default: the "
+                        "data's own (%(default)s)")
+    g.add_argument("--aliased", default=DETECT["aliased"], choices=("keep", "exclude"),
+                   help="channels whose pixels alias some of their uv points (their "
+                        "contrasts are flagged): searched like the others (keep, the default) "
+                        "or left out of the search, limits and fits (exclude)")
+    g.add_argument("--static", default=DETECT["static"], choices=("auto", "none"),
+                   help="single-channel data with no calibrator: add the kernel-phase "
+                        "residual of static aberrations, imaged through the pupil and fitted "
+                        "to the data, to their covariance (auto, the default) or not (none)")
+
+
+def _reduction_options(p, *, pa_help):
+    """What is made of a target's frames besides extraction (extract and batch)."""
+    p.add_argument("--angular-differential", action="store_true",
+                   help="keep the time blocks of a rotating sequence and search what "
+                        "turns with the sky (what stays on the detector removed; with "
+                        "--calibrator also the calibrated mean, scaled by its own reduced "
+                        "chi-square; refused when the angles do not turn)")
+    p.add_argument("--pa", metavar="DEG|LIST|FILE",
+                   help="detector position angle of the target's frames (deg, East of North "
+                        "of the detector +y axis): one value, a comma list with one per "
+                        "frame, or a text/FITS file" + pa_help + " (default: the "
+                        "instrument's: CHARIS PARANG+113, SPHERE angle file+33.76, generic "
+                        "DETPA or 0)")
 
 
 def _output(p, help_text="output FITS file", *, required=True, default=None):
@@ -175,16 +218,7 @@ def _extract(command):
                         "calibrators, whose mean is subtracted (default: none, kernel phases "
                         "of the target alone)")
     _cube_options(p)
-    p.add_argument("--angular-differential", action="store_true",
-                   help="keep the time blocks of a rotating sequence and search what "
-                        "turns with the sky (what stays on the detector removed; with "
-                        "--calibrator also the calibrated mean, scaled by its own reduced "
-                        "chi-square; refused when the angles do not turn)")
-    p.add_argument("--pa", metavar="DEG|LIST|FILE",
-                   help="detector position angle of the target's frames (deg, East of North "
-                        "of the detector +y axis): one value, a comma list with one per "
-                        "frame, or a text/FITS file (default: the instrument's: CHARIS "
-                        "PARANG+113, SPHERE angle file+33.76, generic DETPA or 0)")
+    _reduction_options(p, pa_help="")
     _pupil_options(p)
     _extraction_options(p)
     _output(p, "output KPFITS file (required)")
@@ -248,9 +282,9 @@ def _inject(command):
                         "analytic limit, extended while every step or none is found)")
     p.add_argument("--angles", type=int, default=4,
                    help="with --curve: position angles per contrast step (default %(default)s)")
-    p.add_argument("--pfa", type=float, default=1e-3,
+    p.add_argument("--pfa", type=float, default=DETECT["pfa"],
                    help="global false-alarm probability of the detections (default %(default)s)")
-    p.add_argument("--draws", type=int, default=5000,
+    p.add_argument("--draws", type=int, default=DETECT["draws"],
                    help="Monte-Carlo draws calibrating the analytic limits' search (default "
                         "%(default)s)")
     p.add_argument("--injection-draws", type=int, default=1000,
@@ -332,26 +366,10 @@ def _detect(command):
     _search_options(p)
     # --step was the search grid here; everywhere else it is the pupil grid
     p.add_argument("--step", dest="deprecated_step", help=argparse.SUPPRESS)
-    p.add_argument("--shrinkage", default="auto", choices=("auto", "ledoit-wolf", "none"),
+    p.add_argument("--shrinkage", default=DETECT["shrinkage"],
+                   choices=("auto", "ledoit-wolf", "none"),
                    help="covariance estimator when calibrating here (default %(default)s)")
-    p.add_argument("--allow-uncalibrated", action="store_true",
-                   help="search data that no calibrator was subtracted from (refused "
-                        "otherwise: aberrations look like companions)")
-    p.add_argument("--blocks", default="auto",
-                   choices=("auto", "rotation", "angular-differential", "mean"),
-                   help="a rotating sequence's time blocks: the calibrated mean and what "
-                        "turns (rotation), what turns (angular-differential; with a "
-                        "calibrator, and the mean at its own scale), or the "
-                        "mean with the model averaged over the angles (mean); default: the "
-                        "data's own (%(default)s)")
-    p.add_argument("--aliased", default="keep", choices=("keep", "exclude"),
-                   help="channels whose pixels alias some of their uv points (their "
-                        "contrasts are flagged): searched like the others (keep, the default) "
-                        "or left out of the search, limits and fits (exclude)")
-    p.add_argument("--static", default="auto", choices=("auto", "none"),
-                   help="single-channel data with no calibrator: add the kernel-phase "
-                        "residual of static aberrations, imaged through the pupil and fitted "
-                        "to the data, to their covariance (auto, the default) or not (none)")
+    _product_options(p)
     p.add_argument("--plots", metavar="DIR", help="write PNG figures there (default: none)")
     _output(p, "output detection FITS file (required)")
 
@@ -384,9 +402,12 @@ def _batch(command):
     p.add_argument("--workers", type=int, default=2,
                    help="local-cluster workers (default %(default)s)")
     _cube_options(p)
+    _reduction_options(p, pa_help=", for every entry (a manifest's pa column sets one "
+                       "entry's)")
     _pupil_options(p)
     _extraction_options(p)
     _search_options(p)
+    _product_options(p)
     p.add_argument("-o", "--output", required=True, help="output directory (required)")
     p.add_argument("--overwrite", action="store_true",
                    help="redo entries already done (default: skip them, resuming a run)")
@@ -397,7 +418,7 @@ def _demo(command):
                 "example:\n  kpifs demo -o demo_output")
     p.add_argument("--frames", type=int, default=200,
                    help="exposures per star (default %(default)s)")
-    p.add_argument("--draws", type=int, default=5000,
+    p.add_argument("--draws", type=int, default=DETECT["draws"],
                    help="Monte-Carlo draws calibrating the search (default %(default)s)")
     p.add_argument("--seed", type=int, default=1,
                    help="seed of the simulation and of the draws (default %(default)s)")
