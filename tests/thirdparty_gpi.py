@@ -171,9 +171,11 @@ def write_spdc(outdir, cubes, star, parang, *, prefix="S20231015S", first=1, obj
     return paths
 
 
-def sequence(outdir, *, n=8, contrast=5e-3, sep=300.0, pa=40.0, seed=0, rotation=20.0):
+def sequence(outdir, *, n=8, contrast=5e-3, sep=300.0, pa=40.0, seed=0, rotation=20.0,
+             **kw):
     """8 target and 8 calibrator exposures (H band); returns (target paths, calibrator
-    paths, (dRA, dDec) of the companion)."""
+    paths, (dRA, dDec) of the companion). *kw* go to `exposures` (``nscreen``,
+    ``oversample``, ``box``: fewer is faster)."""
     rng = np.random.default_rng(seed)
     pup, dx = gemini_pupil(64)
     static = _screen(rng, 64, dx, 40e-9, pup > 0, 2.0)
@@ -181,8 +183,9 @@ def sequence(outdir, *, n=8, contrast=5e-3, sep=300.0, pa=40.0, seed=0, rotation
     off = (sep * np.sin(np.deg2rad(pa)), sep * np.cos(np.deg2rad(pa)))
     par_t = -20.0 + np.linspace(0, rotation, n)
     par_c = 10.0 + np.linspace(0, rotation, n)
-    ct, star = exposures(rng, n, parang=par_t, sky_offset=off, contrast=contrast, static=static)
+    ct, star = exposures(rng, n, parang=par_t, sky_offset=off, contrast=contrast,
+                         static=static, **kw)
     t = write_spdc(outdir, ct, star, par_t, first=1)
-    cc, star = exposures(rng, n, parang=par_c, static=static_c)
+    cc, star = exposures(rng, n, parang=par_c, static=static_c, **kw)
     c = write_spdc(outdir, cc, star, par_c, first=101, obj="HD 2")
     return t, c, off
