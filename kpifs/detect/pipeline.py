@@ -27,7 +27,7 @@ from .channels import (NOISE_CONFIDENCE, combined_scale, correlated_inputs, ener
                        energy_spread, map_noise, np_correlated, scale_block_rows,
                        subspace_scale, annulus_noise, ring_noise)
 from .quality import add_spectrum_model, flag_candidates, resolution_mas
-from .field import search_field
+from ..field import search_field
 from .spectral import limit_subspace, spectral_basis
 from .stats import TESTS, check_probability, energy_threshold
 
