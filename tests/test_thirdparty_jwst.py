@@ -65,3 +65,25 @@ def test_nircam_pair_written_by_datamodels(tmp_path):
     assert np.hypot(dra - off[0], ddec - off[1]) < 1.5
     assert abs(row["fit_pa_sky"].to_value(u.deg) - 295.0) < 1.0
     assert np.asarray(row["fit_contrast"]) == pytest.approx([0.076, 0.19], rel=0.1)
+
+
+def test_err_in_dn_per_second_is_the_kernel_phase_noise(tmp_path):
+    """ERR written by stdatamodels in DN/s (photon and read noise of electrons / gain /
+    EFFINTTM): the kernel-phase errors kpifs propagates from it match the scatter of 30
+    integrations of a fixed wavefront (median ratio within 10 %; measured 0.92, against
+    0.97 for point-sampled monochromatic images: the pixels' and the band's transfer
+    function lowers the signal at the longest baselines, where first-order propagation
+    overstates a phase's scatter)."""
+    from kpifs.workflow import extract_observation
+    rng = np.random.default_rng(5)
+    pup, dx = tj.jwst_pupil(64)
+    static = tj._screen(rng, 64, dx, 60e-9, pup > 0)
+    img = tj.psf_cube(rng, "F480M", 30, npup=64, nlam=3, oversample=2, static=static,
+                      drift_nm=0.0, effects=tj.Effects(jitter=False))
+    path = tj.write_calints(tmp_path / "a_calints.fits", "F480M", img, rng=rng)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", KpifsWarning)
+        kpd = extract_observation([path])
+    assert kpd.meta["pixel_noise"] == "ERR"
+    ratio = kpd.kp.std(0, ddof=1)[0] / kpd.kp_err.mean(0)[0]
+    assert np.median(ratio) == pytest.approx(1.0, abs=0.1)
