@@ -87,3 +87,21 @@ def test_err_in_dn_per_second_is_the_kernel_phase_noise(tmp_path):
     assert kpd.meta["pixel_noise"] == "ERR"
     ratio = kpd.kp.std(0, ddof=1)[0] / kpd.kp_err.mean(0)[0]
     assert np.median(ratio) == pytest.approx(1.0, abs=0.1)
+
+
+def test_mjy_per_sr_same_kernel_phases_and_errors(tmp_path):
+    """Imaging products calibrated to MJy/sr (SCI, ERR and VAR_* scaled by PHOTMJSR): the
+    same kernel phases and errors as in DN/s."""
+    from kpifs.workflow import extract_observation
+    out = []
+    for conv in (None, 0.37):
+        rng = np.random.default_rng(6)
+        img = tj.psf_cube(rng, "F480M", 4, npup=48, nlam=2, oversample=1)
+        path = tj.write_calints(tmp_path / f"{conv}_calints.fits", "F480M", img, rng=rng,
+                                photmjsr=conv)
+        assert fits.getval(path, "BUNIT", "SCI") == ("DN/s" if conv is None else "MJy/sr")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", KpifsWarning)
+            out.append(extract_observation([path]))
+    np.testing.assert_allclose(out[1].kp, out[0].kp, atol=1e-5)
+    np.testing.assert_allclose(out[1].kp_err, out[0].kp_err, rtol=1e-4)

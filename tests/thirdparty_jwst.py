@@ -136,8 +136,12 @@ def psf_cube(rng, filt, nints, *, shape=(64, 64), sky_offset=None, contrast=0.0,
 
 
 def write_calints(path, filt, images, *, rng, flux_e=3e7, effinttm=2.7, gain=2.0,
-                  read_noise=12.0, roll_ref=250.0, targname="W0336", effects=Effects()):
-    """Add noise to *images* (star flux 1) and write them with stdatamodels' CubeModel."""
+                  read_noise=12.0, roll_ref=250.0, targname="W0336", effects=Effects(),
+                  photmjsr=None):
+    """Add noise to *images* (star flux 1) and write them with stdatamodels' CubeModel.
+
+    In DN/s, or with *photmjsr* (MJy/sr per DN/s) calibrated to MJy/sr as the
+    photometric step of imaging pipelines leaves them (``PHOTMJSR`` card)."""
     from stdatamodels.jwst.datamodels import CubeModel
     lam0, width, ps, channel, detector = NIRCAM[filt]
     e = rng.poisson(np.clip(images, 0, None) * flux_e).astype(float)
@@ -155,6 +159,11 @@ def write_calints(path, filt, images, *, rng, flux_e=3e7, effinttm=2.7, gain=2.0
         sci.reshape(len(e), -1)[:, bad] = np.nan
         hot = rng.choice(n, max(1, n // 800), replace=False)          # warm: flagged only
         dq.reshape(len(e), -1)[:, hot] |= 4096
+    unit = "DN/s"
+    if photmjsr is not None:
+        sci, err = sci * np.float32(photmjsr), err * np.float32(photmjsr)
+        var_p, var_r = var_p * np.float32(photmjsr) ** 2, var_r * np.float32(photmjsr) ** 2
+        unit = "MJy/sr"
     m = CubeModel(data=sci, err=err, dq=dq)
     m.var_poisson, m.var_rnoise, m.var_flat = var_p, var_r, var_f
     m.meta.telescope = "JWST"
@@ -175,8 +184,9 @@ def write_calints(path, filt, images, *, rng, flux_e=3e7, effinttm=2.7, gain=2.0
     m.meta.wcsinfo.v3yangle = yang
     m.meta.wcsinfo.vparity = -1
     m.meta.photometry.pixelarea_arcsecsq = (ps / 1000) ** 2
-    m.meta.bunit_data = "DN/s"
-    m.meta.bunit_err = "DN/s"
+    m.meta.bunit_data = m.meta.bunit_err = unit
+    if photmjsr is not None:
+        m.meta.photometry.conversion_megajanskys = float(photmjsr)
     m.meta.target.catalog_name = targname
     m.meta.observation.date = "2026-01-01"
     m.meta.observation.time = "00:00:00"
