@@ -143,13 +143,15 @@ def field_cards(field, header):
     >>> from astropy.io import fits
     >>> from kpifs.field import field_cards, field_from_header
     >>> f = {"inner": 20.0, "outer": 180.0, "limit": "window", "alias": None,
-    ...      "window": 180.0, "image": 300.0, "step": None, "n_kp": 60, "n_frames": None}
+    ...      "window": 180.0, "image": 300.0, "step": None, "n_kp": 60, "n_frames": 8}
     >>> field_from_header(field_cards(f, fits.Header())) == f
     True
     """
     for key, (card, comment) in FIELD_CARDS.items():
         v = field.get(key)
-        if v is not None:
+        if isinstance(v, (int, np.integer)):
+            header[card] = (int(v), comment)
+        elif v is not None:
             header[card] = (v if isinstance(v, str) else round(float(v), 6), comment)
     return header
 
