@@ -20,7 +20,8 @@ from astropy import units as u
 MAS = np.pi / 180 / 3600 / 1000
 
 
-__all__ = ["search_field", "field_sentence", "field_cards", "field_from_header"]
+__all__ = ["search_field", "field_sentence", "field_cards", "field_from_header", "FIELD_CARDS",
+           "ALIAS_MARGIN"]
 
 #: Fraction of the aliasing limit ``lambda_min / (2 s)`` the default grid reaches.
 ALIAS_MARGIN = 0.95

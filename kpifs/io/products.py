@@ -12,7 +12,7 @@ from .._meta import VERSION
 from .._utils import write_hdulist
 from ..exceptions import KpifsError
 from .cube import open_fits
-from ..field import field_cards, field_from_header
+from ..field import FIELD_CARDS, field_cards, field_from_header
 from ._kpfits_common import card
 
 __all__ = ["detection_hdulist", "write_detection", "read_detection_parts",
@@ -164,7 +164,8 @@ _PRODUCT_CARDS = {"KPIFSVER", "CONTENT", "TEST", "MAPTEST", "PFA", "PD", "THRESH
                   "ERAW", "MAPNOISE", "SUBNOISE", "EXCLCHAN", "STATSHR", "STATAMP", "STATPUP",
                   "GRIDMIN", "GRIDMAX",
                   "NULLCHAN", "CALIB", "CHI2RED", "NOISESC", "DETPA", "NULLMETH",
-                  *(name for name, _ in NULL_CARDS.values())}
+                  *(name for name, _ in NULL_CARDS.values()),
+                  *(name for name, _ in FIELD_CARDS.values())}
 _PRODUCT_PREFIXES = ("WAVE", "SPEC", "KPCAL", "KPIN", "ALIAS", "CHAN")
 
 
