@@ -75,7 +75,8 @@ def search_field(kpd, grid):
              if out[k] is not None and out[k] > out["outer"] * 1.05]
     if wider and out["limit"] != "grid":
         out["reach"] = float(min(wider))
-        out["step_for"] = ALIAS_MARGIN * lam / (2 * out["reach"] * MAS)
+        if out["alias"] is not None and out["alias"] < out["reach"]:
+            out["step_for"] = ALIAS_MARGIN * lam / (2 * out["reach"] * MAS)
     return out
 
 
@@ -93,6 +94,12 @@ def field_sentence(field):
     phases per channel, 8 frames) aliases; the window reaches 362 mas and the images
     453 mas; --step 0.40m reaches 362 mas, with about 4x the kernel phases (the
     covariance needs several times more frames than kernel phases)'
+    >>> field_sentence({"inner": 20.0, "outer": 167.0, "alias": 392.0, "window": 167.0,
+    ...                 "image": 208.0, "limit": "window", "step": 0.38, "reach": 208.0})
+    ... # doctest: +NORMALIZE_WHITESPACE
+    'field searched 20-167 mas: beyond, the extraction window ends (--window-size,
+    --window-radius); the images 208 mas; a wider window (--window-size,
+    --window-radius) reaches 208 mas'
     """
     head = f"field searched {field['inner']:.0f}-{field['outer']:.0f} mas"
     model = f"the {field.get('step') or 0:.2f} m grid of the pupil model"
@@ -112,13 +119,17 @@ def field_sentence(field):
         far.append(f"the images {field['image']:.0f} mas")
     if far:
         text += "; " + " and ".join(far)
+    win = field.get("window") is None or field["window"] < field.get("reach", 0) / 1.05
     if field.get("step_for") and field["limit"] != "grid":
         ratio = (field["step"] / field["step_for"]) ** 2 if field.get("step") else None
         more = f", with about {ratio:.0f}x the kernel phases" if ratio else ""
-        win = "" if field["limit"] == "model" else " and a window to match (--window-size)"
+        win = " and a window to match (--window-size)" if win else ""
         text += (f"; --step {field['step_for']:.2f}m{win} reaches {field['reach']:.0f} mas"
                  f"{more} (the covariance needs several times more frames than kernel "
                  f"phases)")
+    elif field.get("reach") and field["limit"] != "grid":
+        text += (f"; a wider window (--window-size, --window-radius) reaches "
+                 f"{field['reach']:.0f} mas")
     return text
 
 
