@@ -102,8 +102,11 @@ def write_xara(path, p, *, detpa=0.0, sigma=None, phases=None, amplitudes=None,
 
 def write_jwstkpi(path, p, *, detpa, cov=None, calflag="False", phases=None,
                   amplitudes=None, kp_ndim=None, red_int=True, bandwidth_column="BWIDTH",
-                  kernel_scale=None):
+                  kernel_scale=None, wrad="NONE", image_size=8):
     """jwst-kpi's ``calwebb_kpi3`` layout (all channels of ``p['kp']``).
+
+    *wrad*: the window radius card (pixels; ``'NONE'`` when not windowed), with
+    SCI frames of *image_size* pixels.
 
     *kernel_scale* multiplies the kernel's rows, and the kernel phases and
     covariances alike (a file whose KER-MAT rows are not unit-normalised).
@@ -119,9 +122,10 @@ def write_jwstkpi(path, p, *, detpa, cov=None, calflag="False", phases=None,
     for key, val in (("TELESCOP", "JWST"), ("INSTRUME", "NIRISS"), ("PSCALE", p["pixscale"]),
                      ("GAIN", 1.61), ("DIAM", 6.559348), ("EXPTIME", 10.0),
                      ("DATEOBS", "2022-07-01T00:00:00.000"), ("PROCSOFT", "CALWEBB_KPI3"),
-                     ("WRAD", "NONE"), ("CALFLAG", calflag), ("CONTENT", "KPFITS1")):
+                     ("WRAD", wrad), ("CALFLAG", calflag), ("CONTENT", "KPFITS1")):
         hdr[key] = val
-    hdus = [fits.PrimaryHDU(header=hdr), fits.ImageHDU(np.zeros((nf, 8, 8)), name="SCI"),
+    hdus = [fits.PrimaryHDU(header=hdr),
+            fits.ImageHDU(np.zeros((nf, 1, image_size, image_size), np.float32), name="SCI"),
             *_model_hdus(p, blm="nap-1", red_int=red_int)]
     ndim = kp_ndim or (2 if nw == 1 else 3)
     hdus.append(fits.ImageHDU(kp[:, 0] if ndim == 2 else kp, name="KP-DATA"))

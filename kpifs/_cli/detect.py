@@ -9,6 +9,7 @@ from .._utils import check_output_dir, check_output_path
 from ..data import KernelPhaseData
 from ..exceptions import KpifsError, KpifsWarning
 from ..io.cube import open_fits
+from ..field import field_sentence
 from ..detect.sky import detector_to_sky, mean_angle
 from ..plotting import save_detection_plots
 from ..workflow import detect_observation
@@ -83,6 +84,8 @@ def run(args):
               f"{e.get('map_noise', float('nan')):.2f}), more in annuli whose own noise is "
               f"higher{_s_scale(res)}; energy test P_FA {e['pfa']:.1e}")
     _aliased_line(res)
+    if res.meta.get("field"):
+        print("  " + field_sentence(res.meta["field"]))
     st = res.meta.get("static")
     if st:
         print(f"  static aberrations (no calibrator): a kernel-phase residual imaged through the "

@@ -5,6 +5,7 @@ from astropy.table import QTable
 
 from ..data import DetectionResult, KernelPhaseData
 from ..exceptions import KpifsError, MissingInformation
+from ..field import field_sentence
 from ..io.cube import open_fits
 from ..io.kpfits_read import _layout, _read_pixscale, _read_wavelengths
 from ..io.readers import detect_instrument, read_cube
@@ -64,6 +65,8 @@ def _detection(path):
     print(f"  map {res.statistic.shape[1]} x {res.statistic.shape[0]} {where}; energy "
           f"detector: T_E = {res.energy['statistic']:.1f} for {res.energy['dof']} degrees of "
           f"freedom, P_FA {res.energy['pfa']:.2e}")
+    if res.meta.get("field"):
+        print("  " + field_sentence(res.meta["field"]))
     print(f"  {len(res.candidates)} candidate(s)")
     cx, cy = ("dra", "ddec") if sky and "dra" in res.candidates.colnames else ("x", "y")
     for row in res.candidates:

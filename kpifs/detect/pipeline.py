@@ -27,6 +27,7 @@ from .channels import (NOISE_CONFIDENCE, combined_scale, correlated_inputs, ener
                        energy_spread, map_noise, np_correlated, scale_block_rows,
                        subspace_scale, annulus_noise, ring_noise)
 from .quality import add_spectrum_model, flag_candidates, resolution_mas
+from ..field import search_field
 from .spectral import limit_subspace, spectral_basis
 from .stats import TESTS, check_probability, energy_threshold
 
@@ -442,6 +443,7 @@ def _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands, th
     meta["aliased"] = _aliased(kpd).tolist()
     meta["channels"] = list(kpd.meta.get("channels") or range(1, kpd.n_wave + 1))
     meta["excluded_channels"] = list(kpd.meta.get("excluded_channels", []))
+    meta["field"] = search_field(kpd, grid)
     if curves is None:
         curves = radial_curves(limits, grid)
     return DetectionResult(grid=grid, test=test, pfa=pfa, pd=pd, statistic=t, pfa_local=ploc,

@@ -281,6 +281,34 @@ def _read_pixscale(hdr, path):
     return v * u.mas
 
 
+#: Order of xara's super-Gaussian window ``exp(-(r / WRAD) ** 4)`` (jwst-kpi's ``WRAD``).
+XARA_WINDOW_ORDER = 4.0
+
+
+def _foreign_window(hdul, hdr, notes):
+    """jwst-kpi's window (``WRAD`` pixels, xara's ``exp(-(r / WRAD) ** 4)``) as kpifs's
+    ``WINRAD``/``WINSIZE``/``WINORD`` cards of *hdr* (a copy), so that fits and limits
+    model its attenuation of a companion; a ``WRAD`` that names no window is noted."""
+    if "WINRAD" in hdr or "WRAD" not in hdr:
+        return
+    wrad = _number(hdr.get("WRAD"))
+    if _flag(hdr.get("S_WINDOW", True)) is False or (wrad is None and str(
+            hdr["WRAD"]).strip().upper() in ("NONE", "")):
+        notes.append("no extraction window (WRAD NONE or S_WINDOW False)")
+        return
+    if wrad is None or not np.isfinite(wrad) or wrad <= 0:
+        notes.append(f"WRAD {hdr['WRAD']!r} is no window radius: ignored (no window "
+                     f"modelled)")
+        return
+    sci = hdul["SCI"] if "SCI" in hdul and hdul["SCI"].is_image else None
+    shape = np.shape(sci.data) if sci is not None and sci.data is not None else ()
+    size = int(min(shape[-2:])) if len(shape) >= 2 else int(np.ceil(4 * wrad))
+    hdr["WINRAD"] = (float(wrad), "[pix] window radius (from WRAD)")
+    hdr["WINSIZE"] = (max(size, 4), "[pix] window size (the SCI frames')")
+    hdr["WINORD"] = (XARA_WINDOW_ORDER, "window exp(-(r/WINRAD)**WINORD)")
+    notes.append(f"extraction window from WRAD: exp(-(r / {wrad:g} pix)^4) on {size} pixels")
+
+
 def read_kpfits_parts(path, *, detpa=None):
     """Read a KPFITS file of kernel-phase data (kpifs's or another tool's) into plain arrays.
 
@@ -370,6 +398,7 @@ def _read_data(hdul, path, detpa):
     fit_rows = np.array(hdul["KP-FITROWS"].data, float) if "KP-FITROWS" in hdul else None
     blk_rows = np.array(hdul["KP-BLKROWS"].data, float) if "KP-BLKROWS" in hdul else None
     pixscale = _read_pixscale(hdr, path)
+    _foreign_window(hdul, hdr, notes)
     inst = next((str(hdr[k]).strip() for k in ("INSTRUME", "CURRINST")
                  if str(hdr.get(k, "")).strip()), None)
     tel = str(hdr["TELESCOP"]).strip() if str(hdr.get("TELESCOP", "")).strip() else None

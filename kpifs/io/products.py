@@ -12,6 +12,7 @@ from .._meta import VERSION
 from .._utils import write_hdulist
 from ..exceptions import KpifsError
 from .cube import open_fits
+from ..field import FIELD_CARDS, field_cards, field_from_header
 from ._kpfits_common import card
 
 __all__ = ["detection_hdulist", "write_detection", "read_detection_parts",
@@ -78,6 +79,8 @@ def detection_hdulist(result, *, header=None, inputs=()):
     for i, f in enumerate(result.meta.get("aliased") or [], 1):
         if any(result.meta["aliased"]):
             hdr[f"ALIAS{i}"] = (round(float(f), 4), f"uv points aliased in channel {i} (fraction)")
+    if result.meta.get("field"):
+        field_cards(result.meta["field"], hdr)
     st = result.meta.get("static")
     if st:
         hdr["STATSHR"] = (round(float(st["share"]), 6), "static residual / frames' variance")
@@ -161,7 +164,8 @@ _PRODUCT_CARDS = {"KPIFSVER", "CONTENT", "TEST", "MAPTEST", "PFA", "PD", "THRESH
                   "ERAW", "MAPNOISE", "SUBNOISE", "EXCLCHAN", "STATSHR", "STATAMP", "STATPUP",
                   "GRIDMIN", "GRIDMAX",
                   "NULLCHAN", "CALIB", "CHI2RED", "NOISESC", "DETPA", "NULLMETH",
-                  *(name for name, _ in NULL_CARDS.values())}
+                  *(name for name, _ in NULL_CARDS.values()),
+                  *(name for name, _ in FIELD_CARDS.values())}
 _PRODUCT_PREFIXES = ("WAVE", "SPEC", "KPCAL", "KPIN", "ALIAS", "CHAN")
 
 
@@ -280,6 +284,8 @@ def detection_header_meta(hdr, path):
             "source": str(path)}
     if "CHI2RED" in hdr:
         meta.update(chi2_red=hdr["CHI2RED"], noise_scale=hdr.get("NOISESC", 1.0))
+    if field_from_header(hdr):
+        meta["field"] = field_from_header(hdr)
     if "STATSHR" in hdr:
         meta["static"] = {"share": hdr["STATSHR"], "amplitude": hdr.get("STATAMP"),
                           "pupil": hdr.get("STATPUP")}
