@@ -101,7 +101,7 @@ def _errors(values, unit, flag, where):
         r, c = np.argwhere(bad)[0]
         raise KpifsError(f"{where}: {int(bad.sum())} T3PHIERR value(s) are zero, negative or "
                          f"NaN where the closure phase is not flagged (first: row {r + 1}, "
-                         f"channel {c + 1}, {err[r, c]!r}): an error must be > 0")
+                         f"channel {c + 1}, {float(err[r, c]):g}): an error must be > 0")
     return err if _unit(unit, where) == "rad" else np.deg2rad(err)
 
 
