@@ -312,10 +312,10 @@ register(KernelPhaseData, "kpfits", reader=_read_kpd_file, writer=_guarded(write
          identifier=is_kpfits)
 
 
-def _read_oifits(path, *, insname=None, correlations="baselines"):
+def _read_oifits(path, *, insname=None, correlations="baselines", binning="auto"):
     """Closure phases of OIFITS file(s) of one target (`kpifs.io.oifits`,
     `kpifs.io.oifits_combine`): one frame, the sky frame."""
-    parts = read_oifits(path, insname=insname, correlations=correlations)
+    parts = read_oifits(path, insname=insname, correlations=correlations, binning=binning)
     m = parts.pop("model")
     pupil = PupilModel(m["xy"], step=m["step"], name=m["name"],
                        meta={"closure_phases": True})

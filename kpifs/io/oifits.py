@@ -30,6 +30,7 @@ from astropy.io import fits
 
 from ..exceptions import KpifsError, KpifsWarning
 from .cube import open_fits
+from .oifits_bins import BIN_SMEAR, bin_closure_phases, channel_bins
 from .oifits_noise import check_size, closure_covariance
 
 __all__ = ["is_oifits", "read_oifits_parts", "OIFITS_SUFFIXES"]
@@ -448,7 +449,7 @@ def _project_covariance(per, joint, proj, nw, ntri, path):
     return per, joint, rows
 
 
-def read_oifits_parts(path, *, insname=None, correlations="baselines"):
+def read_oifits_parts(path, *, insname=None, correlations="baselines", binning="auto"):
     """Read the closure phases of an OIFITS file as the parts of kernel-phase data.
 
     Parameters
@@ -461,6 +462,9 @@ def read_oifits_parts(path, *, insname=None, correlations="baselines"):
         What the triangles of one exposure share where the file states no
         correlations (`kpifs.io.oifits_noise`): their baselines' noise
         (default), or nothing.
+    binning : {'auto', 'none'}
+        ``'auto'``: channels finer than a companion search resolves are
+        averaged (`kpifs.io.oifits_bins`); ``'none'`` keeps every channel.
 
     Returns
     -------
@@ -486,10 +490,22 @@ def read_oifits_parts(path, *, insname=None, correlations="baselines"):
     uv_en, blm, cmat, inst, bl_epoch = _closure_model(epoch, sta, uv)
     kern, proj = _project(cmat, epoch, bl_epoch)
     nk = len(kern)
+    # the model in kpifs's frame: (-u, v), so that detector angle 0 is the sky
+    uv_k = uv_en * np.array([-1.0, 1.0])
+    lengths = np.hypot(*uv_k.T)
+    step, step_note = _aperture(t["arrays"], rows, inst, wl, lengths)
     per, joint, sources = closure_covariance(
         {"path": path, "rows": rows, "keep": keep, "keep_ch": keep_ch, "err": err,
          "cmat": cmat, "epoch": epoch, "corrs": t["corrs"], "cpcov": t["cpcov"]},
         correlations=correlations)
+    bins = channel_bins(wl, lengths.max(), 2 * step, binning=binning)
+    bin_note = None
+    if bins is not None and joint is None:
+        n0 = nw
+        phi, err, per, wl, band = bin_closure_phases(phi, err, per, wl, band, bins)
+        nw = len(wl)
+        bin_note = (f"{n0} channels binned to {nw} (at most {BIN_SMEAR:g} fringe of smearing "
+                    f"at the default field's edge; binning='none' keeps them)")
     kp = (proj @ phi).T[None]                                        # (1, nw, nk)
     per, joint, rows_cov = _project_covariance(per, joint, proj, nw, ntri, path)
     var = np.diagonal(per, axis1=1, axis2=2)
@@ -497,12 +513,11 @@ def read_oifits_parts(path, *, insname=None, correlations="baselines"):
         w = int(np.argmax(~(var > 0).all(axis=1))) if np.all(np.isfinite(var)) else 0
         raise KpifsError(f"{path}: OI_T3: zero, negative or undefined closure-phase errors "
                          f"at {wl[w] * 1e6:.4f} um (T3PHIERR or covariance)")
-    # the model in kpifs's frame: (-u, v), so that detector angle 0 is the sky
-    uv_k = uv_en * np.array([-1.0, 1.0])
     xy = np.linalg.lstsq(blm, uv_k, rcond=None)[0]
-    lengths = np.hypot(*uv_k.T)
-    step, step_note = _aperture(t["arrays"], rows, inst, wl, lengths)
     meta = _meta(path, header, rows, epoch, ntri, nk, sources, step_note, flag)
+    if bin_note:
+        meta["notes"].append(bin_note)
+        meta["binned_channels"] = np.bincount(bins).tolist()
     names = meta["closure_phases"]["arrname"] or meta["closure_phases"]["insname"]
     log.info("%s: %d triangles, %d epochs -> %d independent closure phases x %d channels",
              path, ntri, int(epoch.max()) + 1, nk, nw)

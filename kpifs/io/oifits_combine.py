@@ -191,7 +191,7 @@ def _same(a, b):
     return len(a) == len(b) and np.allclose(a, b, rtol=1e-6)
 
 
-def read_oifits(paths, *, insname=None, correlations="baselines"):
+def read_oifits(paths, *, insname=None, correlations="baselines", binning="auto"):
     """Closure phases of one or several OIFITS files of one target, as one set of parts.
 
     Parameters
@@ -204,6 +204,7 @@ def read_oifits(paths, *, insname=None, correlations="baselines"):
         channels; otherwise every grid is read and all become one achromatic
         channel.
     correlations : {'baselines', 'independent'}
+    binning : {'auto', 'none'}
         See `~kpifs.io.oifits.read_oifits_parts`.
 
     Returns
@@ -238,10 +239,11 @@ def read_oifits(paths, *, insname=None, correlations="baselines"):
         grids = {} if insname is not None else _grids(p)
         names = list(grids)
         if insname is not None or all(_same(grids[n][0], grids[names[0]][0]) for n in names):
-            reads.append(read_oifits_parts(p, insname=insname, correlations=correlations))
+            reads.append(read_oifits_parts(p, insname=insname, correlations=correlations,
+                                           binning=binning))
             continue
         best = _science(p, grids)
-        reads.extend(read_oifits_parts(p, insname=n, correlations=correlations)
+        reads.extend(read_oifits_parts(p, insname=n, correlations=correlations, binning=binning)
                      for n in ([best] if best is not None else names))
         if best is not None:
             reads[-1]["meta"]["notes"].append(
