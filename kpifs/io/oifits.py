@@ -30,7 +30,7 @@ from astropy.io import fits
 
 from ..exceptions import KpifsError, KpifsWarning
 from .cube import open_fits
-from .oifits_bins import BIN_SMEAR, bin_closure_phases, channel_bins
+from .oifits_bins import BIN_SMEAR, bin_closure_phases, search_field
 from .oifits_noise import check_size, closure_covariance
 
 __all__ = ["is_oifits", "read_oifits_parts", "OIFITS_SUFFIXES"]
@@ -498,14 +498,16 @@ def read_oifits_parts(path, *, insname=None, correlations="baselines", binning="
         {"path": path, "rows": rows, "keep": keep, "keep_ch": keep_ch, "err": err,
          "cmat": cmat, "epoch": epoch, "corrs": t["corrs"], "cpcov": t["cpcov"]},
         correlations=correlations)
-    bins = channel_bins(wl, lengths.max(), 2 * step, binning=binning)
+    field, bins, field_note = search_field(wl, lengths.max(), 0.95 * wl.min() / (2 * step),
+                                           nk, binning=binning if joint is None else "none")
+    step = 0.95 * wl.min() / (2 * field)          # the default grid's limit is the field
     bin_note = None
-    if bins is not None and joint is None:
+    if bins is not None:
         n0 = nw
         phi, err, per, wl, band = bin_closure_phases(phi, err, per, wl, band, bins)
         nw = len(wl)
         bin_note = (f"{n0} channels binned to {nw} (at most {BIN_SMEAR:g} fringe of smearing "
-                    f"at the default field's edge; binning='none' keeps them)")
+                    f"at the field's edge, {field / MAS:.0f} mas; binning='none' keeps them)")
     kp = (proj @ phi).T[None]                                        # (1, nw, nk)
     per, joint, rows_cov = _project_covariance(per, joint, proj, nw, ntri, path)
     var = np.diagonal(per, axis1=1, axis2=2)
@@ -515,8 +517,8 @@ def read_oifits_parts(path, *, insname=None, correlations="baselines", binning="
                          f"at {wl[w] * 1e6:.4f} um (T3PHIERR or covariance)")
     xy = np.linalg.lstsq(blm, uv_k, rcond=None)[0]
     meta = _meta(path, header, rows, epoch, ntri, nk, sources, step_note, flag)
+    meta["notes"] += [n for n in (field_note, bin_note) if n]
     if bin_note:
-        meta["notes"].append(bin_note)
         meta["binned_channels"] = np.bincount(bins).tolist()
     names = meta["closure_phases"]["arrname"] or meta["closure_phases"]["insname"]
     log.info("%s: %d triangles, %d epochs -> %d independent closure phases x %d channels",

@@ -1,16 +1,25 @@
-"""Spectral channels of OIFITS closure phases binned to what a companion search resolves.
+"""The default search of OIFITS closure phases: its field, and the spectral channels
+binned to what a search over that field resolves.
 
-A spectrograph behind an interferometer (GRAVITY: 1628 channels over the K
-band) samples its spectrum far more finely than the closure phases of a
-companion anywhere in the searched field change. The phase of a companion at
-separation ``rho`` on a baseline ``B`` turns by ``B rho dlambda / lambda^2``
-fringes across a channel of width ``dlambda``. With ``binning='auto'`` the
-adjacent channels are averaged while that turn, for the longest baseline and
-the edge of the default field (``0.95 lambda_min / D``, the aperture of
-`kpifs.io.oifits`), stays within `BIN_SMEAR` of a fringe; a companion inside
-the field then keeps at least ``1 - (pi BIN_SMEAR)^2 / 6`` (98 %) of its
-closure-phase signal in a bin. Channels already coarser than that are kept as
-they are.
+**Field.** The aperture's ``0.95 lambda_min / D`` (`kpifs.io.oifits`), bounded
+so that the default search handles at most `SEARCH_BUDGET` signature values
+(grid positions x channels x independent closure phases): a long-baseline
+array whose apertures are small against its baselines (VLTI's 1.8 m
+telescopes on 130 m baselines: ``lambda / D`` is 70 resolution elements) and
+whose spectrograph has a thousand channels would otherwise need hours and
+gigabytes. Where the bound acts, a note says which field was searched and
+what the aperture allows (``--max-sep`` searches that).
+
+**Channels.** A spectrograph behind an interferometer (GRAVITY: 1628
+channels over the K band) samples its spectrum far more finely than the
+closure phases of a companion anywhere in the field change. The phase of a
+companion at separation ``rho`` on a baseline ``B`` turns by ``B rho dlambda
+/ lambda^2`` fringes across a channel of width ``dlambda``. With
+``binning='auto'`` adjacent channels are averaged while that turn, for the
+longest baseline and the field's edge, stays within `BIN_SMEAR` of a fringe;
+a companion inside the field then keeps at least ``1 - (pi BIN_SMEAR)^2 / 6``
+(98 %) of its closure-phase signal in a bin. Channels already coarser than
+that are kept as they are.
 
 The closure phases of a bin are the circular mean of its channels, weighted
 by each channel's mean ``1 / T3PHIERR^2``; its covariance is that of the
@@ -21,42 +30,88 @@ import numpy as np
 
 from ..exceptions import KpifsError
 
-__all__ = ["channel_bins", "bin_closure_phases", "BIN_SMEAR", "BINNING"]
+__all__ = ["search_field", "channel_bins", "bin_closure_phases", "BIN_SMEAR", "BINNING",
+           "SEARCH_BUDGET"]
 
-#: Largest turn of a companion's fringe across one bin, at the default field's edge on
-#: the longest baseline (fraction of a fringe).
+MAS = np.pi / 180 / 3600 / 1000
+
+#: Largest turn of a companion's fringe across one bin, at the field's edge on the longest
+#: baseline (fraction of a fringe).
 BIN_SMEAR = 0.1
 
 #: Values of the readers' *binning*.
 BINNING = ("auto", "none")
 
+#: Most signature values (grid positions x channels x independent closure phases) of the
+#: default search: the null's draws and the maps cost that many products each (about
+#: 10 s of one core at 5000 draws).
+SEARCH_BUDGET = 2e6
 
-def channel_bins(wl, longest, diameter, *, binning="auto"):
-    """Bin index of each channel (sorted by wavelength), or None when nothing is binned.
+
+def channel_bins(wl, longest, field, *, binning="auto"):
+    """Bin index of each channel, or None when nothing is binned: adjacent channels (by
+    wavelength) while a companion at *field* (rad) turns by at most `BIN_SMEAR` fringe
+    on baseline *longest* (m) across the bin.
 
     Examples
     --------
     >>> import numpy as np
-    >>> from kpifs.io.oifits_bins import channel_bins
+    >>> from kpifs.io.oifits_bins import channel_bins, MAS
     >>> wl = np.linspace(2.0e-6, 2.4e-6, 1000)
-    >>> b = channel_bins(wl, longest=130.0, diameter=1.8)
+    >>> b = channel_bins(wl, longest=130.0, field=50 * MAS)
     >>> int(b.max()) + 1, int(np.bincount(b).max())
-    (118, 9)
+    (26, 45)
     """
     if binning not in BINNING:
         raise KpifsError(f"binning must be one of {BINNING}, got {binning!r}")
     wl = np.asarray(wl, float)
-    if binning == "none" or len(wl) < 2 or not diameter > 0:
+    if binning == "none" or len(wl) < 2 or not field > 0:
         return None
-    frac = BIN_SMEAR * diameter / (0.95 * longest)          # dlambda / lambda allowed
     order = np.argsort(wl)
     out = np.empty(len(wl), int)
     k, start = 0, wl[order[0]]
     for i in order:
-        if wl[i] - start > frac * start:
+        # fringes turned across [start, wl]: B rho (1 / start - 1 / wl)
+        if longest * field * (1 / start - 1 / wl[i]) > BIN_SMEAR:
             k, start = k + 1, wl[i]
         out[i] = k
     return None if k + 1 == len(wl) else out
+
+
+def search_field(wl, longest, aperture_field, n_kp, *, binning="auto"):
+    """The default search's field (rad), the channels' bins (or None) and a note (or None).
+
+    *aperture_field* (rad) is what the aperture allows; the field is reduced until
+    ``positions x channels x n_kp <= SEARCH_BUDGET`` (positions: the default grid's, a
+    quarter of ``lambda_min / longest`` apart).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.io.oifits_bins import search_field, MAS
+    >>> wl = np.linspace(1.97e-6, 2.4e-6, 1625)
+    >>> field, bins, note = search_field(wl, 130.0, 214 * MAS, 3)
+    >>> round(field / MAS), int(bins.max()) + 1
+    (55, 32)
+    """
+    wl = np.asarray(wl, float)
+    res = wl.min() / longest
+    field = float(aperture_field)
+    bins = None
+    for _ in range(60):
+        bins = channel_bins(wl, longest, field, binning=binning)
+        nb = len(wl) if bins is None else int(bins.max()) + 1
+        side = 2 * np.floor(field / (res / 4)) + 1
+        cost = side ** 2 * nb * n_kp
+        if cost <= SEARCH_BUDGET or field <= 2 * res:
+            break
+        field *= max(0.5, 0.98 * (SEARCH_BUDGET / cost) ** (1 / 3))
+    note = None
+    if field < aperture_field * (1 - 1e-9):
+        note = (f"default search field {field / MAS:.0f} mas ({field / res:.0f} lambda / B_max; "
+                f"the aperture allows {aperture_field / MAS:.0f} mas, --max-sep searches "
+                f"it): bounded to {SEARCH_BUDGET:.0e} signature values")
+    return field, bins, note
 
 
 def bin_closure_phases(phi, err, per, wl, band, bins):
