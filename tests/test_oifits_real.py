@@ -53,13 +53,13 @@ def _read_gravity(real_data, **kw):
 def test_gravity_science_channels_kept(real_data):
     """GRAVITY: the fringe tracker's 6 channels on another grid no longer turn the 1628
     science channels into one achromatic channel: GRAVITY_SC is read with its channels
-    (3 flagged ones left out), binned by default to 32 (documented: a companion at the
-    default field's edge, 56 mas, turns by at most 0.1 fringe across a bin), or all
+    (3 flagged ones left out), binned by default to 20 (documented: a companion at the
+    default field's edge, 34 mas, turns by at most 0.1 fringe across a bin), or all
     1625 with binning='none'."""
     kpd = _read_gravity(real_data)
-    assert kpd.shape == (1, 32, 3)
+    assert kpd.shape == (1, 20, 3)
     notes = " | ".join(kpd.meta["notes"])
-    assert "1625 channels binned to 32" in notes and "default search field 56 mas" in notes
+    assert "1625 channels binned to 20" in notes and "default search field 34 mas" in notes
     assert sum(kpd.meta["binned_channels"]) == 1625
     full = _read_gravity(real_data, binning="none")
     assert full.shape == (1, 1625, 3)

@@ -2,8 +2,9 @@
 binned to what a search over that field resolves.
 
 **Field.** The aperture's ``0.95 lambda_min / D`` (`kpifs.io.oifits`), bounded
-so that the default search handles at most `SEARCH_BUDGET` signature values
-(grid positions x channels x independent closure phases): a long-baseline
+so that the default search handles at most `SEARCH_BUDGET` grid positions x
+channels (the null's draws loop over channels, each a product over every
+position): a long-baseline
 array whose apertures are small against its baselines (VLTI's 1.8 m
 telescopes on 130 m baselines: ``lambda / D`` is 70 resolution elements) and
 whose spectrograph has a thousand channels would otherwise need hours and
@@ -42,10 +43,10 @@ BIN_SMEAR = 0.1
 #: Values of the readers' *binning*.
 BINNING = ("auto", "none")
 
-#: Most signature values (grid positions x channels x independent closure phases) of the
-#: default search: the null's draws and the maps cost that many products each (about
-#: 10 s of one core at 5000 draws).
-SEARCH_BUDGET = 2e6
+#: Most grid positions x channels of the default search: each of the null's 5000 draws
+#: costs several products of that size (`kpifs.detect.null`); 1.5e5 keeps a closure-phase
+#: search to seconds (`benchmarks/bench_gravity.py`).
+SEARCH_BUDGET = 1.5e5
 
 
 def channel_bins(wl, longest, field, *, binning="auto"):
@@ -82,8 +83,8 @@ def search_field(wl, longest, aperture_field, n_kp, *, binning="auto"):
     """The default search's field (rad), the channels' bins (or None) and a note (or None).
 
     *aperture_field* (rad) is what the aperture allows; the field is reduced until
-    ``positions x channels x n_kp <= SEARCH_BUDGET`` (positions: the default grid's, a
-    quarter of ``lambda_min / longest`` apart).
+    ``positions x channels <= SEARCH_BUDGET`` (positions: the default grid's, a quarter
+    of ``lambda_min / longest`` apart). *n_kp* is kept for the caller's note.
 
     Examples
     --------
@@ -92,7 +93,7 @@ def search_field(wl, longest, aperture_field, n_kp, *, binning="auto"):
     >>> wl = np.linspace(1.97e-6, 2.4e-6, 1625)
     >>> field, bins, note = search_field(wl, 130.0, 214 * MAS, 3)
     >>> round(field / MAS), int(bins.max()) + 1
-    (55, 32)
+    (33, 20)
     """
     wl = np.asarray(wl, float)
     res = wl.min() / longest
@@ -102,7 +103,7 @@ def search_field(wl, longest, aperture_field, n_kp, *, binning="auto"):
         bins = channel_bins(wl, longest, field, binning=binning)
         nb = len(wl) if bins is None else int(bins.max()) + 1
         side = 2 * np.floor(field / (res / 4)) + 1
-        cost = side ** 2 * nb * n_kp
+        cost = side ** 2 * nb
         if cost <= SEARCH_BUDGET or field <= 2 * res:
             break
         field *= max(0.5, 0.98 * (SEARCH_BUDGET / cost) ** (1 / 3))
@@ -110,7 +111,7 @@ def search_field(wl, longest, aperture_field, n_kp, *, binning="auto"):
     if field < aperture_field * (1 - 1e-9):
         note = (f"default search field {field / MAS:.0f} mas ({field / res:.0f} lambda / B_max; "
                 f"the aperture allows {aperture_field / MAS:.0f} mas, --max-sep searches "
-                f"it): bounded to {SEARCH_BUDGET:.0e} signature values")
+                f"it): bounded to {SEARCH_BUDGET:.1e} positions x channels")
     return field, bins, note
 
 
