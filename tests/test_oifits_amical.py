@@ -2,7 +2,6 @@
 binaries: the OI_ARRAY FOV AMICAL writes (pixel scale in radians taken for arcsec:
 ~1e-8 "ARCSEC", below the resolution) is ignored with a note, and the companion is found
 at its offset (modulo the mask's alias) with its contrast within 1 %, bright or faint."""
-import itertools
 import warnings
 
 import numpy as np

@@ -27,7 +27,8 @@ def _buildable():
     if not (TOOLS / "build_oifits_check.sh").is_file() or shutil.which("cmake") is None:
         return False
     pc = shutil.which("pkg-config")
-    return pc is not None and subprocess.run([pc, "--exists", "cfitsio", "glib-2.0"]).returncode == 0
+    return pc is not None and \
+        subprocess.run([pc, "--exists", "cfitsio", "glib-2.0"]).returncode == 0
 
 
 @pytest.fixture(scope="session")

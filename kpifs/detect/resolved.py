@@ -22,7 +22,7 @@ from scipy import optimize, special
 from ..covariance import whitening_matrix
 from ..exceptions import KpifsError
 
-__all__ = ["fit_resolved_binary", "uniform_disk"]
+__all__ = ["fit_resolved_binary", "resolved_binary_chi2", "uniform_disk"]
 
 MAS = np.pi / 180 / 3600 / 1000
 
@@ -40,6 +40,53 @@ def uniform_disk(diameter, baseline, wavelength):
     x = np.pi * float(diameter) * MAS * np.asarray(baseline, float) / np.asarray(wavelength)
     small = np.abs(x) < 1e-8
     return np.where(small, 1.0, 2 * special.j1(x) / np.where(small, 1.0, x))
+
+
+def _problem(kpd, diameters, per_channel):
+    """``(model(params), resid(params), whitening)`` of *kpd*'s binary of disks."""
+    if kpd.n_frame != 1 or kpd.covariance is None:
+        raise KpifsError(f"{kpd.name}: a resolved-binary fit needs one frame with its "
+                         f"covariance (calibrated closure phases)")
+    km = kpd.kernel_model
+    lam = kpd.wavelengths.to_value(u.m)
+    uv = np.asarray(km.uv.to_value(u.m), float)                  # kpifs frame: (-u, v)
+    base = np.hypot(uv[:, 0], uv[:, 1])[None, :]
+    da, db = (float(d) for d in u.Quantity(diameters, u.mas).value)
+    ratio = uniform_disk(db, base, lam[:, None]) / uniform_disk(da, base, lam[:, None])
+    w = whitening_matrix(np.asarray(kpd.covariance, float))
+    kp = np.asarray(kpd.kp[0], float)
+    q = len(lam)
+
+    def model(p):
+        x, y = -p[0], p[1]                        # sky (dRA, dDec) -> model (x, y)
+        f = (p[2:] if per_channel else np.full(q, p[2]))[:, None]
+        theta = 2 * np.pi * MAS * (x * uv[:, 0] + y * uv[:, 1])[None, :] / lam[:, None]
+        return np.angle(1 + f * ratio * np.exp(-1j * theta)) @ km.kernel.T
+
+    def resid(p):
+        return np.einsum("wij,wj->wi", w, kp - model(p)).ravel()
+    return model, resid, w
+
+
+def resolved_binary_chi2(kpd, offset, contrast, diameters=(0, 0) * u.mas):
+    """Chi-square of *kpd* against a binary of disks at sky *offset* ``(dRA, dDec)``
+    with flux ratio *contrast* (0: the star alone).
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs.detect.resolved import resolved_binary_chi2
+    >>> km = KernelModel.from_pupil(make_pupil("niriss_nrm"))
+    >>> kp = km.binary_kernel_phases([-80, 60] * u.mas, 0.05, [4.8] * u.um)
+    >>> kpd = KernelPhaseData(kp[None], [4.8] * u.um, 65 * u.mas, km,
+    ...                       covariance=np.eye(15)[None] * 1e-6, detpa=[0.0])
+    >>> float(resolved_binary_chi2(kpd, [80, 60] * u.mas, 0.05)) < 1e-12
+    True
+    """
+    _, resid, _ = _problem(kpd, diameters, False)
+    p = np.concatenate([u.Quantity(offset, u.mas).value, [float(contrast)]])
+    return float(np.sum(resid(p) ** 2))
 
 
 def fit_resolved_binary(kpd, start, diameters, *, contrast=0.1, per_channel=False):
@@ -78,28 +125,8 @@ def fit_resolved_binary(kpd, start, diameters, *, contrast=0.1, per_channel=Fals
     >>> [round(float(v), 2) for v in (r["dra"].value, r["ddec"].value, r["contrast"])]
     [80.0, 60.0, 0.05]
     """
-    if kpd.n_frame != 1 or kpd.covariance is None:
-        raise KpifsError(f"{kpd.name}: a resolved-binary fit needs one frame with its "
-                         f"covariance (calibrated closure phases)")
-    km = kpd.kernel_model
-    lam = kpd.wavelengths.to_value(u.m)
-    uv = np.asarray(km.uv.to_value(u.m), float)                  # kpifs frame: (-u, v)
-    base = np.hypot(uv[:, 0], uv[:, 1])[None, :]
-    da, db = (float(d) for d in u.Quantity(diameters, u.mas).value)
-    ratio = uniform_disk(db, base, lam[:, None]) / uniform_disk(da, base, lam[:, None])
-    w = whitening_matrix(np.asarray(kpd.covariance, float))
-    kp = np.asarray(kpd.kp[0], float)
-    q = len(lam)
-
-    def model(p):
-        x, y = -p[0], p[1]                        # sky (dRA, dDec) -> model (x, y)
-        f = (p[2:] if per_channel else np.full(q, p[2]))[:, None]
-        theta = 2 * np.pi * MAS * (x * uv[:, 0] + y * uv[:, 1])[None, :] / lam[:, None]
-        return np.angle(1 + f * ratio * np.exp(-1j * theta)) @ km.kernel.T
-
-    def resid(p):
-        return np.einsum("wij,wj->wi", w, kp - model(p)).ravel()
-
+    model, resid, w = _problem(kpd, diameters, per_channel)
+    q = kpd.n_wave
     x0 = np.concatenate([u.Quantity(start, u.mas).value,
                          np.full(q if per_channel else 1, float(contrast))])
     lo = np.concatenate([x0[:2] - 20, np.full(x0.size - 2, 1e-6)])

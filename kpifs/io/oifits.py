@@ -427,12 +427,31 @@ def _read_tables(path, insname):
                 "header": hdul[0].header.copy()}
 
 
-def _project_covariance(per, joint, proj, nw, ntri, path):
-    """The independent closure phases' covariance: per channel ``(nw, nk, nk)``, and the
-    joint one with its rows when channels are correlated."""
+def _full_rank(per):
+    ev = np.linalg.eigvalsh(per)
+    return bool(np.all(ev[:, 0] > 1e-10 * ev[:, -1]))
+
+
+def _project_covariance(phi, per, joint, proj, nw, ntri, path):
+    """The independent closure phases ``(1, nw, nk)`` and their covariance: per channel
+    ``(nw, nk, nk)``, and the joint one with its rows when channels are correlated.
+
+    A covariance of full rank (independent triangles: every closure phase has noise of
+    its own) gives the best linear unbiased estimate of the independent ones,
+    ``k = (A^T W A)^-1 A^T W t`` with ``A = (S^-1 U^T)^+``, ``W`` its inverse (what a fit
+    of every triangle with that covariance weighs); a singular one (noise on the
+    baselines) lies in the triangles' row space, and ``k = S^-1 U^T t`` loses nothing."""
     nk = len(proj)
+    if joint is None and ntri > nk and _full_rank(per):
+        a = np.linalg.pinv(proj)                                      # (ntri, nk)
+        wt = np.linalg.inv(per)                                       # (nw, ntri, ntri)
+        cov = np.linalg.inv(np.einsum("tk,wts,sl->wkl", a, wt, a, optimize=True))
+        gain = np.einsum("wkl,tl,wts->wks", cov, a, wt, optimize=True)   # (nw, nk, ntri)
+        return np.einsum("wks,sw->wk", gain, phi)[None], 0.5 * (cov + cov.transpose(0, 2, 1)), \
+            None, None
+    kp = (proj @ phi).T[None]
     if joint is None:
-        return np.einsum("ka,wab,lb->wkl", proj, per, proj, optimize=True), None, None
+        return kp, np.einsum("ka,wab,lb->wkl", proj, per, proj, optimize=True), None, None
     check_size(8.0 * 4 * (nw * nk) ** 2, f"the joint covariance of {nk} independent closure "
                f"phases x {nw} channels", path, "read one INSNAME (insname=...)")
     c4 = joint.reshape(nw, ntri, nw, ntri)
@@ -442,11 +461,11 @@ def _project_covariance(per, joint, proj, nw, ntri, path):
     for w in range(nw):
         off[w * nk:(w + 1) * nk, w * nk:(w + 1) * nk] = 0
     if not np.abs(off).max() > 1e-12 * np.abs(joint).max():
-        return per, None, None
+        return kp, per, None, None
     ev, vec = np.linalg.eigh(joint)
     good = ev > 1e-12 * ev.max()
     rows = (np.sqrt(ev[good])[:, None] * vec[:, good].T).reshape(-1, nw, nk)
-    return per, joint, rows
+    return kp, per, joint, rows
 
 
 def read_oifits_parts(path, *, insname=None, correlations="baselines", binning="auto"):
@@ -508,8 +527,8 @@ def read_oifits_parts(path, *, insname=None, correlations="baselines", binning="
         nw = len(wl)
         bin_note = (f"{n0} channels binned to {nw} (at most {BIN_SMEAR:g} fringe of smearing "
                     f"at the field's edge, {field / MAS:.0f} mas; binning='none' keeps them)")
-    kp = (proj @ phi).T[None]                                        # (1, nw, nk)
-    per, joint, rows_cov = _project_covariance(per, joint, proj, nw, ntri, path)
+    kp, per, joint, rows_cov = _project_covariance(phi, per, joint, proj, nw, ntri,
+                                                   path)
     var = np.diagonal(per, axis1=1, axis2=2)
     if not np.all(np.isfinite(per)) or not np.all(var > 0):
         w = int(np.argmax(~(var > 0).all(axis=1))) if np.all(np.isfinite(var)) else 0

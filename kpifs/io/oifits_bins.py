@@ -11,9 +11,10 @@ whose spectrograph has a thousand channels would otherwise need hours and
 gigabytes. Where the bound acts, a note says which field was searched and
 what the aperture allows (``--max-sep`` searches that).
 
-**Channels.** A spectrograph behind an interferometer (GRAVITY: 1628
-channels over the K band) samples its spectrum far more finely than the
-closure phases of a companion anywhere in the field change. The phase of a
+**Channels.** Data within the budget as they are keep every channel. Beyond
+it, the channels are binned first: a spectrograph behind an interferometer
+(GRAVITY: 1628 channels over the K band) samples its spectrum far more finely
+than the closure phases of a companion anywhere in the field change. The phase of a
 companion at separation ``rho`` on a baseline ``B`` turns by ``B rho dlambda
 / lambda^2`` fringes across a channel of width ``dlambda``. With
 ``binning='auto'`` adjacent channels are averaged while that turn, for the
@@ -98,6 +99,8 @@ def search_field(wl, longest, aperture_field, n_kp, *, binning="auto"):
     wl = np.asarray(wl, float)
     res = wl.min() / longest
     field = float(aperture_field)
+    if (2 * np.floor(field / (res / 4)) + 1) ** 2 * len(wl) <= SEARCH_BUDGET:
+        return field, None, None                     # within the budget as they are
     bins = None
     for _ in range(60):
         bins = channel_bins(wl, longest, field, binning=binning)
