@@ -85,6 +85,15 @@ def files(tmp_path_factory):
     def cross(h):
         h["OI_CORR"].data["JINDX"][0] = 2          # triangle 1, channel 2
     f["widecorr"] = _edit(f["wide"], d / "widecorr.oifits", cross)
+    # 3 telescopes, noise only: one closure phase per channel (seed 2 once gave a
+    # candidate at global P_FA 2e-9 while the energy test said 0.85)
+    three = [(0.0, 0.0), (40.0, 10.0), (15.0, 60.0)]
+    f["three"] = d / "three.oifits"
+    standin(f["three"], stations=three, f=0.0, sigma_deg=0.5, seed=2, diameter=1.8,
+            primary=True)
+    f["three6"] = d / "three6.oifits"
+    standin(f["three6"], stations=three, wl=np.linspace(1.5e-6, 1.8e-6, 6), f=0.0,
+            sigma_deg=0.5, seed=2, diameter=1.8, primary=True)
     # an OI_T3 header claiming 1e12 rows: the file cannot hold them
     f["huge"] = d / "huge.oifits"
     standin(f["huge"], wl=np.linspace(2.0e-6, 2.4e-6, 20), primary=True)
@@ -108,7 +117,34 @@ CASES = [
     ("joint covariance of 110 GiB", "widecorr", "the covariance of 35 closure phases x 2000 "
      "channel(s) correlated across channels needs about 110 GiB"),
     ("header claims 1e12 rows", "huge", "not a readable FITS file"),
+    ("3 telescopes, 1 channel", "three", "1 independent closure phase(s) (1 per channel x 1 "
+     "channel(s)) for the 3 parameters of a companion in test B"),
 ]
+
+
+@pytest.mark.parametrize("extra, test", [([], "B"), (["--test", "E"], "E"),
+                                         (["--test", "NP"], "NP")])
+def test_three_telescopes_answer_with_the_energy_test_alone(files, tmp_path, capsys, extra,
+                                                            test):
+    """Fewer independent closure phases than a companion's parameters: refused for every
+    test, the message giving the energy test's answer (noise: P_FA 0.85)."""
+    out = tmp_path / "det.fits"
+    assert main(["detect", str(files["three"]), "-o", str(out), "--quiet", *extra]) == 2
+    err = capsys.readouterr().err
+    assert f"companion in test {test}" in err and "energy test alone: chi2 0.0357 for 1 dof, " \
+        "P_FA 0.85" in err, err
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_three_telescopes_six_channels_searched_honestly(files, tmp_path):
+    """3 telescopes and 6 channels: 6 closure phases for the S test's 2 + 3 parameters: the
+    search runs, and on noise reports nothing (measured: seeds 0-2, none). (Limits are
+    left out: drawn position by position, they take minutes on its 25 000 positions.)"""
+    from kpifs.detect import detect
+    res = detect(KernelPhaseData.read(files["three6"]), pfa=1e-3, n_draws=1000, seed=0,
+                 limits=False)
+    assert res.test == "S" and len(res.candidates) == 0 and res.energy["pfa"] > 0.01
 
 
 @pytest.mark.parametrize("name, key, text", CASES, ids=[c[0] for c in CASES])
