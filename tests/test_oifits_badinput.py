@@ -219,3 +219,25 @@ def test_oifits_keeps_the_calibration_state(tmp_path, capsys):
         assert "not calibrated" in capsys.readouterr().err
     cal = _mask_kpd(wl=(4.8,)).write(tmp_path / "cal.oifits")
     assert KernelPhaseData.read(cal).meta["calibrated"]
+
+
+def test_tiny_diameter_bounds_the_grid(tmp_path):
+    """OI_ARRAY DIAMETER 1e-3 m once drove the default grid (lambda / D = 1000 arcsec) to
+    exhaust the machine's memory: the field is bounded before any grid is made, with a
+    note, and the search finds the truth (the companion at 150 mas, modulo the alias)."""
+    from kpifs.detect import default_grid, detect
+    p = tmp_path / "tiny.oifits"
+    t = standin(p, sep=150.0, pa=60.0, f=0.02, sigma_deg=0.1, seed=1, primary=True,
+                baseline_noise=True, diameter=1e-3)
+    kpd = KernelPhaseData.read(p)
+    assert any("default search field" in n and "bounded" in n for n in kpd.meta["notes"])
+    g = default_grid(kpd, frame="sky")
+    assert g.shape[0] * g.shape[1] * kpd.n_wave <= 1.5e5 * 1.05
+    c = detect(kpd, pfa=1e-3, n_draws=1000, seed=0, limits=False).candidates
+    assert len(c) == 1
+    # the truth modulo the 7-hole mask's alias (lambda / 1.14315 m, lambda / 0.66 m): the
+    # wide field bounded by the budget reaches several (measured: (+2, +5) aliases away)
+    alias = 4.8e-6 / np.array([1.14315, 0.66]) / (np.pi / 180 / 3600 / 1000)
+    k = (np.array([c[0]["fit_dra"].to_value(u.mas), c[0]["fit_ddec"].to_value(u.mas)])
+         - [t["dra"], t["ddec"]]) / alias
+    assert np.all(np.abs(k - np.round(k)) * alias < 3), k
