@@ -125,7 +125,7 @@ def _stated(rows, starts, cpcov_ins):
     for r, s in zip(rows, starts):
         n = len(r["err"])
         if (r["corr"] is not None and r["corrname"]) or (
-                cpcov_ins is not None and (not cpcov_ins or r["ins"] in cpcov_ins)):
+                cpcov_ins is not None and ("" in cpcov_ins or r["ins"] in cpcov_ins)):
             stated[s:s + n] = True
     return stated
 
