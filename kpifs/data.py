@@ -288,25 +288,49 @@ def _read_kpd(path, *, detpa=None):
     return out
 
 
-register(KernelPhaseData, "kpfits", reader=_read_kpd, writer=write_kpfits,
+def _read_files(kpd):
+    """The files *kpd* was read from (``meta['read_from']``), which no writer replaces."""
+    return [str(p) for p in kpd.meta.get("read_from") or ()]
+
+
+def _guarded(writer):
+    """*writer* with the files the data were read from among its inputs: ``read(p)``
+    then ``write(p, overwrite=True)`` is refused as the command line refuses it."""
+    def write(kpd, path, *, inputs=(), **kwargs):
+        return writer(kpd, path, inputs=list(inputs) + _read_files(kpd), **kwargs)
+    write.__doc__ = writer.__doc__
+    return write
+
+
+def _read_kpd_file(path, *, detpa=None):
+    out = _read_kpd(path, detpa=detpa)
+    out.meta["read_from"] = [str(path)]
+    return out
+
+
+register(KernelPhaseData, "kpfits", reader=_read_kpd_file, writer=_guarded(write_kpfits),
          identifier=is_kpfits)
 
 
-def _read_oifits(path, *, insname=None):
+def _read_oifits(path, *, insname=None, correlations="baselines", binning="auto"):
     """Closure phases of OIFITS file(s) of one target (`kpifs.io.oifits`,
     `kpifs.io.oifits_combine`): one frame, the sky frame."""
-    parts = read_oifits(path, insname=insname)
+    parts = read_oifits(path, insname=insname, correlations=correlations, binning=binning)
     m = parts.pop("model")
     pupil = PupilModel(m["xy"], step=m["step"], name=m["name"],
                        meta={"closure_phases": True})
     km = KernelModel(pupil, m["uv"], np.ones(len(m["uv"])), m["blm"], m["kernel"],
                      rank=m["rank"], meta={"source": str(path), "closure_phases": True})
-    return KernelPhaseData(parts.pop("kp"), parts.pop("wavelengths") * u.m,
-                           parts.pop("pixscale") * u.mas, km,
-                           bandwidth=parts.pop("bandwidth") * u.m, **parts)
+    out = KernelPhaseData(parts.pop("kp"), parts.pop("wavelengths") * u.m,
+                          parts.pop("pixscale") * u.mas, km,
+                          bandwidth=parts.pop("bandwidth") * u.m, **parts)
+    paths = [path] if isinstance(path, (str, bytes)) or not hasattr(path, "__iter__") \
+        else list(path)
+    out.meta["read_from"] = [str(p) for p in paths]
+    return out
 
 
-register(KernelPhaseData, "oifits", reader=_read_oifits, writer=write_oifits,
+register(KernelPhaseData, "oifits", reader=_read_oifits, writer=_guarded(write_oifits),
          identifier=is_oifits)
 
 

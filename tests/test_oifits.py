@@ -155,11 +155,17 @@ def test_read_amical_style_convention_and_projection(tmp_path):
     model = km.binary_kernel_phases([-t["dra"], t["ddec"]] * u.mas, t["f"], kpd.wavelengths)
     assert np.abs(model - kpd.kp[0]).max() < 1e-8
     assert np.abs(kpd.kp).max() > 0.02        # a real signal, not zeros
-    # the independent closure phases carry all 35: whitened energies agree
+    # the independent closure phases carry all 35: whitened energies agree when the 35
+    # are taken as independent (P = projection) ...
     sig = np.deg2rad(1e-9)
-    e_kp = kpd.kp[0, 0] @ np.linalg.solve(kpd.covariance[0], kpd.kp[0, 0])
     e_t3 = np.sum(t["truth"][:, 0] ** 2) / sig ** 2
-    assert e_kp == pytest.approx(e_t3, rel=1e-6)   # independent noise: P = projection
+    ind = KernelPhaseData.read(p, correlations="independent")
+    e_ind = ind.kp[0, 0] @ np.linalg.solve(ind.covariance[0], ind.kp[0, 0])
+    assert e_ind == pytest.approx(e_t3, rel=1e-6)
+    # ... and by default they share their baselines' noise (C C^T / 3): with 7 stations
+    # the 15 independent ones then carry 3/7 of that energy
+    e_kp = kpd.kp[0, 0] @ np.linalg.solve(kpd.covariance[0], kpd.kp[0, 0])
+    assert e_kp == pytest.approx(3 / 7 * e_t3, rel=1e-6)
 
 
 def test_sign_convention_against_analytic_cp(tmp_path):
@@ -456,8 +462,10 @@ def _epoch_files(tmp_path, f, seed):
     """Two files of one target, the second with the mask turned by 30 deg (a roll)."""
     files = [tmp_path / f"e{e}_{seed}.oifits" for e in range(2)]
     for e, p in enumerate(files):
-        t = standin(p, stations=_turned(30.0 * e), sep=150.0, pa=60.0, f=f, sigma_deg=0.15,
-                    seed=seed + 7 * e, primary=True)
+        # noise on the baselines (as on the sky), 0.15 deg x sqrt(3 / 7) per closure phase:
+        # the information of 0.15 deg independent closure phases
+        t = standin(p, stations=_turned(30.0 * e), sep=150.0, pa=60.0, f=f, sigma_deg=0.098,
+                    seed=seed + 7 * e, primary=True, baseline_noise=True)
     return files, t
 
 
@@ -487,9 +495,10 @@ def test_several_files_combine(tmp_path, capsys):
 
 
 def test_several_files_go_deeper(tmp_path):
-    """A faint companion (f = 0.0015, 0.15 deg errors, seed 6) that neither file shows at
-    P_FA 1e-3 is found in the two together, near its position."""
-    files, t = _epoch_files(tmp_path, 0.0015, 6)
+    """A faint companion (f = 0.0012, baseline noise, seed 8) that neither file shows at
+    P_FA 1e-3 is found in the two together, near its position (at this signal-to-noise
+    ratio the fit is within 5 mas and 3 deg: 8 mas across)."""
+    files, t = _epoch_files(tmp_path, 0.0012, 8)
     found = [detect(KernelPhaseData.read(f), pfa=1e-3, n_draws=1000, seed=0,
                     limits=False).candidates for f in files]
     assert [len(c) for c in found] == [0, 0]
@@ -497,7 +506,7 @@ def test_several_files_go_deeper(tmp_path):
                limits=False).candidates
     assert len(c) == 1
     assert abs(c[0]["fit_separation"].to_value(u.mas) - t["sep"]) < 20
-    assert abs(c[0]["fit_pa_sky"].to_value(u.deg) - t["pa"]) < 2
+    assert abs(c[0]["fit_pa_sky"].to_value(u.deg) - t["pa"]) < 5
 
 
 def test_different_grids_read_as_one_achromatic_channel(tmp_path):

@@ -12,7 +12,7 @@ from ..kernel import MAS, KernelModel
 from ..aberrations import static_term
 from ..adi import inner_separation
 from ..pupil import make_pupil
-from ._inputs import _aliased, _drop_aliased, _measured, _wants_static
+from ._inputs import _aliased, _check_closure_dof, _drop_aliased, _measured, _wants_static
 from ._laws import chi2_sf, norm_isf
 from .search import _POWER, _chi2_red, _sequential_search
 from .sky import (add_sky_columns, data_angles, pa_bins,
@@ -245,6 +245,7 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     a = spectrum_shape(spectrum, q)
     w, rank = whitening_matrix(cov, return_rank=True, source="covariance of the data")
     rank = np.atleast_1d(rank)
+    _check_closure_dof(kpd, test, rank, spectral_basis(basis, kpd.wavelengths).shape[1], kp, w)
     y = whiten(kp, w)
     frame, search_poses, poses = _frame_and_poses(kpd, frame, grid)
     own_grid = grid is None

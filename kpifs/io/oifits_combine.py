@@ -26,7 +26,7 @@ from ..exceptions import KpifsError, KpifsWarning
 from .cube import open_fits
 from .oifits import _text, _wavelengths, read_oifits_parts
 
-__all__ = ["read_oifits", "stack_parts", "achromatic_parts"]
+__all__ = ["read_oifits", "stack_parts", "achromatic_parts", "SCIENCE_SHARE"]
 
 log = logging.getLogger(__name__)
 
@@ -154,18 +154,44 @@ def achromatic_parts(part, reference):
 
 
 def _grids(path):
-    """``{INSNAME: wavelengths}`` of the instruments with closure phases in a file."""
+    """``{INSNAME: (wavelengths, closure-phase values)}`` of the instruments with closure
+    phases in a file (values: OI_T3 rows x channels, from the headers)."""
     with open_fits(path) as hdul:          # names truncated and unreadable files
         waves = _wavelengths(hdul, str(path))
-        used = {_text(h.header.get("INSNAME")) for h in hdul if h.name == "OI_T3"}
-    return {k: v[0] for k, v in waves.items() if k in used}
+        count = {}
+        for h in hdul:
+            if h.name == "OI_T3":
+                ins = _text(h.header.get("INSNAME"))
+                count[ins] = count.get(ins, 0) + int(h.header.get("NAXIS2", 0) or 0)
+    return {k: (v[0], count[k] * len(v[0])) for k, v in waves.items() if k in count}
+
+
+#: One instrument of a file "holds the science" when its closure phases outnumber all the
+#: others' together this many times (a fringe tracker's few channels beside a spectrograph's
+#: hundreds): its channels are then kept and the others left out, with a note, rather than
+#: every channel read as one achromatic channel.
+SCIENCE_SHARE = 10
+
+
+def _science(path, grids):
+    """The INSNAME that holds the science of a file with several grids, else None."""
+    counts = {k: n for k, (_, n) in grids.items()}
+    best = max(counts, key=counts.get)
+    rest = sum(n for k, n in counts.items() if k != best)
+    if counts[best] < SCIENCE_SHARE * rest:
+        return None
+    left = ", ".join(f"{k!r} ({len(grids[k][0])} channel(s))" for k in counts if k != best)
+    warnings.warn(f"{path}: INSNAME {best!r} holds the science ({counts[best]} closure "
+                  f"phases, {len(grids[best][0])} channels, kept); {left} left out (read it "
+                  f"with insname=...)", KpifsWarning, stacklevel=4)
+    return best
 
 
 def _same(a, b):
     return len(a) == len(b) and np.allclose(a, b, rtol=1e-6)
 
 
-def read_oifits(paths, *, insname=None):
+def read_oifits(paths, *, insname=None, correlations="baselines", binning="auto"):
     """Closure phases of one or several OIFITS files of one target, as one set of parts.
 
     Parameters
@@ -173,6 +199,13 @@ def read_oifits(paths, *, insname=None):
     paths : str or list of str
     insname : str, optional
         Read only this INSNAME's tables (its own channels) from every file.
+        By default, a file whose instruments have different wavelength grids
+        is read by the one that holds the science (`SCIENCE_SHARE`), with its
+        channels; otherwise every grid is read and all become one achromatic
+        channel.
+    correlations : {'baselines', 'independent'}
+    binning : {'auto', 'none'}
+        See `~kpifs.io.oifits.read_oifits_parts`.
 
     Returns
     -------
@@ -205,10 +238,17 @@ def read_oifits(paths, *, insname=None):
     for p in paths:
         grids = {} if insname is not None else _grids(p)
         names = list(grids)
-        if insname is not None or all(_same(grids[n], grids[names[0]]) for n in names):
-            reads.append(read_oifits_parts(p, insname=insname))
-        else:
-            reads.extend(read_oifits_parts(p, insname=n) for n in names)
+        if insname is not None or all(_same(grids[n][0], grids[names[0]][0]) for n in names):
+            reads.append(read_oifits_parts(p, insname=insname, correlations=correlations,
+                                           binning=binning))
+            continue
+        best = _science(p, grids)
+        reads.extend(read_oifits_parts(p, insname=n, correlations=correlations, binning=binning)
+                     for n in ([best] if best is not None else names))
+        if best is not None:
+            reads[-1]["meta"]["notes"].append(
+                f"{p}: INSNAME {best!r} read with its channels; "
+                + ", ".join(repr(n) for n in names if n != best) + " left out")
     _check_target(reads)
     if len(reads) == 1:
         return reads[0]

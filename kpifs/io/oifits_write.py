@@ -197,6 +197,7 @@ def oifits_hdulist(kpd, *, target=None, insname=None, arrname=None, history=()):
             ("INSTRUME", ins, ""), ("OBSERVER", str(hdr.get("OBSERVER", "") or "UNKNOWN"), ""),
             ("OBJECT", obj, ""), ("INSMODE", f"mask {mask}", ""),
             ("KPIFSVER", VERSION, "kpifs version"),
+            ("CALFLAG", bool(kpd.meta.get("calibrated", False)), "calibrator subtracted"),
             ("KPORIENT", orient, "orientation of (u, v) East/North")):
         ph[key] = (value, comment)
     ph.add_history(f"kpifs {VERSION}: closure phases from {kpd.name}; {how}")
@@ -209,7 +210,7 @@ def oifits_hdulist(kpd, *, target=None, insname=None, arrname=None, history=()):
     fov = 1.22 * wl.max() / diam / _ARCSEC if diam > 0 else 0.0
     tab_target = _table("OI_TARGET", [
         fits.Column("TARGET_ID", "I", array=[1]),
-        fits.Column("TARGET", "16A", array=[obj[:16]]),
+        fits.Column("TARGET", "32A", array=[obj[:32]]),
         fits.Column("RAEP0", "D", unit="deg", array=[float(hdr.get("RA", 0.0) or 0.0)]),
         fits.Column("DECEP0", "D", unit="deg", array=[float(hdr.get("DEC", 0.0) or 0.0)]),
         fits.Column("EQUINOX", "E", unit="yr", array=[2000.0]),
@@ -224,7 +225,7 @@ def oifits_hdulist(kpd, *, target=None, insname=None, arrname=None, history=()):
         fits.Column("PMDEC_ERR", "D", unit="deg/yr", array=[0.0]),
         fits.Column("PARALLAX", "E", unit="deg", array=[0.0]),
         fits.Column("PARA_ERR", "E", unit="deg", array=[0.0]),
-        fits.Column("SPECTYP", "16A", array=["UNKNOWN"])], {"OI_REVN": 2})
+        fits.Column("SPECTYP", "32A", array=["UNKNOWN"])], {"OI_REVN": 2})
     tab_array = _table("OI_ARRAY", [
         fits.Column("TEL_NAME", "16A", array=[f"H{i + 1}" for i in range(n)]),
         fits.Column("STA_NAME", "16A", array=[f"H{i + 1}" for i in range(n)]),
@@ -275,7 +276,9 @@ def oifits_hdulist(kpd, *, target=None, insname=None, arrname=None, history=()):
         fits.Column("STA_INDEX", "3I", array=sta + 1),
         fits.Column("FLAG", f"{nw}L", array=np.zeros((ntri, nw), bool))]
     if len(lo):
-        t3cols.append(fits.Column("CORRINDX_T3PHI", "J", array=np.arange(ntri) * nw + 1))
+        # with CORRNAME, OIFITSlib reads both indices: T3AMP (not measured) has none, null
+        t3cols += [fits.Column("CORRINDX_T3AMP", "J", null=-1, array=np.full(ntri, -1)),
+                   fits.Column("CORRINDX_T3PHI", "J", array=np.arange(ntri) * nw + 1)]
     hdus = [prim, tab_target, tab_array, tab_wave, _table("OI_T3", t3cols, cards)]
     vis2 = _vis2(kpd, uv, cards, mjd, nw)
     if vis2 is not None:
