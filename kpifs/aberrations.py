@@ -15,9 +15,26 @@ through the telescope's own pupil with random wavefronts (an AO residual's
 spectrum, `kpifs.simulate.phase_screens`), extracts kernel phases with the
 data's model, window and pixel scale, and keeps their scatter as covariance
 rows, correlated across channels as one wavefront seen at every wavelength
-is. Its *amplitude* is the data's: `fit_static_amplitude` is the maximum
-likelihood of the data under the frames' covariance plus that term. Detection
-adds the term to the covariance before whitening (`static_term`), so the
+is. A pupil that is not built in (a KPFITS of another telescope) is imaged as
+the annulus its model's cells tile: the cells themselves would miss the real
+pupil's edges, which make much of the residual (measured on the stand-in
+below: 7 of 20 companion-free sets with a candidate imaged through the cells,
+2 of 20 through the annulus, 0 of 20 through the true pupil).
+
+Its *amplitude* is the data's: `fit_static_amplitude` is the maximum
+likelihood of the data under the frames' covariance plus that term, fitted on
+the term's leading modes only (`leading_static_rows`, DESIGN.md §8). The
+rows of 200 screens span every direction of 100 kernel phases, and an
+amplitude free in all of them explains a companion away (a 5.4 % companion
+at 330 mas in 6 single-channel frames of 105 kernel phases, the V410 Tau-like
+case of `tests/test_static_bright.py`: the term at 1e7 times the frames'
+variance and no candidate). In the leading modes, a few per cent of the
+data's dimension, a companion can only lift the amplitude by what it shares
+with them; the whole term at that amplitude then leaves the rest of it to the
+search (the same companion: found at statistic 1e4 for a threshold of 19;
+companion-free stand-ins: a candidate at P_FA 1e-2 in 1 of 20).
+
+Detection adds the term to the covariance before whitening (`static_term`), so the
 search, its null, the limits and the fits' errors all carry it. It does so for
 single-channel data: with several channels the residual, one wavefront seen at
 every wavelength, correlates them, which a per-channel term does not model
@@ -40,7 +57,8 @@ from .pupil import pupil_image
 from .simulate import _mft_matrices, phase_screens
 from .window import ExtractionWindow
 
-__all__ = ["static_residual_rows", "fit_static_amplitude", "static_term"]
+__all__ = ["static_residual_rows", "leading_static_rows", "fit_static_amplitude",
+           "static_term"]
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +69,15 @@ STATIC_SCREENS = 200
 STATIC_RMS = 1 / 40
 #: Pupil samples across the pupil for the imaging.
 STATIC_NPUP = 64
+#: A pupil that is not built in is imaged as the annulus its model's cells tile
+#: (`_envelope`) when they cover at least this share of it (a filled pupil: the real
+#: pupil's edges, which the cells leave out, make much of the residual); else (a
+#: mask's holes) as the cells themselves.
+ENVELOPE_FILL = 0.5
+#: Share of the (whitened) term's variance its leading modes keep (`leading_static_rows`).
+STATIC_VARIANCE = 0.999
+#: Largest rank of the term, as a fraction of the data's dimension.
+STATIC_MAX_RANK = 0.25
 
 
 def _pupil_name(kernel_model, telescope=None):
@@ -62,16 +89,43 @@ def _pupil_name(kernel_model, telescope=None):
     return None
 
 
-def _cells_field(kernel_model, npup):
-    """The discrete model's cells on an ``npup`` grid (for pupils not built in)."""
+def _cells(kernel_model):
+    """The model's cell centres (m), transmissions and step (m)."""
     pupil = kernel_model.pupil
     xy = np.asarray(u.Quantity(pupil.xy, u.m).value, float)
     t = np.asarray(pupil.transmission, float)
     step = float(pupil.step.to_value(u.m)) if pupil.step is not None else \
         float(np.min(np.hypot(*(xy[1:] - xy[0]).T))) if len(xy) > 1 else 1.0
-    half = np.abs(xy).max() + step / 2
+    return xy, t, step
+
+
+def _envelope(kernel_model):
+    """The annulus ``(r_in, r_out)`` (m) a filled model's cells tile, or None for a sparse one.
+
+    A cell of transmission ``t`` on the edge has the edge ``(t - 1/2)`` steps beyond its
+    centre (a full cell: half a step; a grey one: where its covered part ends).
+    """
+    xy, t, step = _cells(kernel_model)
+    r = np.hypot(*xy.T)
+    r_out = float(np.max(r + step * (t - 0.5)))
+    r_in = max(0.0, float(np.min(r - step * (t - 0.5))))
+    area = np.pi * (r_out ** 2 - r_in ** 2)
+    # a mask's few holes cover a small part of their annulus: those are the pupil
+    if area <= 0 or np.sum(t) * step ** 2 < ENVELOPE_FILL * area:
+        return None
+    return r_in, r_out
+
+
+def _model_field(kernel_model, npup):
+    """A picture of a pupil that is not built in, from its model (`ENVELOPE_FILL`)."""
+    xy, t, step = _cells(kernel_model)
+    env = _envelope(kernel_model)
+    half = np.abs(xy).max() + step / 2 if env is None else env[1]
     dx = 2 * half / npup
     g = (np.arange(npup) - (npup - 1) / 2) * dx
+    if env is not None:
+        rr = np.hypot(*np.meshgrid(g, g))
+        return ((rr <= env[1]) & (rr >= env[0])).astype(float), dx
     img = np.zeros((npup, npup))
     for (x, y), tt in zip(xy, t):
         img[np.ix_(np.abs(g - y) <= step / 2, np.abs(g - x) <= step / 2)] = tt
@@ -121,7 +175,7 @@ def static_residual_rows(kernel_model, wavelengths, pixscale, *, window=None, te
     if name is not None:
         img, dx = pupil_image(name, npix=STATIC_NPUP)
     else:
-        img, dx = _cells_field(kernel_model, STATIC_NPUP)
+        img, dx = _model_field(kernel_model, STATIC_NPUP)
     rms_m = wl.min() * STATIC_RMS if rms is None else to_quantity(rms, u.m, name="rms").value
     screens = phase_screens(STATIC_NPUP, dx, n_screens, rms=rms_m, mask=img > 0, seed=seed)
     p = ps.to_value(u.mas) * np.pi / 180 / 3600e3
@@ -137,6 +191,45 @@ def static_residual_rows(kernel_model, wavelengths, pixscale, *, window=None, te
                                 window=window, keep_phases=False, source="static residual")
     kp = kpd.kp - kpd.kp.mean(axis=0)
     return kp / np.sqrt(n_screens - 1)
+
+
+def leading_static_rows(rows, whitening, *, variance=STATIC_VARIANCE, max_rank=STATIC_MAX_RANK):
+    """The term's leading modes: rows (k, q, p) whose span is a small part of the data's.
+
+    Its amplitude is fitted on these (`static_term`). A term whose rows span
+    every direction of the data (as many screens as kernel phases or more)
+    explains anything once its amplitude is free: its weakest directions,
+    numerical dust of the screens, are inflated until they hold a companion,
+    and the strongest with them. Kept are the leading modes, in the space
+    whitened by *whitening* (q, p, p), that hold *variance* of the whitened
+    term's trace, at most *max_rank* of the data's dimension ``q p`` (a
+    fraction, or a number when above 1). What a companion shares with them is
+    then all it can add to the amplitude.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.aberrations import leading_static_rows
+    >>> rng = np.random.default_rng(0)
+    >>> modes = rng.standard_normal((5, 100))              # a term of 5 strong directions
+    >>> rows = (rng.standard_normal((200, 5)) @ modes + 1e-3 * rng.standard_normal((200, 100)))
+    >>> leading_static_rows(rows[:, None] / 200 ** 0.5, np.eye(100)[None]).shape
+    (5, 1, 100)
+    """
+    w = np.asarray(whitening, float)
+    r = np.asarray(rows, float)
+    n, q, p = r.shape
+    rw = np.stack([whiten(x, w).ravel() for x in r])
+    _, sv, vt = np.linalg.svd(rw, full_matrices=False)
+    e = np.cumsum(sv ** 2)
+    if not len(e) or e[-1] <= 0:
+        return r[:0]
+    k = int(np.searchsorted(e / e[-1], variance) + 1)
+    k = max(1, min(k, int(max_rank * q * p) if max_rank < 1 else int(max_rank)))
+    lead = (sv[:k, None] * vt[:k]).reshape(k, q, p)
+    # back to the data's space: C^(1/2) on the whitened range
+    back = np.stack([np.linalg.pinv(wi, hermitian=True) for wi in w])
+    return np.einsum("qij,kqj->kqi", back, lead)
 
 
 def fit_static_amplitude(y, whitening, rows):
@@ -181,18 +274,21 @@ def static_term(kpd, y, cov, whitening, *, seed=0):
     Returns ``(covariance, rows, info)``: the covariance with the term added per
     channel, the term's rows scaled by its amplitude (to add to the data's
     covariance rows, for the channels' correlation), and what was measured
-    (``amplitude``, ``share`` of the covariance's trace, ``pupil``).
+    (``amplitude``, ``share`` of the covariance's trace, ``pupil``, ``screens``
+    and ``rank``, the leading modes the amplitude is fitted on).
     """
     rows = static_residual_rows(kpd.kernel_model, kpd.wavelengths, kpd.pixscale,
                                 window=kpd.window, telescope=kpd.meta.get("telescope"),
                                 seed=seed)
-    a = fit_static_amplitude(y, whitening, rows)
+    lead = leading_static_rows(rows, whitening)
+    a = fit_static_amplitude(y, whitening, lead)
     rows = rows * np.sqrt(a)
     add = np.einsum("nqi,nqj->qij", rows, rows)
     share = float(np.trace(add, axis1=1, axis2=2).sum()
                   / max(np.trace(cov, axis1=1, axis2=2).sum(), 1e-300))
-    pupil = _pupil_name(kpd.kernel_model, kpd.meta.get("telescope")) or "model cells"
+    pupil = _pupil_name(kpd.kernel_model, kpd.meta.get("telescope")) or \
+        ("model cells" if _envelope(kpd.kernel_model) is None else "annulus of the model")
     log.info("%s: static residual term, %.2f of the frames' variance (pupil %s)",
              kpd.name, share, pupil)
     return cov + add, rows, {"amplitude": a, "share": share, "pupil": pupil,
-                             "screens": len(rows)}
+                             "screens": len(rows), "rank": len(lead)}

@@ -25,7 +25,8 @@ from .exceptions import KpifsError, KpifsWarning
 from .prepare import cut_out
 
 __all__ = ["empirical_covariance", "ledoit_wolf", "hartlap_factor", "propagated_covariance",
-           "whitening_matrix", "whiten", "calibrated_covariance", "kernel_jacobian"]
+           "whitening_matrix", "whiten", "calibrated_covariance", "kernel_jacobian",
+           "filled_covariance", "unfilled_covariance", "COVFILL_FACTOR"]
 
 log = logging.getLogger(__name__)
 
@@ -252,6 +253,78 @@ def whitening_matrix(cov, *, rtol=1e-6, return_rank=False, source="covariance"):
     if return_rank:
         return w, (int(rank) if np.ndim(rank) == 0 else rank)
     return w
+
+
+#: A covariance written for other tools (KP-COV) gives the directions it leaves out
+#: this many times the larger of its largest variance and the data's mean square there
+#: (`filled_covariance`).
+COVFILL_FACTOR = 1e6
+
+
+def filled_covariance(cov, *, data=None, rtol=1e-6, factor=COVFILL_FACTOR):
+    """A positive-definite covariance that weighs data as `whitening_matrix` does.
+
+    An error model of few frames keeps only its best-measured modes
+    (`kpifs.errormodel`): its covariance is singular, and `whitening_matrix`
+    leaves the other directions out (those below *rtol* of the largest
+    variance). A tool that inverts the covariance needs it definite: each
+    left-out direction is given the variance ``fill``, *factor* times the larger
+    of the largest variance and the mean square of *data* (..., q, p) there, so
+    that it weighs next to nothing (the data's chi-square grows by at most
+    ``1 / factor`` per such direction), as in the search.
+
+    Returns ``(filled, fill)``: *cov* itself and 0.0 when nothing is left out.
+    `unfilled_covariance` takes the fill back out.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.covariance import filled_covariance, whitening_matrix, whiten
+    >>> cov = np.diag([4.0, 1.0, 0.0])[None]              # one direction unmeasured
+    >>> d = np.array([[2.0, 1.0, 5.0]])
+    >>> full, fill = filled_covariance(cov, data=d)
+    >>> fill, bool(np.all(np.linalg.eigvalsh(full) > 0))
+    (25000000.0, True)
+    >>> chi2 = float(d[0] @ np.linalg.inv(full[0]) @ d[0])
+    >>> round(chi2, 6), float(np.sum(whiten(d, whitening_matrix(cov)) ** 2))
+    (2.000001, 2.0)
+    """
+    cov = np.asarray(cov, float)
+    vals, vecs = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+    top = vals.max(axis=-1, keepdims=True)
+    out = vals <= rtol * top                                    # (..., p)
+    if not out.any():
+        return cov, 0.0
+    level = float(top.max())
+    if data is not None:
+        d = np.asarray(data, float).reshape((-1,) + cov.shape[:-1])
+        proj = np.einsum("...ij,n...i->n...j", vecs, d) ** 2   # (n, ..., p) on the modes
+        n_out = np.maximum(out.sum(axis=-1), 1)
+        level = max(level, float(np.max(np.sum(np.where(out, proj, 0.0), axis=-1) / n_out)))
+    fill = factor * level
+    new = np.where(out, fill, vals)
+    return (vecs * new[..., None, :]) @ np.swapaxes(vecs, -1, -2), fill
+
+
+def unfilled_covariance(cov, fill):
+    """*cov* without the variance *fill* that `filled_covariance` gave the directions its
+    covariance left out (those are 0 again; 0 *fill*: *cov* itself).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.covariance import filled_covariance, unfilled_covariance
+    >>> cov = np.diag([4.0, 1.0, 0.0])[None]
+    >>> back = unfilled_covariance(*filled_covariance(cov))
+    >>> bool(np.allclose(back, cov, atol=1e-6))
+    True
+    """
+    cov = np.asarray(cov, float)
+    if not fill:
+        return cov
+    vals, vecs = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+    vals = np.where(vals > 0.5 * fill, 0.0, vals)
+    return (vecs * vals[..., None, :]) @ np.swapaxes(vecs, -1, -2)
 
 
 def rows_covariance(rows, *, joint=False):

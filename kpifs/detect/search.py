@@ -1,5 +1,6 @@
 """The sequential search: the strongest peak above the threshold, fitted and
-subtracted, judged by the noise its residual shows, until none is left
+subtracted, judged by the noise its residual shows, until none is left; then
+the candidates judged together, each with the others in the model
 (`kpifs.detect.detect`)."""
 import logging
 import warnings
@@ -26,6 +27,41 @@ def _chi2_red(residual, w, dof, n_par):
     return float(np.sum(whiten(residual, w) ** 2) / max(dof - n_par, 1))
 
 
+def _fit_row(row, residual, ctx, *, from_fit=False):
+    """Fit one candidate (a 1-row table, updated in place) on *residual*; returns the
+    model subtracted: the fitted one, window gain included (a bright companion's
+    approximate model would leave side lobes to be found next)."""
+    model, kpd, null, w, poses, characterise, stack = (
+        ctx[k] for k in ("model", "kpd", "null", "w", "poses", "characterise", "stack"))
+    if ctx["fit"] and stack is not None:
+        return stack.refine(row, residual, null.noise_rows)[0]
+    if ctx["fit"]:
+        model_kp = refine_candidates(row, residual, w, kpd, null.noise_rows, poses,
+                                     from_fit=from_fit)[0]
+        if characterise is not None:
+            # from the search model's optimum (the robust start), the characterisation
+            model_kp = refine_candidates(row, residual, characterise[0], kpd,
+                                         characterise[1], poses, dof=characterise[2],
+                                         from_fit=True)[0]
+        return model_kp
+    r = row[0]
+    x, y, c = r["x"].to_value(u.mas), r["y"].to_value(u.mas), np.asarray(r["contrast"])
+    att = 1.0 if kpd.window is None else float(kpd.window.at(np.hypot(x, y), kpd.pixscale))
+    if stack is not None:
+        return stack.model_kp((x, y), c * att)
+    if poses is None:
+        return kpd.kernel_model.binary_kernel_phases([x, y] * u.mas, c * att, kpd.wavelengths)
+    return rotated_binary_kernel_phases(kpd.kernel_model, [x, y] * u.mas, c * att,
+                                        kpd.wavelengths, *poses)
+
+
+def _scale_errors(row, scale, ctx):
+    """The search fit's errors scaled by the noise *scale* its candidate was judged with."""
+    if ctx["fit"] and ctx["characterise"] is None:
+        for col in ("fit_x_err", "fit_y_err", "fit_contrast_err"):
+            row[col] = row[col] * np.sqrt(scale)
+
+
 def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max_candidates,
                        scaler, ring, poses=None, characterise=None, stack=None):
     """Strongest peak above threshold, fitted and subtracted, until none is left.
@@ -33,49 +69,29 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
     Each peak is judged on its statistic scaled by the reduced chi-square of
     the whitened residual once its model is subtracted (never scaled down), and
     its errors are scaled likewise: a calibration residual the error model
-    missed inflates the chi-square instead of passing as companions. Returns
-    the candidates, the reduced chi-square of the final residual and the noise
-    scale (*scaler*: residual, fitted parameters -> reduced chi-square, scale).
+    missed inflates the chi-square instead of passing as companions. The
+    candidates found are then judged together (`_joint_check`): one that the
+    others explain is not a detection. Returns the candidates, the reduced
+    chi-square of the final residual and the noise scale (*scaler*: residual,
+    fitted parameters -> reduced chi-square, scale).
     """
-    rows = []
+    rows, models, scales = [], [], []
     residual = kp.copy()
     form = null.form
     q = kp.shape[0]
     n_par = 2 + q
+    ctx = dict(model=model, kpd=kpd, null=null, w=w, poses=poses, characterise=characterise,
+               stack=stack, fit=fit)
     while len(rows) < max_candidates:
         tab = model.candidates(whiten(residual, w), threshold=threshold, form=form, null=null,
                                spectrum=spectrum)
         if not len(tab):
             break
         row = tab[:1]
-        if fit and stack is not None:
-            model_kp = stack.refine(row, residual, null.noise_rows)[0]
-            r = row[0]
-            x, y = r["fit_x"].to_value(u.mas), r["fit_y"].to_value(u.mas)
-        elif fit:
-            model_kp = refine_candidates(row, residual, w, kpd, null.noise_rows, poses)[0]
-            if characterise is not None:
-                # from the search model's optimum (the robust start), the characterisation
-                model_kp = refine_candidates(row, residual, characterise[0], kpd,
-                                             characterise[1], poses, dof=characterise[2],
-                                             from_fit=True)[0]
-            r = row[0]
-            x, y = r["fit_x"].to_value(u.mas), r["fit_y"].to_value(u.mas)
-        else:
-            # the subtracted model is the fitted one, window gain included (a bright
-            # companion's approximate model would leave side lobes to be found next)
-            r = row[0]
-            x, y, c = r["x"].to_value(u.mas), r["y"].to_value(u.mas), np.asarray(r["contrast"])
-            att = 1.0 if kpd.window is None else \
-                float(kpd.window.at(np.hypot(x, y), kpd.pixscale))
-            if stack is not None:
-                model_kp = stack.model_kp((x, y), c * att)
-            elif poses is None:
-                model_kp = kpd.kernel_model.binary_kernel_phases([x, y] * u.mas, c * att,
-                                                                 kpd.wavelengths)
-            else:
-                model_kp = rotated_binary_kernel_phases(kpd.kernel_model, [x, y] * u.mas,
-                                                        c * att, kpd.wavelengths, *poses)
+        model_kp = _fit_row(row, residual, ctx)
+        r = row[0]
+        x, y = (r["fit_x"], r["fit_y"]) if fit else (r["x"], r["y"])
+        x, y = x.to_value(u.mas), y.to_value(u.mas)
         after = residual - model_kp
         kappa, scale = scaler(after, n_par * (len(rows) + 1))
         # judged against its annulus's noise too, once subtracted (a bright companion's
@@ -95,15 +111,18 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
         row["pfa_global"], row["pfa_global_tail"] = pfa, tail
         row["pfa_local"] = model.local_pfa(np.array([stat]), form)
         row["contrast_err"] = row["contrast_err"] * np.sqrt(scale)
-        if fit and characterise is None:
-            for col in ("fit_x_err", "fit_y_err", "fit_contrast_err"):
-                row[col] = row[col] * np.sqrt(scale)
+        _scale_errors(row, scale, ctx)
         row["chi2_red"] = [kappa]
         residual = after
         rows.append(row)
+        models.append(model_kp)
+        scales.append(scale)
     if len(rows) == max_candidates:
         warnings.warn(f"{kpd.name}: the search stopped at max_candidates = {max_candidates}; "
                       f"more peaks may lie above the threshold", KpifsWarning, stacklevel=3)
+    if len(rows) > 1:
+        rows, residual = _joint_check(rows, models, scales, kp, ctx, threshold=threshold,
+                                      spectrum=spectrum, scaler=scaler, ring=ring)
     kappa, scale = scaler(residual, n_par * len(rows))
     if not rows:
         empty = model.candidates(whiten(kp, w), threshold=np.inf, form=form, null=null,
@@ -120,3 +139,92 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
     out.meta = rows[0].meta
     out.meta["chi2_red"] = kappa
     return out, kappa, scale
+
+
+def _near(model, stat, points, radius):
+    """The largest of *stat* (a map) within *radius* mas of any of *points* (NaN: none)."""
+    g = model.grid
+    near = np.zeros(g.shape, bool)
+    for px, py in points:
+        near |= np.hypot(g.X - px, g.Y - py) <= radius
+    vals = np.where(near & g.valid, stat, np.nan)
+    return float(np.nanmax(vals)) if np.any(np.isfinite(vals)) else np.nan
+
+
+#: Most other candidates refitted for each one judged (`_joint_check`); beyond, their
+#: models are only scaled to the data together.
+JOINT_REFIT = 4
+
+
+def _others(kp, w, models, idx, refit=None):
+    """The models *idx* as the data have them together: each refitted (*refit*: index,
+    data -> model) on the data less the others, when there are at most `JOINT_REFIT`,
+    then scaled, channel by channel, to fit *kp* together (least squares in the whitened
+    space): without the share of the signal that an earlier fit took."""
+    out = np.zeros_like(kp)
+    if not idx:
+        return out
+    if refit is not None and len(idx) <= JOINT_REFIT:
+        models = dict(models) if isinstance(models, dict) else dict(enumerate(models))
+        for j in idx:
+            models[j] = refit(j, kp - sum((models[i] for i in idx if i != j),
+                                          np.zeros_like(kp)))
+    for i in range(kp.shape[0]):
+        basis = np.stack([w[i] @ models[j][i] for j in idx], axis=1)        # (p, n)
+        if not np.any(basis):
+            continue
+        coef = np.linalg.lstsq(basis, w[i] @ kp[i], rcond=None)[0]
+        out[i] = np.stack([models[j][i] for j in idx], axis=1) @ coef
+    return out
+
+
+def _joint_check(rows, models, scales, kp, ctx, *, threshold, spectrum, scaler, ring):
+    """Drop the candidates that the others explain, weakest first, and refit the rest.
+
+    Candidate ``k`` is judged on the data less the other candidates' models
+    (refitted without it, `_others`): its statistic there, at its grid
+    peak and its fit (the largest within a grid step of either), scaled by the
+    noise of the residual of all of them (and of its annulus), must still pass
+    *threshold*. A peak that the search met before the companion that made it
+    (a side lobe, or a fit that walked to the mirror of a real companion's
+    signal) explains the data worse than the residual level once that
+    companion is in the model, and goes. Returns the kept rows and the
+    residual of their models.
+    """
+    model, null, w = ctx["model"], ctx["null"], ctx["w"]
+    form = null.form
+    n_par = 2 + kp.shape[0]
+
+    def refit(j, data):          # on a copy: the candidate's own row is kept as found
+        return _fit_row(rows[j].copy(), data, ctx, from_fit=True)
+    radius = float(np.max(np.abs(model.grid.step))) * (1 + 1e-9)
+    keep = list(range(len(rows)))
+    dropped = []
+    while len(keep) > 1:
+        _, scale = scaler(kp - _others(kp, w, models, keep), n_par * len(keep))
+        stats = {}
+        for k in keep:
+            r = rows[k][0]
+            pts = [(r["x"].to_value(u.mas), r["y"].to_value(u.mas))]
+            if ctx["fit"]:
+                pts.append((r["fit_x"].to_value(u.mas), r["fit_y"].to_value(u.mas)))
+            rest = kp - _others(kp, w, models, [j for j in keep if j != k], refit)
+            t = model.local_statistic(whiten(rest, w), form, spectrum)
+            s = max(scale, ring(rest - models[k], pts[0]))
+            stats[k] = np.nan_to_num(_near(model, t, pts, radius), nan=0.0) / s ** _POWER[form]
+        worst = min(keep, key=lambda k: stats[k])
+        if stats[worst] >= threshold:
+            break
+        r = rows[worst][0]
+        log.info("candidate at (%.1f, %.1f) mas left out: with the other candidates in the "
+                 "model its statistic is %.2f, below the threshold %.2f", r["x"].to_value(u.mas),
+                 r["y"].to_value(u.mas), stats[worst], threshold)
+        keep.remove(worst)
+        dropped.append(worst)
+    if dropped:
+        # the rest refitted without the models of those left out
+        for k in keep:
+            others = sum((models[j] for j in keep if j != k), np.zeros_like(kp))
+            models[k] = _fit_row(rows[k], kp - others, ctx, from_fit=True)
+            _scale_errors(rows[k], scales[k], ctx)
+    return [rows[k] for k in keep], kp - sum(models[j] for j in keep)

@@ -15,6 +15,14 @@ holding the real and imaginary parts of the flux-normalised visibilities
 and kpifs's own KP-COVROWS, KP-JCOV and DETPA-FR (calibrated data: the
 averaged target frames' angles, deg).
 
+KP-COV is always positive definite, so that any tool can invert it: an error
+model of few frames keeps only its best-measured modes (`kpifs.errormodel`),
+and the directions it leaves out, which detection gives no weight, are given
+a variance that weighs next to nothing (``COVFILL`` rad^2,
+`~kpifs.covariance.filled_covariance`); the chi-square of KP-DATA under
+KP-COV is then the whitened energy that ``detect`` reports. The reader takes
+the fill back out, and KP-COVROWS keeps the model's rows beside it.
+
 It reads (`read_kpfits_parts`) the variants other tools write as well:
 BLM-MAT with one column fewer than sub-apertures (the first aperture is the
 phase reference: its column is rebuilt as minus the row sums), KER-MAT rows
@@ -44,6 +52,7 @@ from astropy.io import fits
 
 from .._meta import VERSION
 from .._utils import write_hdulist
+from ..covariance import filled_covariance
 from ..rotation import rotation_hdus
 from ._kpfits_common import (_ERROR_MODEL_CARDS, _INSTRUMENT_CARDS, KPCOV_COPY_LIMIT, _clean_header,
                              _label_columns, _number, _table_hdu, ascii_text, card)
@@ -204,7 +213,9 @@ def _data_hdus(kpd):
     kd.header["BUNIT"] = "rad"
     kd.header["COMMENT"] = "kernel phases (nframe, nwave, nkp)"
     hdus.append(kd)
-    cov = kpd.covariance
+    cov, fill = kpd.covariance, 0.0
+    if cov is not None:     # definite: the directions the model leaves out weigh nothing
+        cov, fill = filled_covariance(cov, data=kpd.kp)
     if kpd.kp_err is not None or cov is not None:
         if kpd.kp_err is not None:
             sig = np.asarray(kpd.kp_err, float)
@@ -227,6 +238,10 @@ def _data_hdus(kpd):
                                  "one copy per frame" if every else
                                  "written once (too large to copy per frame)")
         hc.header["COMMENT"] = "covariance of one frame's KP-DATA (nframe|1, nwave, nkp, nkp)"
+        if fill:
+            hc.header["COVFILL"] = (fill, "[rad2] variance of the directions it leaves out")
+            hc.header["COMMENT"] = ("the error model's modes, positive definite: directions "
+                                    "they leave out have variance COVFILL (no weight)")
         if not every:
             log.info("%s: KP-COV written once, not per frame (%d frames x %.0f MB): readers "
                      "indexing it per frame find it for frame 0 only", kpd.name, nframe,

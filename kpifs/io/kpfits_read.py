@@ -5,6 +5,7 @@ import numpy as np
 from astropy import units as u
 from astropy.io import fits
 
+from ..covariance import unfilled_covariance
 from ..exceptions import KpifsError
 from ..rotation import rotation_from_hdul
 from ._kpfits_common import (_ERROR_MODEL_CARDS, _TELESCOPE_DIAMETERS, _all_nan, _column, _flag,
@@ -191,6 +192,9 @@ def _read_uncertainties(hdul, kp, raw_shape, path, notes):
         cov = _as_cov(hdul["KP-COV"].data, "KP-COV", nframe, nwave, nkp, path)
         shared = bool(hdul["KP-COV"].header.get("COVSHARE", False))
         where = "KP-COV"
+        fill = _number(hdul["KP-COV"].header.get("COVFILL"))
+        if fill:               # kpifs's fill of the directions its model leaves out
+            cov = unfilled_covariance(cov, fill)
     if sigma_derived:
         kp_err = None                         # kpifs wrote sqrt(diag(KP-COV)): nothing new
     if cov is not None:
