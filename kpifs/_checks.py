@@ -12,6 +12,7 @@ from astropy.io import fits
 
 from .data import KernelPhaseData
 from .exceptions import KpifsError, KpifsWarning
+from .io.readers import observing_setup, setup_differences
 
 __all__ = []
 
@@ -56,6 +57,42 @@ def check_inputs(target, calibrators=(), *, outputs=()):
         if out is not None and _real(out) in inputs:
             raise KpifsError(f"{out}: refusing to overwrite an input file "
                              f"({inputs[_real(out)]})")
+
+
+def check_same_setup(target, calibrator):
+    """Refuse a calibrator observed in another set-up than its target (another instrument,
+    filter, pupil element or mask, band or mode: `kpifs.io.readers.observing_setup` of
+    their headers), naming both. *target* and *calibrator* are
+    `~kpifs.data.KernelPhaseData` (their ``header`` is their cube's) or headers.
+
+    Called where a target and its calibrator meet (`kpifs.calibrate.check_compatible`):
+    every command and the Python API go through it.
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs._checks import check_same_setup
+    >>> from kpifs.exceptions import KpifsError
+    >>> t = fits.Header({"INSTRUME": "NIRISS", "FILTER": "F480M", "PUPIL": "CLEARP"})
+    >>> c = fits.Header({"INSTRUME": "NIRISS", "FILTER": "F480M", "PUPIL": "NRM"})
+    >>> try:
+    ...     check_same_setup(t, c)
+    ... except KpifsError as err:
+    ...     print(err)
+    calibrator: pupil element NRM, but the target: CLEARP: a calibrator must be observed through its target's instrument, filter and pupil (its kernel phases are of another pupil)
+    """
+    def facts(x):
+        if isinstance(x, fits.Header):
+            return "", observing_setup(x)
+        return f" {x.meta.get('source', getattr(x, 'name', '?'))}", observing_setup(x.header)
+    tname, tset = facts(target)
+    cname, cset = facts(calibrator)
+    diff = setup_differences(tset, cset)
+    if diff:
+        raise KpifsError(f"calibrator{cname}: " + ", ".join(f"{k} {c}" for k, _, c in diff)
+                         + f", but the target{tname}: " + ", ".join(f"{t}" for _, t, _ in diff)
+                         + ": a calibrator must be observed through its target's instrument, "
+                           "filter and pupil (its kernel phases are of another pupil)")
 
 
 def check_seed(seed, option="--seed"):

@@ -25,7 +25,7 @@ from ..exceptions import KpifsError, KpifsWarning
 from .cube import FrameStack, IFSCube, open_fits
 from .wavelengths import check_wavelengths, parse_wavelengths
 
-__all__ = ["read_charis", "is_charis", "charis_wavelengths", "CHARIS_PIXSCALE",
+__all__ = ["read_charis", "is_charis", "charis_wavelengths", "charis_setup", "CHARIS_PIXSCALE",
            "CHARIS_DETPA_OFFSET"]
 
 log = logging.getLogger(__name__)
@@ -54,6 +54,20 @@ def is_charis(hdul):
     hdr = hdul[0].header
     has_keys = all(k in hdr for k in ("LAM_MIN", "DLOGLAM", "NLAM"))
     return has_keys and len(hdul) > 1 and hdul[1].data is not None and hdul[1].data.ndim == 3
+
+
+def charis_setup(header):
+    """What a CHARIS target's and calibrator's cubes must share: the mode (``CAL_BAND``).
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.charis import charis_setup
+    >>> charis_setup(fits.Header({"CAL_BAND": "H"}))
+    {'mode': 'H'}
+    """
+    band = str(header.get("CAL_BAND", "") or "").strip()
+    return {"mode": {"LOWRES": "BROADBAND"}.get(band.upper(), band.upper())} if band else {}
 
 
 def charis_wavelengths(header, nlam_cube, *, source="CHARIS cube"):

@@ -33,7 +33,7 @@ from ..exceptions import KpifsError, KpifsWarning
 from .cube import FrameStack, IFSCube, open_fits
 from .wavelengths import check_wavelengths
 
-__all__ = ["read_gpi", "is_gpi", "gpi_wavelengths", "gpi_pupil", "GPI_PIXSCALE", "GPI_BANDS",
+__all__ = ["read_gpi", "is_gpi", "gpi_wavelengths", "gpi_pupil", "gpi_setup", "GPI_PIXSCALE", "GPI_BANDS",
            "GPI_DIAMETER", "MIN_FIELD"]
 
 log = logging.getLogger(__name__)
@@ -78,6 +78,26 @@ def gpi_pupil(header):
     ('gpi_nrm', 'gpi')
     """
     return "gpi_nrm" if _card(header, "OBSMODE").upper().startswith("NRM") else "gpi"
+
+
+def gpi_setup(header):
+    """What a GPI target's and calibrator's exposures must share: the band (``IFSFILT``),
+    the mode (``OBSMODE``), the apodizer or mask (``APODIZER``) and the Lyot stop
+    (``LYOTMASK``), as far as the header says.
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.gpi import gpi_setup
+    >>> gpi_setup(fits.Header({"IFSFILT": "IFSFILT_H_G1213", "OBSMODE": "NRM_H"}))
+    {'band': 'H', 'mode': 'NRM_H'}
+    """
+    band = _card(header, "IFSFILT").split("_")
+    out = {"band": band[1].upper()} if len(band) > 1 and band[1] else {}
+    for key, name in (("OBSMODE", "mode"), ("APODIZER", "apodizer"), ("LYOTMASK", "Lyot stop")):
+        if _card(header, key):
+            out[name] = _card(header, key)
+    return out
 
 
 def gpi_wavelengths(phu, sci, nchan, *, source="GPI cube"):
