@@ -7,7 +7,6 @@ import warnings
 
 import numpy as np
 import pytest
-from astropy import units as u
 from astropy.io import fits
 
 from kpifs import KernelPhaseData

@@ -33,7 +33,8 @@ from ..exceptions import KpifsError, KpifsWarning
 from .cube import FrameStack, IFSCube, open_fits
 from .wavelengths import check_wavelengths
 
-__all__ = ["read_gpi", "is_gpi", "gpi_wavelengths", "gpi_pupil", "gpi_setup", "GPI_PIXSCALE", "GPI_BANDS",
+__all__ = ["read_gpi", "is_gpi", "gpi_wavelengths", "gpi_pupil", "gpi_setup", "GPI_PIXSCALE",
+           "GPI_BANDS",
            "GPI_DIAMETER", "MIN_FIELD"]
 
 log = logging.getLogger(__name__)

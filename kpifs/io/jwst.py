@@ -49,7 +49,8 @@ from .cube import FrameStack, IFSCube, open_fits
 
 __all__ = ["read_jwst", "is_jwst", "jwst_mode", "jwst_pupil", "jwst_setup", "jwst_detpa",
            "JWST_FILTERS", "JWST_PIXSCALES", "PUPIL_ELEMENTS", "PIXSCALE_TOLERANCE",
-           "own_pixscale", "pixscale_fits", "SUPPORTED_EXP_TYPES", "DO_NOT_USE", "DQ_FLAGS", "parse_dq_bits"]
+           "own_pixscale", "pixscale_fits", "SUPPORTED_EXP_TYPES", "DO_NOT_USE", "DQ_FLAGS",
+           "parse_dq_bits"]
 
 log = logging.getLogger(__name__)
 
