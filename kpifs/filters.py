@@ -31,6 +31,7 @@ scatter, and the long baselines, near the pupil's edge, add noisy ones (see
 docs/user/jwst.rst for the measured depths).
 """
 import logging
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -38,8 +39,9 @@ from astropy import units as u
 from astropy.io import fits
 
 from .data import KernelPhaseData
-from .exceptions import KpifsError
-from .io.jwst import JWST_FILTERS, JWST_PIXSCALES, jwst_mode
+from ._utils import to_quantity
+from .exceptions import KpifsError, KpifsWarning
+from .io.jwst import JWST_FILTERS, jwst_mode, own_pixscale, pixscale_fits
 from .kernel import KernelModel, nyquist_usable
 from .sampling import nested_kernel
 from .window import DEFAULT_WINDOW_RADIUS, ExtractionWindow
@@ -74,12 +76,35 @@ def jwst_filters(paths):
     return out
 
 
-def _scale(path):
-    hdr = fits.getheader(path)
+def _scale(path, given):
+    """A filter's mean wavelength (um), pixel scale (mas: *given* where it fits the file's
+    own, `kpifs.io.jwst.pixscale_fits`), image width, whether *given* fits and the file's
+    own scale."""
+    hdr, sci = fits.getheader(path), fits.getheader(path, "SCI")
     inst, filt, _ = jwst_mode(hdr, source=path)
-    chan = str(hdr.get("CHANNEL", "")).strip().upper() if inst == "NIRCAM" else None
     wl, _ = JWST_FILTERS[(inst, filt)]
-    return wl, JWST_PIXSCALES.get((inst, chan)), fits.getval(path, "NAXIS1", "SCI")
+    own = own_pixscale(hdr, sci, source=path)
+    fit = given is not None and pixscale_fits(given, own)
+    return wl, (given if fit else own[0]), sci["NAXIS1"], fit, own[0]
+
+
+def _given_pixscale(options, groups, order, scales):
+    """Where a pixel scale given fits: each filter's options; a note for the filters it does
+    not fit, refused when it fits none."""
+    if options.pixscale is None:
+        return {f: options for f in order}
+    given = to_quantity(options.pixscale, u.mas, name="pixel scale").value
+    fit = [f for f in order if scales[f][3]]
+    own = ", ".join(f"{f} {scales[f][4]:g} mas ({groups[f][0]})" for f in order
+                    if not scales[f][3])
+    if not fit:
+        raise KpifsError(f"the pixel scale given ({given:g} mas) fits none of the filters' own "
+                         f"({own}): give one that does, or none")
+    if len(fit) < len(order):
+        warnings.warn(f"the pixel scale given ({given:g} mas) is applied to {', '.join(fit)} "
+                      f"only: it contradicts the own scale of {own}, which is kept",
+                      KpifsWarning, stacklevel=3)
+    return {f: options if scales[f][3] else replace(options, pixscale=None) for f in order}
 
 
 def extract_filters(targets, calibrators, options, *, progress=False):
@@ -138,8 +163,11 @@ def extract_filters(targets, calibrators, options, *, progress=False):
         if missing:
             raise KpifsError(f"calibrator {star[0]}: no files in filter(s) "
                              f"{', '.join(missing)} of the target")
-    scales = {f: _scale(files[0]) for f, files in groups.items()}
+    given = (None if options.pixscale is None else
+             to_quantity(options.pixscale, u.mas, name="pixel scale").value)
+    scales = {f: _scale(files[0], given) for f, files in groups.items()}
     order = sorted(groups, key=lambda f: scales[f][0])
+    filter_options = _given_pixscale(options, groups, order, scales)
     first = groups[order[0]][0]
     km = kernel_model_for(options, "jwst", fits.getheader(first))
     usable = np.array([nyquist_usable(km.uv, [scales[f][0]] * u.um, scales[f][1] * u.mas)[0]
@@ -170,7 +198,7 @@ def extract_filters(targets, calibrators, options, *, progress=False):
                      for f in order) if options.window_radius is None else None
     products = []
     for f in order:
-        opts = _with_window(options, radius_mas, scales[f][1])
+        opts = _with_window(filter_options[f], radius_mas, scales[f][1])
         t = extract_observation(groups[f], opts, model=own[f], progress=progress)
         cals = [extract_observation(cg[f], opts, model=own[f], progress=progress)
                 for cg in cal_groups]

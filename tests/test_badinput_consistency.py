@@ -7,6 +7,7 @@ import warnings
 
 import numpy as np
 import pytest
+from astropy import units as u
 from astropy.io import fits
 
 from kpifs import KernelPhaseData
@@ -45,7 +46,44 @@ def corpus(tmp_path_factory):
         files = write_observation(obs, d / name, layout="jwst")
         f[name], f[name + "_cal"] = files["target"][0], files["calibrator"][0]
     f["gr700xd"] = _edit(f["clearp"], d / "gr700xd_calints.fits", phu={"PUPIL": "GR700XD"})
+    f.update(_err_files(d, f))
+    f.update(_nircam_pair(d))
     return f
+
+
+def _err_files(d, f):
+    """ERR that contradicts the data (#5) and infinite pixels (#6), target and calibrator."""
+    out = {}
+    edits = {"x100": lambda e: 100 * e, "nan": lambda e: e * np.nan, "zero": lambda e: 0 * e,
+             "neg": lambda e: -e}
+    for name, edit in edits.items():
+        for role, src in (("t", f["clearp"]), ("c", f["clearp_cal"])):
+            out[f"err_{name}_{role}"] = _edit(src, d / f"err_{name}_{role}_calints.fits",
+                                              data={"ERR": edit})
+    # SCI normalised to a total of 1 per integration, ERR left in DN/s
+    for role, src in (("t", f["clearp"]), ("c", f["clearp_cal"])):
+        with fits.open(src) as h:
+            total = np.nansum(h["SCI"].data, axis=(1, 2))[:, None, None]
+        out[f"norm_{role}"] = _edit(src, d / f"norm_{role}_calints.fits",
+                                    data={"SCI": lambda a: a / total})
+    out["inf_t"] = _edit(f["clearp"], d / "inf_calints.fits",
+                         data={"SCI": lambda a: np.where(np.pad(np.ones((2, 2), bool),
+                                                                ((38, 40), (30, 48))), np.inf, a)})
+    return out
+
+
+def _nircam_pair(d):
+    """NIRCam F150W (31 mas) and F480M (63 mas), target (W0336-like binary: 84 mas, PA 295
+    deg, contrasts 0.076 and 0.19) and calibrator."""
+    t, c = [], []
+    for (wl, ps, seed), con in zip(((1.5106, 31.0, 1), (4.8213, 63.0, 2)), (0.076, 0.19)):
+        obs = simulate_scene("nircam", wavelengths=[wl] * u.um, pixscale=ps * u.mas,
+                             contrasts=[con], n_frames=10, seed=seed, detpa=[250.0], npup=64)
+        files = write_observation(obs, d / f"nircam{ps:.0f}", layout="jwst")
+        t += files["target"]
+        c += files["calibrator"]
+    return {"nc_t": t, "nc_c": c, "nc_t150": t[0], "nc_c150": c[0], "nc_t480": t[1],
+            "nc_c480": c[1]}
 
 
 def _run(corpus, tmp_path, capsys, argv, code):
@@ -81,6 +119,28 @@ CASES = [
     ("3: target files through two pupil elements",
      lambda f: ["extract", f["clearp"], f["nrm"], "--calibrator", f["clearp_cal"]], 2,
      ["files through different pupil elements", "{nrm} (PUPIL NRM)"]),
+    ("4: --pixscale of another detector, one filter",
+     lambda f: ["extract", f["nc_t480"], "--calibrator", f["nc_c480"], "--pixscale", "31mas"], 2,
+     ["{nc_t480}: the pixel scale given (31 mas) contradicts this NIRCAM LONG file's own "
+      "(63.0 mas in kpifs's table, sqrt(PIXAR_A2) = 63.00 mas)"]),
+    ("4: --pixscale that fits no filter",
+     lambda f: ["extract", *f["nc_t"], "--calibrator", *f["nc_c"], "--pixscale", "45mas"], 2,
+     ["the pixel scale given (45 mas) fits none of the filters' own (F150W 31 mas ({nc_t150}), "
+      "F480M 63 mas ({nc_t480}))"]),
+    ("5: ERR all NaN: said, not used",
+     lambda f: ["extract", f["err_nan_t"], "--calibrator", f["err_nan_c"]], 0,
+     ["{err_nan_t}: ERR is NaN, infinite, zero or negative at every pixel used: no noise can "
+      "be read from it; not used"]),
+    ("5: ERR all zero: said, not used",
+     lambda f: ["extract", f["err_zero_t"], "--calibrator", f["err_zero_c"]], 0,
+     ["{err_zero_t}: ERR is zero at every pixel used", "{err_zero_c}: ERR is zero"]),
+    ("5: ERR negative: said, not used",
+     lambda f: ["extract", f["err_neg_t"], "--calibrator", f["err_neg_c"]], 0,
+     ["{err_neg_t}: ERR is negative at every pixel used"]),
+    ("5: ERR 100 x too large: scaled to the frames' scatter, said",
+     lambda f: ["extract", f["err_x100_t"], "--calibrator", f["clearp_cal"]], 0,
+     ["{err_x100_t}: ERR predicts kernel-phase errors 93.6 times the frames' own scatter (10 "
+      "frames)", "its variance is scaled by 0.000114 to the frames' scatter"]),
     ("17: unknown NIRISS PUPIL refused",
      lambda f: ["extract", f["gr700xd"], "--calibrator", f["clearp_cal"]], 2,
      ["gr700xd_calints.fits: NIRISS PUPIL 'GR700XD' is no pupil element kpifs models"]),
@@ -110,3 +170,69 @@ def test_same_setup_through_the_python_api(corpus):
     kc = c.write(corpus["clearp"].parent / "c_kp.fits")
     with pytest.raises(KpifsError, match="pupil element NRM"):
         calibrate(KernelPhaseData.read(kt), [KernelPhaseData.read(kc)])
+
+
+def _found(det, sep, pa, *, dsep=15.0, dpa=3.0):
+    """The detection file's single candidate at (sep mas, PA deg East of North), within
+    *dsep* (NIRISS at 4.8 um: a tenth of lambda/D) and *dpa*."""
+    from kpifs.data import DetectionResult
+    cands = DetectionResult.read(det).candidates
+    assert len(cands) == 1, cands
+    assert abs(cands[0]["fit_separation"].to_value(u.mas) - sep) < dsep, cands
+    assert abs((cands[0]["fit_pa_sky"].to_value(u.deg) - pa + 180) % 360 - 180) < dpa
+    return cands[0]
+
+
+#: The NIRISS preset's companion: (dRA, dDec) = (-150, 200) mas, contrast 1e-2.
+NIRISS_TRUTH = (250.0, 323.13)
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::DeprecationWarning", "ignore::ResourceWarning")
+@pytest.mark.parametrize("target, cal, said", [
+    ("err_x100_t", "err_x100_c", "times the frames' own scatter"),           # 5
+    ("norm_t", "norm_c", "times the frames' own scatter"),                   # 5: DN/s
+    ("inf_t", "clearp_cal", "40 infinite pixel value(s), treated as bad"),   # 6
+    ("clearp", "clearp_cal", None)])                                         # the reference
+def test_err_and_inf_keep_the_companion(corpus, tmp_path, capsys, target, cal, said):
+    """ERR 100 x too large, SCI normalised with ERR left in DN/s, and +inf pixels: the
+    companion of the NIRISS preset is found where it is (250 mas, PA 323.1 deg), as from
+    the clean files (before: lost; ERR x100: noise scale clamped at 0.1)."""
+    kp, det = tmp_path / "kp.fits", tmp_path / "det.fits"
+    message = _run(corpus, tmp_path, capsys, ["extract", corpus[target], "--calibrator",
+                                              corpus[cal], "-o", kp], 0)
+    assert said is None or said in message, message
+    message = _run(corpus, tmp_path, capsys, ["detect", kp, "-o", det, "--draws", "1000"], 0)
+    assert "clamped" not in message
+    _found(det, *NIRISS_TRUTH)
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::DeprecationWarning", "ignore::ResourceWarning")
+def test_pixscale_applied_where_it_fits(corpus, tmp_path, capsys):
+    """#4: --pixscale 31mas with F150W (31 mas) and F480M (63 mas): applied to F150W, F480M
+    keeps its own, with a note; the binary's contrasts come out as simulated (0.076, 0.19;
+    before: F480M 0.0089)."""
+    kp, det = tmp_path / "kp.fits", tmp_path / "det.fits"
+    message = _run(corpus, tmp_path, capsys, ["extract", *corpus["nc_t"], "--calibrator",
+                                              *corpus["nc_c"], "--pixscale", "31mas", "-o", kp], 0)
+    assert (f"the pixel scale given (31 mas) is applied to F150W only: it contradicts the own "
+            f"scale of F480M 63 mas ({corpus['nc_t480']}), which is kept") in message
+    _run(corpus, tmp_path, capsys, ["detect", kp, "-o", det, "--draws", "1000"], 0)
+    row = _found(det, 84.0, 295.0, dsep=4.0, dpa=2.0)
+    assert np.asarray(row["fit_contrast"]) == pytest.approx([0.076, 0.19], rel=0.1)
+
+
+def test_noise_scale_clamp_is_said():
+    """#5: errors 100 x too large for the data: the noise scale is clamped at 0.1 with a
+    warning, never silently."""
+    from kpifs import KernelModel, make_pupil
+    from kpifs.detect import detect
+    km = KernelModel.from_pupil(make_pupil("subaru", step=0.8 * u.m))
+    rng = np.random.default_rng(0)
+    kpd = KernelPhaseData(rng.normal(0, 0.01, (1, 2, km.n_kp)), [1.6, 1.7] * u.um, 10 * u.mas,
+                          km, covariance=np.broadcast_to(np.eye(km.n_kp), (2, km.n_kp, km.n_kp)),
+                          meta={"calibrated": True})
+    with pytest.warns(KpifsWarning, match="noise scale clamped at 0.1"):
+        res = detect(kpd, n_draws=1000, seed=0)
+    assert res.meta["noise_scale"] == 0.1

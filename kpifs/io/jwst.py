@@ -307,8 +307,9 @@ class _Variance:
         self.shape = arrays[0].shape
 
     def __getitem__(self, key):
-        if self.square:
-            return np.square(np.asarray(self.arrays[0][key], float))
+        if self.square:          # a negative ERR stays negative: not a noise (refused later)
+            err = np.asarray(self.arrays[0][key], float)
+            return np.copysign(np.square(err), err)
         return sum(np.asarray(a[key], float) for a in self.arrays)
 
 
