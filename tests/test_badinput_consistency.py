@@ -48,7 +48,24 @@ def corpus(tmp_path_factory):
     f["gr700xd"] = _edit(f["clearp"], d / "gr700xd_calints.fits", phu={"PUPIL": "GR700XD"})
     f.update(_err_files(d, f))
     f.update(_nircam_pair(d))
+    f.update(_clean_layouts(d))
     return f
+
+
+def _clean_layouts(d):
+    """Companion-free stars in each instrument's layout, for `kpifs inject`."""
+    out = {}
+    for name, preset, layout, over in (
+            ("jwst", "niriss", "jwst", dict(n_frames=10, npup=64)),
+            ("charis", "charis", "charis", dict(n_frames=3, npup=48, shape=(64, 64),
+                                                detpa=[10.0, 30.0, 50.0])),
+            ("gpi", "gpi", "gpi", dict(n_frames=2, npup=48, shape=(128, 128))),
+            ("sphere", "sphere", "sphere", dict(n_frames=2, npup=48)),
+            ("plain", "paper", "plain", dict(n_frames=2, npup=48))):
+        obs = simulate_scene(preset, seed=7, contrasts=0.0, **over)
+        files = write_observation(obs, d / f"clean_{name}", layout=layout)
+        out[f"clean_{name}"], out[f"clean_{name}_cal"] = files["target"], files["calibrator"]
+    return out
 
 
 def _err_files(d, f):
@@ -236,3 +253,105 @@ def test_noise_scale_clamp_is_said():
     with pytest.warns(KpifsWarning, match="noise scale clamped at 0.1"):
         res = detect(kpd, n_draws=1000, seed=0)
     assert res.meta["noise_scale"] == 0.1
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning", "ignore::ResourceWarning")
+@pytest.mark.parametrize("layout", ["jwst", "charis", "gpi", "sphere", "plain"])
+def test_inject_keeps_the_layout(corpus, tmp_path, capsys, layout):
+    """#8: an injected file is a copy of its input in the instrument's layout, with the
+    companion added where the input was read as good: read back, it is the input plus
+    exactly the companion `inject_companion` makes (to float32 precision), and keeps what
+    the instrument's reader needs (JWST: ERR, DQ, PUPIL, ROLL_REF; GPI: the mirror, crop and
+    AVPARANG; CHARIS: PARANG and the inverse variance). Several files go to a folder."""
+    from kpifs.inject import inject_companion
+    from kpifs.io import read_cube
+    src = [p for p in corpus[f"clean_{layout}"] if "wavelength" not in p.name
+           and "angles" not in p.name]
+    out = tmp_path / ("inj" if len(src) > 1 else "inj.fits")
+    args = ["inject", *src, "--sky", "--position", "-60,40", "--contrast", "0.05", "-o", out]
+    if layout == "plain":
+        args += ["--pa", "30"]
+    message = _run(corpus, tmp_path, capsys, args, 0)
+    assert ("a SPHERE-IFS cube: its wavelengths and frame angles are in the files beside"
+            in message) == (layout == "sphere")
+    outs = [out / p.name for p in src] if len(src) > 1 else [out]
+    opts = dict(wavelengths=[1.5, 1.6, 1.7] * u.um) if layout == "plain" else {}
+    with read_cube(src) as cube:
+        before = np.array(cube.data, float)
+        detpa = np.full(len(before), 30.0) if layout == "plain" else cube.detpa.value
+        expected = inject_companion(before, position=[-60, 40] * u.mas, contrast=0.05,
+                                    pixscale=cube.pixscale, frame="sky", detpa=detpa)
+        wl = cube.wavelengths
+    with read_cube(outs, wavelengths=wl if layout == "sphere" else opts.get("wavelengths")) \
+            as back:
+        after = np.array(back.data, float)
+        assert back.instrument == ("generic" if layout == "plain" else layout)
+        good = np.isfinite(before)
+        assert np.array_equal(good, np.isfinite(after))
+        scale = np.nanmax(np.abs(before))
+        assert np.abs(after - expected)[good].max() < 1e-6 * scale
+        assert np.abs(after - before)[good].max() > 1e-3 * scale     # a companion is there
+        if layout != "sphere":
+            assert np.allclose(back.detpa.value, cube.detpa.value if layout != "plain" else 0)
+    with fits.open(outs[0]) as h, fits.open(src[0]) as s0:
+        assert h[0].header["INJC1"] == 0.05 and "companion injected" in str(h[0].header)
+        assert [x.name for x in h] == [x.name for x in s0]
+        if layout == "jwst":
+            for name in ("ERR", "DQ"):
+                assert np.array_equal(h[name].data, s0[name].data, equal_nan=True)
+            assert h[0].header["PUPIL"] == "CLEARP"
+            assert h["SCI"].header["ROLL_REF"] == s0["SCI"].header["ROLL_REF"]
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::DeprecationWarning", "ignore::ResourceWarning")
+def test_injected_jwst_file_found_against_its_calibrator(corpus, tmp_path, capsys):
+    """#8: a companion injected into a JWST file (NIRISS preset position, contrast 1e-2)
+    is found there when the injected file is calibrated by a JWST calibrator (before: a
+    generic cube read with the Subaru pupil, both companions lost)."""
+    inj, kp, det = tmp_path / "inj.fits", tmp_path / "kp.fits", tmp_path / "det.fits"
+    _run(corpus, tmp_path, capsys, ["inject", corpus["clean_jwst"][0], "--sky", "--position",
+                                    "-150,200", "--contrast", "0.01", "-o", inj], 0)
+    _run(corpus, tmp_path, capsys, ["extract", inj, "--calibrator", corpus["clean_jwst_cal"][0],
+                                    "-o", kp], 0)
+    assert KernelPhaseData.read(kp).kernel_model.pupil.name == "niriss_clearp"
+    _run(corpus, tmp_path, capsys, ["detect", kp, "-o", det, "--draws", "1000"], 0)
+    _found(det, *NIRISS_TRUTH)
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::DeprecationWarning", "ignore::ResourceWarning")
+def test_injection_curve_reads_the_header_pupil(corpus, tmp_path, capsys):
+    """#7: `inject --curve` on NIRISS CLEARP files uses the header's pupil (niriss_clearp: the
+    same analytic limit as with --pupil niriss_clearp, 7.2e-4 at 250 mas; before: the full
+    JWST pupil's, 4e-3), and reduces each injection as the target (its ERR: 1e-2 found at
+    both angles; before: not found, the injections calibrated on 10 frames' scatter alone)."""
+    out = tmp_path / "curve.fits"
+    message = _run(corpus, tmp_path, capsys, [
+        "inject", corpus["clean_jwst"][0], "--curve", "--calibrator",
+        corpus["clean_jwst_cal"][0], "--separations", "250mas", "--contrasts", "0.01",
+        "--angles", "2", "--draws", "1000", "--injection-draws", "1000", "-o", out], 0)
+    assert "250 mas: injections < 1.00e-02 (found at every step" in message, message
+    with fits.open(out) as h:
+        analytic = float(h["LIMITS"].data["limit_analytic"][0])
+    assert 5e-4 < analytic < 1e-3
+
+
+def _examples():
+    """Every ``kpifs ...`` example line of every command's --help (continuations joined)."""
+    import re
+    from kpifs._cli import _epilogs
+    text = "\n".join(v for k, v in vars(_epilogs).items() if k.startswith("EPILOG_"))
+    text = re.sub(r"\\\n\s*", " ", text)
+    return [ln.split("#")[0].strip() for ln in text.splitlines()
+            if ln.strip().startswith("kpifs ")]
+
+
+@pytest.mark.parametrize("line", _examples())
+def test_every_help_example_parses(line):
+    """#17: each example of the commands' --help parses as written (model-check's
+    ``--rotations -3,-2,-1,0,1,2,3`` was taken for an option)."""
+    import shlex
+    from kpifs._cli._parser import build_parser, join_negative_values
+    args = build_parser().parse_args(join_negative_values(shlex.split(line)[1:]))
+    assert args.command == line.split()[1]
