@@ -274,7 +274,7 @@ def extract_observation(files, options=None, *, model=None, progress=False):
     pa = parse_angles(options.pa, source="--pa")
     with read_cube(files, instrument=options.instrument, dq_bits=options.dq_bits,
                    wavelengths=parse_wavelengths(options.wavelengths, source="--wavelengths"),
-                   pixscale=_pixscale(options)) as cube:
+                   pixscale=_pixscale(options), pa_given=pa is not None) as cube:
         log.info("%s read as %s: %s", cube.name, cube.instrument, cube.shape)
         km = model or kernel_model_for(options, cube.instrument, cube.header)
         try:

@@ -49,7 +49,42 @@ def corpus(tmp_path_factory):
     f.update(_err_files(d, f))
     f.update(_nircam_pair(d))
     f.update(_clean_layouts(d))
+    f.update(_angle_files(d))
     return f
+
+
+def _raw_card(src, dst, key, text):
+    """A copy of *src* whose first card *key* reads *text* (as written by a tool that puts
+    NaN in a header, which astropy refuses to write)."""
+    raw = bytearray(src.read_bytes())
+    i = raw.index(f"{key:8s}=".encode())
+    raw[i:i + 80] = f"{key:8s}= {text:>20s}".ljust(80).encode()
+    dst.write_bytes(bytes(raw))
+    return dst
+
+
+def _angle_files(d):
+    """GPI exposures with one unknown AVPARANG (#13) and a DQ of the wrong shape (#17);
+    CHARIS exposures with PARANG 'unavailable' (#17)."""
+    out = {}
+    obs = simulate_scene("gpi", n_frames=8, npup=64, shape=(240, 240), seed=3)
+    files = write_observation(obs, d / "gpi8", layout="gpi")
+    out["gpi8_cal"] = files["calibrator"]
+    nan = [_raw_card(p, d / "gpi8" / f"nan_{p.name}", "AVPARANG", "NaN") if i == 7 else p
+           for i, p in enumerate(files["target"])]
+    out["gpi8_nan"], out["gpi8_nan_file"] = nan, nan[7]
+    out["gpi8_none"] = [_edit(p, d / "gpi8" / f"none_{p.name}", sci={"AVPARANG": None})
+                        if i == 4 else p for i, p in enumerate(files["target"])]
+    out["gpi_dq"] = _edit(files["target"][0], d / "gpi_dq.fits",
+                          data={"DQ": lambda a: a[:, :-1]})
+    obs = simulate_scene("charis", n_frames=4, npup=48, shape=(64, 64), seed=5,
+                         detpa=[10.0, 30.0, 50.0, 70.0])
+    files = write_observation(obs, d / "charis3", layout="charis")
+    out["charis_cal"] = files["calibrator"]
+    out["charis_unavail"] = [_edit(p, d / f"unavail_{p.name}", phu={"PARANG": "unavailable"})
+                             for p in files["target"]]
+    out["charis_one_unavail"] = [out["charis_unavail"][0]] + files["target"][1:]
+    return out
 
 
 def _clean_layouts(d):
@@ -158,6 +193,26 @@ CASES = [
      lambda f: ["extract", f["err_x100_t"], "--calibrator", f["clearp_cal"]], 0,
      ["{err_x100_t}: ERR predicts kernel-phase errors 93.6 times the frames' own scatter (10 "
       "frames)", "its variance is scaled by 0.000114 to the frames' scatter"]),
+    ("13: one NaN AVPARANG of 8 GPI exposures: left out, said",
+     lambda f: ["extract", *f["gpi8_nan"], "--calibrator", *f["gpi8_cal"]], 0,
+     ["1 of 8 exposure(s) left out: AVPARANG or IFSROTAT unknown (NaN, missing or not a "
+      "number) in {gpi8_nan_file}: the others are searched on the sky"]),
+    ("13: a missing AVPARANG: left out, said",
+     lambda f: ["extract", *f["gpi8_none"], "--calibrator", *f["gpi8_cal"]], 0,
+     ["1 of 8 exposure(s) left out: AVPARANG or IFSROTAT unknown"]),
+    ("17: GPI DQ of the wrong shape",
+     lambda f: ["extract", f["gpi_dq"], "--calibrator", *f["gpi8_cal"]], 2,
+     ["gpi_dq.fits: DQ of shape (37, 239, 240) does not match SCI (37, 240, 240)"]),
+    ("17: PARANG unavailable everywhere, angular-differential",
+     lambda f: ["extract", *f["charis_unavail"], "--angular-differential"], 2,
+     ["--angular-differential needs the detector position angle of every frame: unknown for "
+      "4 of 4 (PARANG + 113 deg: missing, NaN or 'unavailable'); give them with --pa"]),
+    ("17: PARANG unavailable in one of 3 CHARIS files: left out, said",
+     lambda f: ["extract", *f["charis_one_unavail"], "--calibrator", *f["charis_cal"]], 0,
+     ["1 of 4 exposure(s) left out: PARANG unknown"]),
+    ("17: PARANG unavailable, angles given: every exposure kept",
+     lambda f: ["extract", *f["charis_one_unavail"], "--pa", "10,30,50,70", "--calibrator",
+                *f["charis_cal"]], 0, ["calibrated kernel phases"]),
     ("17: unknown NIRISS PUPIL refused",
      lambda f: ["extract", f["gr700xd"], "--calibrator", f["clearp_cal"]], 2,
      ["gr700xd_calints.fits: NIRISS PUPIL 'GR700XD' is no pupil element kpifs models"]),
@@ -355,3 +410,56 @@ def test_every_help_example_parses(line):
     from kpifs._cli._parser import build_parser, join_negative_values
     args = build_parser().parse_args(join_negative_values(shlex.split(line)[1:]))
     assert args.command == line.split()[1]
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::DeprecationWarning", "ignore::ResourceWarning")
+def test_gpi_unknown_angle_keeps_the_others_on_the_sky(corpus, tmp_path, capsys):
+    """#13: one NaN AVPARANG of 8 exposures: the exposure is left out and the other seven
+    are searched on the sky; the companion is found at its simulated sky offset (dRA 120,
+    dDec 160 mas: 200 mas, PA 36.9 deg; before: the whole search on the detector, lost).
+    (240 x 240 images: at 200 x 200 this scene's companion is not found even without NaN,
+    in the plain layout as well. The NaN is in the last exposure: without a middle one,
+    or with 5 left of 6, `kpifs.rotation.time_blocks` merges frames into a block spanning
+    11.4 deg, which smears the companion at 200 mas, and it is lost: reported.)"""
+    kp, det = tmp_path / "kp.fits", tmp_path / "det.fits"
+    _run(corpus, tmp_path, capsys, ["extract", *corpus["gpi8_nan"], "--calibrator",
+                                    *corpus["gpi8_cal"], "-o", kp], 0)
+    assert KernelPhaseData.read(kp).meta["n_target_frames"] == 7
+    _run(corpus, tmp_path, capsys, ["detect", kp, "-o", det, "--draws", "1000"], 0)
+    _found(det, 200.0, 36.87, dsep=20.0, dpa=3.0)
+
+
+@pytest.mark.parametrize("layout", ["plain", "jwst"])
+def test_simulated_rotation_writes_every_angle(tmp_path, capsys, layout):
+    """#14: `simulate --rotation` writes each frame's detector angle: the plain layout a DETPA
+    extension (before: none), the JWST layout one exposure per angle (before: one file at
+    the mean angle); read back, the angles are the simulated ones."""
+    from kpifs.io import read_cube
+    from kpifs.rotation import sequence_angles
+    out = tmp_path / "sim"
+    assert main(["simulate", "--preset", "niriss" if layout == "jwst" else "paper",
+                 "--rotation", "40deg", "--frames", "4", "--shape", "32", "--layout", layout,
+                 "-q", "-o", str(out)]) == 0
+    expected = sequence_angles(4, span=40 * u.deg, start=0.0)
+    target = sorted(p for p in out.iterdir() if "target" in p.name or "_1000" in p.name)
+    assert len(target) == (1 if layout == "plain" else 4)
+    with read_cube(target) as cube:
+        assert cube.detpa.to_value(u.deg) == pytest.approx(np.asarray(expected, float),
+                                                           abs=1e-6)
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::DeprecationWarning", "ignore::ResourceWarning")
+def test_simulated_rotation_found_on_the_sky(tmp_path, capsys):
+    """#14: a plain-layout rotating sequence (40 deg, 20 frames, contrast 0.01) is searched
+    on the sky and its companion found where simulated (dRA -80, dDec 60 mas: 100 mas, PA
+    306.9 deg; before: no angles written, found at PA 273.5 deg with P_FA 3.8e-7)."""
+    sim, kp, det = tmp_path / "sim", tmp_path / "kp.fits", tmp_path / "det.fits"
+    assert main(["simulate", "--preset", "paper", "--rotation", "40deg", "--frames", "20",
+                 "--contrasts", "0.01", "--shape", "32", "--seed", "2", "-q", "-o",
+                 str(sim)]) == 0
+    assert main(["extract", str(sim / "target.fits"), "--calibrator",
+                 str(sim / "calibrator.fits"), "--step", "0.8m", "-q", "-o", str(kp)]) == 0
+    assert main(["detect", str(kp), "--draws", "1000", "-q", "-o", str(det)]) == 0
+    _found(det, 100.0, 306.87, dsep=8.0, dpa=3.0)

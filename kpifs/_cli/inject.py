@@ -80,7 +80,7 @@ def _read(args, options):
     ps = (None if options.pixscale is None
           else to_quantity(options.pixscale, u.mas, name="pixel scale"))
     with read_cube(args.cubes, instrument=options.instrument, wavelengths=wl,
-                   pixscale=ps, dq_bits=options.dq_bits) as cube:
+                   pixscale=ps, dq_bits=options.dq_bits, pa_given=args.pa is not None) as cube:
         if not args.curve and args.contrast is not None:
             _contrasts(args.contrast, "--contrast", cube.shape[1])   # before the data are read
         detpa = None if cube.detpa is None else cube.detpa.to_value(u.deg)

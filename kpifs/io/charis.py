@@ -22,6 +22,7 @@ from astropy import units as u
 
 from .._utils import to_quantity
 from ..exceptions import KpifsError, KpifsWarning
+from .angles import known_angle_files
 from .cube import FrameStack, IFSCube, open_fits
 from .wavelengths import check_wavelengths, parse_wavelengths
 
@@ -106,7 +107,7 @@ def charis_wavelengths(header, nlam_cube, *, source="CHARIS cube"):
     return check_wavelengths((wl * u.nm).to(u.um), source=source)
 
 
-def read_charis(paths, *, wavelengths=None, pixscale=None):
+def read_charis(paths, *, wavelengths=None, pixscale=None, keep_unknown_angles=False):
     """Read one or many CHARIS pipeline cubes as one `~kpifs.io.IFSCube`.
 
     Parameters
@@ -120,8 +121,14 @@ def read_charis(paths, *, wavelengths=None, pixscale=None):
     pixscale : `~astropy.units.Quantity`, optional
         Lenslet scale; default `CHARIS_PIXSCALE` (16.2 mas).
 
+    keep_unknown_angles : bool
+        Keep the exposures whose ``PARANG`` is unknown ('unavailable', NaN or
+        missing) among others that have it (when the angles are given, ``--pa``);
+        otherwise they are left out with a warning
+        (`~kpifs.io.angles.known_angle_files`).
+
     The cube's ``angles`` are the files' ``PARANG`` and its ``detpa``
-    ``PARANG + CHARIS_DETPA_OFFSET`` (NaN where ``PARANG`` is 'unavailable').
+    ``PARANG + CHARIS_DETPA_OFFSET`` (NaN where ``PARANG`` is unknown).
 
     Examples
     --------
@@ -182,7 +189,12 @@ def read_charis(paths, *, wavelengths=None, pixscale=None):
                 angles.append(float(par))
             except (TypeError, ValueError):
                 angles.append(np.nan)
-        angles = np.array(angles)
+        keep = (list(range(len(paths))) if keep_unknown_angles
+                else known_angle_files(paths, angles, keyword="PARANG"))
+        for i in set(range(len(paths))) - set(keep):
+            files[i].close()
+        paths, files, data, bad = ([x[i] for i in keep] for x in (paths, files, data, bad))
+        angles = np.array(angles)[keep]
         cube = IFSCube(data=FrameStack(data, bad), wavelengths=wl, pixscale=ps, header=header,
                        angles=angles * u.deg, detpa=(angles + CHARIS_DETPA_OFFSET) * u.deg,
                        detpa_source=f"PARANG + {CHARIS_DETPA_OFFSET:g} deg",

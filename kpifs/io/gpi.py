@@ -2,8 +2,8 @@
 
 ``*_spdc.fits`` and ``*_spdc_distorcorr.fits``, one exposure per file: the
 header in HDU 0, the cube ``(37, 281, 281)`` in the extension named ``SCI``,
-an optional ``DQ`` (uint8, bit 0 do not use). About half of each slice is NaN,
-outside the tilted lenslet field.
+an optional ``DQ`` (uint8, bit 0 do not use; refused unless of SCI's shape).
+About half of each slice is NaN, outside the tilted lenslet field.
 
 - Wavelengths (um): ``CRVAL3 + (i + 1 - CRPIX3) * CD3_3`` (``CDELT3`` in older
   files), else the centres of 37 equal bins between the band edges of
@@ -12,6 +12,9 @@ outside the tilted lenslet field.
   (``x' = nx - 1 - x``), then ``DETPA = AVPARANG + IFSROTAT - 90`` deg
   (``AVPARANG`` from ``SCI``, ``IFSROTAT`` from HDU 0), which reproduces
   the pipeline's WCS. The pupil is fixed on the detector and the sky turns.
+  An exposure whose angle is unknown (``AVPARANG`` NaN or missing) among
+  others that have it is left out with a warning: one unknown angle would
+  turn the whole search to the detector frame.
 - Field: each cube is cut to the largest square around the star (``PSFCENTX``/
   ``PSFCENTY`` when present, else the field's centre) whose border stays
   inside the lenslet field, so that centring and the window never reach the
@@ -30,6 +33,7 @@ from astropy import units as u
 
 from .._utils import to_quantity
 from ..exceptions import KpifsError, KpifsWarning
+from .angles import known_angle_files
 from .cube import FrameStack, IFSCube, open_fits
 from .wavelengths import check_wavelengths
 
@@ -192,7 +196,7 @@ class _Crop:
         return out[None]
 
 
-def read_gpi(paths, *, wavelengths=None, pixscale=None):
+def read_gpi(paths, *, wavelengths=None, pixscale=None, keep_unknown_angles=False):
     """Read GPI ``*_spdc.fits`` cube(s), one exposure each, as one `IFSCube`.
 
     Parameters
@@ -203,6 +207,10 @@ def read_gpi(paths, *, wavelengths=None, pixscale=None):
         Replaces the header's wavelengths.
     pixscale : `~astropy.units.Quantity`, optional
         Default `GPI_PIXSCALE` (14.161 mas).
+    keep_unknown_angles : bool
+        Keep the exposures whose ``AVPARANG`` (or ``IFSROTAT``) is unknown among
+        others that have it (when the angles are given, ``--pa``); otherwise
+        they are left out with a warning (`~kpifs.io.angles.known_angle_files`).
 
     Examples
     --------
@@ -244,7 +252,16 @@ def read_gpi(paths, *, wavelengths=None, pixscale=None):
             except (TypeError, ValueError):
                 pa = np.nan
             dq = hdul["DQ"].data if "DQ" in hdul and hdul["DQ"].data is not None else None
+            if dq is not None and dq.shape != data.shape:
+                raise KpifsError(f"{path}: DQ of shape {dq.shape} does not match SCI "
+                                 f"{data.shape}: its bad pixels cannot be placed")
             found.append((data, dq, cx, cy, _half_side(field, cx, cy), wl, pa, how))
+        keep = (list(range(len(paths))) if keep_unknown_angles else
+                known_angle_files(paths, [f[6] for f in found], keyword="AVPARANG or IFSROTAT"))
+        for i in set(range(len(found))) - set(keep):
+            files[i].close()
+        paths, found = [paths[i] for i in keep], [found[i] for i in keep]
+        files = [files[i] for i in keep]
         wl0 = found[0][5]
         for path, f in zip(paths, found):
             if len(f[5]) != len(wl0) or not np.allclose(f[5], wl0, rtol=1e-5):
@@ -262,7 +279,7 @@ def read_gpi(paths, *, wavelengths=None, pixscale=None):
             iy = min(max(int(round(cy)), h), ny - 1 - h)
             ys, xs = slice(iy - h, iy + h + 1), slice(ix - h, ix + h + 1)
             parts.append(_Crop(data, ys, xs))
-            bad.append(_Crop(dq, ys, xs, bad=True) if dq is not None and dq.shape == data.shape
+            bad.append(_Crop(dq, ys, xs, bad=True) if dq is not None
                        else _NoBad(parts[-1].shape))
         pa = np.array([f[6] for f in found])
         header = files[0][0].header.copy()

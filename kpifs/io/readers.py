@@ -57,7 +57,7 @@ def detect_instrument(path):
 
 
 def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angles=None,
-              dq_bits=None):
+              dq_bits=None, pa_given=False):
     """Read one or several cube files as an `~kpifs.io.IFSCube`.
 
     Parameters
@@ -79,6 +79,9 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
     dq_bits : int or str, optional
         JWST: the DQ flags read as bad pixels (`~kpifs.io.jwst.parse_dq_bits`;
         default ``DO_NOT_USE``). Ignored by the other readers.
+    pa_given : bool
+        The detector angles will be given (``--pa``): CHARIS and GPI exposures
+        whose header angle is unknown are kept, not left out.
 
     Examples
     --------
@@ -109,12 +112,14 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
         log.info("%s: read as %s", paths[0] if len(paths) == 1 else f"{len(paths)} files",
                  instrument)
     if instrument == "charis":
-        return read_charis(paths, wavelengths=wavelengths, pixscale=pixscale)
+        return read_charis(paths, wavelengths=wavelengths, pixscale=pixscale,
+                           keep_unknown_angles=pa_given)
     if instrument == "jwst":
         return read_jwst(paths, wavelengths=wavelengths, pixscale=pixscale,
                          dq_bits=dq_bits)
     if instrument == "gpi":
-        return read_gpi(paths, wavelengths=wavelengths, pixscale=pixscale)
+        return read_gpi(paths, wavelengths=wavelengths, pixscale=pixscale,
+                        keep_unknown_angles=pa_given)
     readers = {"sphere": lambda p: read_sphere(p, wavelengths=wavelengths, pixscale=pixscale,
                                                angles=angles),
                "generic": lambda p: read_generic(p, wavelengths=wavelengths,
