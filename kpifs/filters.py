@@ -41,6 +41,7 @@ from astropy.io import fits
 from .data import KernelPhaseData
 from ._utils import to_quantity
 from .exceptions import KpifsError, KpifsWarning
+from .io.cube import open_fits
 from .io.jwst import JWST_FILTERS, jwst_mode, own_pixscale, pixscale_fits
 from .kernel import KernelModel, nyquist_usable
 from .sampling import nested_kernel
@@ -67,8 +68,8 @@ def jwst_filters(paths):
     out = {}
     for p in paths:
         try:
-            hdr = fits.getheader(p)
-        except (OSError, ValueError):          # the reader names unreadable files
+            hdr = _headers(p)[0]
+        except KpifsError:                     # the reader names unreadable files
             return {}
         if str(hdr.get("TELESCOP", "")).strip().upper() != "JWST":
             return {}
@@ -76,11 +77,19 @@ def jwst_filters(paths):
     return out
 
 
+def _headers(path):
+    """The primary and ``SCI`` headers of a file, read as the readers do (cards astropy
+    cannot parse fixed silently, the readers then name what is wrong)."""
+    with open_fits(path) as hdul:
+        return (hdul[0].header.copy(),
+                hdul["SCI"].header.copy() if "SCI" in hdul else fits.Header())
+
+
 def _scale(path, given):
     """A filter's mean wavelength (um), pixel scale (mas: *given* where it fits the file's
     own, `kpifs.io.jwst.pixscale_fits`), image width, whether *given* fits and the file's
     own scale."""
-    hdr, sci = fits.getheader(path), fits.getheader(path, "SCI")
+    hdr, sci = _headers(path)
     inst, filt, _ = jwst_mode(hdr, source=path)
     wl, _ = JWST_FILTERS[(inst, filt)]
     own = own_pixscale(hdr, sci, source=path)
@@ -147,7 +156,7 @@ def extract_filters(targets, calibrators, options, *, progress=False):
     if len(groups) < 2:
         raise KpifsError(f"{targets[0] if targets else 'no files'}: filters as channels need "
                          f"JWST files in two filters or more")
-    names = {str(p): str(fits.getval(p, "TARGNAME", default="") or "").strip() for p in targets}
+    names = {str(p): str(_headers(p)[0].get("TARGNAME", "") or "").strip() for p in targets}
     if len(set(names.values())) > 1:
         raise KpifsError("files of different targets: " + ", ".join(
             f"{p} ({t or '?'})" for p, t in names.items()) + ": give the calibrator with "
@@ -169,7 +178,7 @@ def extract_filters(targets, calibrators, options, *, progress=False):
     order = sorted(groups, key=lambda f: scales[f][0])
     filter_options = _given_pixscale(options, groups, order, scales)
     first = groups[order[0]][0]
-    km = kernel_model_for(options, "jwst", fits.getheader(first))
+    km = kernel_model_for(options, "jwst", _headers(first)[0])
     usable = np.array([nyquist_usable(km.uv, [scales[f][0]] * u.um, scales[f][1] * u.mas)[0]
                        for f in order])
     for f, m in zip(order, usable):

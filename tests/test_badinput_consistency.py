@@ -50,15 +50,45 @@ def corpus(tmp_path_factory):
     f.update(_nircam_pair(d))
     f.update(_clean_layouts(d))
     f.update(_angle_files(d))
+    f.update(_sweep_files(d, f))
     return f
 
 
+def _sweep_files(d, f):
+    """Header cards no instrument writes, found by this issue's own sweep (#12, #17)."""
+    jw, ch, gp = f["clean_jwst"][0], f["charis_cal"][0], f["gpi8_cal"][0]
+    plain = f["clean_plain"][0]
+    out = {
+        "kpwl_abc": _raw_card(plain, d / "kpwl_abc.fits", "KPWL2", "'abc'"),
+        "exptype_nan": _raw_card(jw, d / "exptype_nan_calints.fits", "EXP_TYPE", "NaN"),
+        "vparity0": _edit(jw, d / "vparity0_calints.fits", sci={"VPARITY": 0}),
+        "rollref_huge": _edit(jw, d / "rollref_calints.fits", sci={"ROLL_REF": 1e30}),
+        "rollref_nan": _raw_card(jw, d / "rollref_nan_calints.fits", "ROLL_REF", "NaN"),
+        "lammax_abc": _edit(ch, d / "lammax_CRSA_cube.fits", phu={"LAM_MAX": "abc"}),
+        "lammax_nan": _raw_card(ch, d / "lammaxnan_CRSA_cube.fits", "LAM_MAX", "NaN"),
+        "parang_huge": _edit(ch, d / "parang_CRSA_cube.fits", phu={"PARANG": 1e30}),
+        "avparang_huge": _edit(gp, d / "avparang_spdc.fits", sci={"AVPARANG": 1e30}),
+        "cd33_zero": _edit(gp, d / "cd33_spdc.fits", sci={"CD3_3": 0.0}),
+        "psfcent_out": _edit(gp, d / "psfcent_spdc.fits", sci={"PSFCENTX": 1.0,
+                                                               "PSFCENTY": 1.0}),
+    }
+    # a header changed by hand after writing (CHECKSUM kept): PIXSCALE 10.42 -> 12.42
+    raw = plain.read_bytes()
+    i = raw.index(b"PIXSCALE=")
+    out["checksum"] = d / "checksum.fits"
+    out["checksum"].write_bytes(raw[:i] + raw[i:i + 80].replace(b"10.42", b"12.42") +
+                                raw[i + 80:])
+    return out
+
+
 def _raw_card(src, dst, key, text):
-    """A copy of *src* whose first card *key* reads *text* (as written by a tool that puts
-    NaN in a header, which astropy refuses to write)."""
+    """A copy of *src* whose cards *key* (in every header) read *text* (as written by a tool
+    that puts NaN in a header, which astropy refuses to write)."""
     raw = bytearray(src.read_bytes())
-    i = raw.index(f"{key:8s}=".encode())
-    raw[i:i + 80] = f"{key:8s}= {text:>20s}".ljust(80).encode()
+    name = f"{key:8s}=".encode()
+    for i in range(0, len(raw), 80):
+        if raw[i:i + 9] == name:
+            raw[i:i + 80] = f"{key:8s}= {text:>20s}".ljust(80).encode()
     dst.write_bytes(bytes(raw))
     return dst
 
@@ -213,6 +243,45 @@ CASES = [
     ("17: PARANG unavailable, angles given: every exposure kept",
      lambda f: ["extract", *f["charis_one_unavail"], "--pa", "10,30,50,70", "--calibrator",
                 *f["charis_cal"]], 0, ["calibrated kernel phases"]),
+    ("12: a KPWL card that is no number (was exit 3)",
+     lambda f: ["extract", f["kpwl_abc"]], 2,
+     ["kpwl_abc.fits: KPWL2 = \"'abc'\" is not a wavelength (um)"]),
+    ("12: a JWST card astropy cannot parse (was exit 3)",
+     lambda f: ["extract", f["exptype_nan"]], 2,
+     ["exptype_nan_calints.fits: EXP_TYPE NAN is not supported"]),
+    ("12: CHARIS LAM_MAX no number (was exit 3)",
+     lambda f: ["extract", f["lammax_abc"]], 2,
+     ["lammax_CRSA_cube.fits: LAM_MAX = nan nm disagrees with LAM_MIN"]),
+    ("17: CHARIS LAM_MAX NaN (was accepted)",
+     lambda f: ["extract", f["lammax_nan"]], 2,
+     ["lammaxnan_CRSA_cube.fits: LAM_MAX = nan nm disagrees"]),
+    ("17: VPARITY 0 (was accepted)",
+     lambda f: ["extract", f["vparity0"]], 2,
+     ["vparity0_calints.fits: ROLL_REF/V3I_YANG/VPARITY = 250/-0.56/0 are not the angles"]),
+    ("17: ROLL_REF 1e30 (was accepted)",
+     lambda f: ["extract", f["rollref_huge"]], 2,
+     ["rollref_calints.fits: ROLL_REF/V3I_YANG/VPARITY = 1e+30/-0.56/-1 are not the angles"]),
+    ("17: ROLL_REF NaN: orientation unknown, said",
+     lambda f: ["extract", f["rollref_nan"], "--calibrator", f["clean_jwst_cal"][0]], 0,
+     ["rollref_nan_calints.fits: ROLL_REF/V3I_YANG/VPARITY = nan/-0.56/-1.0: the sky "
+      "orientation is unknown (give --pa)"]),
+    ("17: PARANG 1e30 (was accepted)",
+     lambda f: ["extract", f["parang_huge"]], 2,
+     ["parang_CRSA_cube.fits: PARANG = 1e+30 is not an angle (deg)"]),
+    ("17: AVPARANG 1e30 (was accepted)",
+     lambda f: ["extract", f["avparang_huge"]], 2,
+     ["avparang_spdc.fits: AVPARANG = 1e+30, IFSROTAT = 23.5: not angles (deg)"]),
+    ("17: GPI CD3_3 = 0 (was accepted by info)",
+     lambda f: ["info", f["cd33_zero"]], 2,
+     ["cd33_spdc.fits: CD3_3 (or CDELT3) = 0: every channel would have one wavelength"]),
+    ("17: GPI PSFCENTX/Y outside the lenslet field: said",
+     lambda f: ["info", f["psfcent_out"]], 0,
+     ["psfcent_spdc.fits: PSFCENTX/Y = (1, 1) is not in the lenslet field: the field's "
+      "centre is used"]),
+    ("17: info on a header changed after its CHECKSUM (was silent)",
+     lambda f: ["info", f["checksum"]], 0,
+     ["checksum.fits: header checksum mismatch in HDU 0 (PRIMARY): its header was changed "
+      "after it was written", "pixel scale: 12.42 mas"]),
     ("17: unknown NIRISS PUPIL refused",
      lambda f: ["extract", f["gr700xd"], "--calibrator", f["clearp_cal"]], 2,
      ["gr700xd_calints.fits: NIRISS PUPIL 'GR700XD' is no pupil element kpifs models"]),

@@ -94,14 +94,19 @@ def charis_wavelengths(header, nlam_cube, *, source="CHARIS cube"):
         raise KpifsError(f"{source}: bad wavelength keyword: {exc}") from None
     if nlam != nlam_cube:
         raise KpifsError(f"{source}: NLAM = {nlam} but the cube has {nlam_cube} channels")
-    if not (lmin > 0 and dlog > 0):
-        raise KpifsError(f"{source}: LAM_MIN = {lmin} and DLOGLAM = {dlog} must be > 0")
+    if not (lmin > 0 and 0 < dlog < 1):        # a log step of 1: a factor e per channel
+        raise KpifsError(f"{source}: LAM_MIN = {lmin} and DLOGLAM = {dlog} must be > 0 "
+                         f"(DLOGLAM < 1)")
     if not 300 < lmin < 30000:
         raise KpifsError(f"{source}: LAM_MIN = {lmin} is not a wavelength in nm")
-    wl = lmin * np.exp(np.arange(nlam) * dlog)
+    with np.errstate(over="ignore", invalid="ignore"):
+        wl = lmin * np.exp(np.arange(nlam) * dlog)
     if "LAM_MAX" in header:
-        lmax = float(header["LAM_MAX"])
-        if abs(wl[-1] - lmax) > 0.005 * lmax:
+        try:
+            lmax = float(header["LAM_MAX"])
+        except (TypeError, ValueError):
+            lmax = np.nan
+        if not abs(wl[-1] - lmax) <= 0.005 * lmax:
             raise KpifsError(f"{source}: LAM_MAX = {lmax} nm disagrees with LAM_MIN * "
                              f"exp((NLAM-1) * DLOGLAM) = {wl[-1]:.2f} nm")
     return check_wavelengths((wl * u.nm).to(u.um), source=source)
@@ -189,6 +194,10 @@ def read_charis(paths, *, wavelengths=None, pixscale=None, keep_unknown_angles=F
                 angles.append(float(par))
             except (TypeError, ValueError):
                 angles.append(np.nan)
+            if not np.isfinite(angles[-1]):        # NaN, inf: unknown
+                angles[-1] = np.nan
+            elif abs(angles[-1]) > 360:
+                raise KpifsError(f"{path}: PARANG = {par} is not an angle (deg)")
         keep = (list(range(len(paths))) if keep_unknown_angles
                 else known_angle_files(paths, angles, keyword="PARANG"))
         for i in set(range(len(paths))) - set(keep):

@@ -123,9 +123,13 @@ def gpi_wavelengths(phu, sci, nchan, *, source="GPI cube"):
             crpix = float(sci.get("CRPIX3", 1.0))
         except (TypeError, ValueError) as exc:
             raise KpifsError(f"{source}: bad wavelength WCS: {exc}") from None
+        if step == 0:
+            raise KpifsError(f"{source}: CD3_3 (or CDELT3) = 0: every channel would have one "
+                             f"wavelength")
         unit = _card(sci, "CUNIT3").lower() or "um"
         unit = u.um if unit.startswith("micron") or unit == "um" else u.Unit(unit)
-        wl = (crval + (np.arange(nchan) + 1 - crpix) * step) * unit
+        with np.errstate(invalid="ignore", over="ignore"):
+            wl = (crval + (np.arange(nchan) + 1 - crpix) * step) * unit
         return check_wavelengths(wl.to(u.um), source=f"{source}: CRVAL3/CD3_3")
     band = _card(phu, "IFSFILT").split("_")
     band = band[1].upper() if len(band) > 1 else ""
@@ -158,7 +162,10 @@ def _centre(sci, field, path):
     try:
         cx, cy = float(sci["PSFCENTX"]), float(sci["PSFCENTY"])
         if np.isfinite(cx) and np.isfinite(cy) and 0 <= cx < nx and 0 <= cy < ny:
-            return nx - 1 - cx, cy, "PSFCENTX/Y"
+            if field[int(round(cy)), nx - 1 - int(round(cx))]:
+                return nx - 1 - cx, cy, "PSFCENTX/Y"
+        warnings.warn(f"{path}: PSFCENTX/Y = ({cx:g}, {cy:g}) is not in the lenslet field: "
+                      f"the field's centre is used", KpifsWarning, stacklevel=4)
     except (KeyError, TypeError, ValueError):
         pass
     yy, xx = np.nonzero(field)
@@ -178,6 +185,20 @@ def _half_side(field, cx, cy, *, max_nan=0.02):
         if np.mean(~ring) > max_nan:
             return h - 1
     return hmax
+
+
+def _detpa(path, phu, sci):
+    """``AVPARANG + IFSROTAT - 90`` (deg); NaN when either is unknown (NaN, missing or not a
+    number), refused when either is a number no angle can be."""
+    try:
+        avpa, rot = float(sci.get("AVPARANG", np.nan)), float(phu.get("IFSROTAT", np.nan))
+    except (TypeError, ValueError):
+        return np.nan
+    if not (np.isfinite(avpa) and np.isfinite(rot)):
+        return np.nan
+    if abs(avpa) > 360 or abs(rot) > 360:
+        raise KpifsError(f"{path}: AVPARANG = {avpa:g}, IFSROTAT = {rot:g}: not angles (deg)")
+    return avpa + rot - 90
 
 
 class _Crop:
@@ -247,10 +268,7 @@ def read_gpi(paths, *, wavelengths=None, pixscale=None, keep_unknown_angles=Fals
                   else gpi_wavelengths(phu, sci, data.shape[0], source=path))
             if len(wl) != data.shape[0]:
                 raise KpifsError(f"{path}: {len(wl)} wavelengths for {data.shape[0]} channels")
-            try:
-                pa = float(sci.get("AVPARANG", np.nan)) + float(phu.get("IFSROTAT", np.nan)) - 90
-            except (TypeError, ValueError):
-                pa = np.nan
+            pa = _detpa(path, phu, sci)
             dq = hdul["DQ"].data if "DQ" in hdul and hdul["DQ"].data is not None else None
             if dq is not None and dq.shape != data.shape:
                 raise KpifsError(f"{path}: DQ of shape {dq.shape} does not match SCI "

@@ -150,7 +150,11 @@ _SCALED = ("BZERO", "BSCALE", "BLANK")
 
 
 def _card(hdr, key):
-    return str(hdr.get(key, "") or "").strip().upper()
+    try:
+        value = hdr.get(key, "")
+    except (fits.VerifyError, ValueError):       # a card astropy cannot parse (NaN, ...)
+        value = hdr.cards[key].image[10:].split("/")[0].strip(" '")
+    return str(value or "").strip().upper()
 
 
 def is_jwst(hdul):
@@ -260,7 +264,8 @@ def jwst_detpa(sci_header, *, source="JWST file"):
     """Detector position angle (deg) from ``ROLL_REF``, ``V3I_YANG`` and ``VPARITY``.
 
     ``DETPA = ROLL_REF - V3I_YANG * VPARITY`` (jwst-kpi); None when a card is
-    missing.
+    missing, NaN (with a warning) when one is not finite; refused when they are not
+    angles and a parity.
 
     Examples
     --------
@@ -273,8 +278,15 @@ def jwst_detpa(sci_header, *, source="JWST file"):
         roll, yang, par = (float(sci_header[k]) for k in ("ROLL_REF", "V3I_YANG", "VPARITY"))
     except KeyError:
         return None
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, fits.VerifyError) as exc:
         raise KpifsError(f"{source}: ROLL_REF/V3I_YANG/VPARITY not numbers: {exc}") from None
+    if not np.all(np.isfinite([roll, yang, par])):
+        warnings.warn(f"{source}: ROLL_REF/V3I_YANG/VPARITY = {roll}/{yang}/{par}: the sky "
+                      f"orientation is unknown (give --pa)", KpifsWarning, stacklevel=3)
+        return np.nan
+    if par not in (-1.0, 1.0) or abs(roll) > 360 or abs(yang) > 360:
+        raise KpifsError(f"{source}: ROLL_REF/V3I_YANG/VPARITY = {roll:g}/{yang:g}/{par:g} are "
+                         f"not the angles (deg) and parity (+1 or -1) they should be")
     return round((roll - yang * par) % 360.0, 10)
 
 
