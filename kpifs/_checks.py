@@ -10,6 +10,7 @@ import numpy as np
 from astropy import units as u
 from astropy.io import fits
 
+from ._memory import available_memory, check_memory  # noqa: F401  (kpifs._checks.*)
 from .data import KernelPhaseData
 from .exceptions import KpifsError, KpifsWarning
 from .io.readers import observing_setup, setup_differences
@@ -104,36 +105,6 @@ def check_seed(seed, option="--seed"):
     if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) \
             or seed < 0:
         raise KpifsError(f"{option} must be a whole number >= 0, got {seed!r}")
-
-
-def available_memory():
-    """Bytes of memory available to a new allocation (MemAvailable; else physical)."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (ValueError, OSError, AttributeError):
-        return 2 ** 40
-
-
-def _size(nbytes):
-    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
-        if nbytes < 1024 or unit == "PiB":
-            return f"{nbytes:.3g} {unit}"
-        nbytes /= 1024
-
-
-def check_memory(nbytes, what, advice):
-    """Refuse a computation whose estimated memory exceeds what is available."""
-    avail = available_memory()
-    if nbytes > avail:
-        raise KpifsError(f"{what} needs about {_size(nbytes)} of memory ({_size(avail)} "
-                         f"available): {advice}")
 
 
 def check_draws_memory(n_draws, option="--draws"):

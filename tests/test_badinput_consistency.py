@@ -532,3 +532,28 @@ def test_simulated_rotation_found_on_the_sky(tmp_path, capsys):
                  str(sim / "calibrator.fits"), "--step", "0.8m", "-q", "-o", str(kp)]) == 0
     assert main(["detect", str(kp), "--draws", "1000", "-q", "-o", str(det)]) == 0
     _found(det, 100.0, 306.87, dsep=8.0, dpa=3.0)
+
+
+def test_sizes_bounded_before_allocation(corpus, tmp_path, capsys, monkeypatch):
+    """#12: what a file's or the options' numbers imply is bounded before it is allocated:
+    a simulation (was exit 3, MemoryError), the frames `inject` and `model-check` read whole,
+    a JWST DQ read into memory."""
+    import kpifs._memory
+    message = _run(corpus, tmp_path, capsys, ["simulate", "--frames", "100000", "--shape",
+                                              "2048", "-q", "-o", tmp_path / "sim"], 2)
+    assert "a simulation of 100000 frames x 3 channels of 2048 x 2048 pixels needs about " \
+           "18.3 TiB of memory" in message
+    monkeypatch.setattr(kpifs._memory, "available_memory", lambda: 2 ** 20)
+    src = corpus["clean_jwst"][0]
+    message = _run(corpus, tmp_path, capsys, ["inject", src, "--position", "100,0",
+                                              "--contrast", "0.01"], 2)
+    assert f"{src}: DQ of 6.4e+04 pixels needs about 813 KiB" not in message   # 1 MiB: fits
+    assert f"{src}: 10 frames of 1 x 80 x 80 needs about 1.46 MiB of memory (1 MiB available)" \
+        in message
+    monkeypatch.setattr(kpifs._memory, "available_memory", lambda: 900 * 2 ** 10)
+    message = _run(corpus, tmp_path, capsys, ["model-check", src, "-q"], 2)
+    assert f"{src}: 10 frames of 1 x 80 x 80 needs about 1000 KiB" in message
+    monkeypatch.setattr(kpifs._memory, "available_memory", lambda: 2 ** 19)
+    message = _run(corpus, tmp_path, capsys, ["info", src], 2)
+    assert f"{src}: DQ of 6.4e+04 pixels needs about 813 KiB of memory (512 KiB available)" \
+        in message

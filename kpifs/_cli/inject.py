@@ -7,7 +7,7 @@ from astropy import units as u
 from astropy.io import fits
 from astropy.table import QTable
 
-from .._checks import check_inputs, check_seed
+from .._checks import check_inputs, check_memory, check_seed
 from .._meta import VERSION
 from .._utils import check_output_dir, check_output_path, to_quantity, write_hdulist
 from ..exceptions import KpifsError, KpifsWarning
@@ -84,6 +84,10 @@ def _read(args, options):
         if not args.curve and args.contrast is not None:
             _contrasts(args.contrast, "--contrast", cube.shape[1])   # before the data are read
         detpa = None if cube.detpa is None else cube.detpa.to_value(u.deg)
+        # the frames, the injected copy and the companion, in float64 (issue 37)
+        check_memory(24.0 * np.prod(cube.shape), f"{cube.name}: {cube.shape[0]} frames of "
+                     f"{' x '.join(map(str, cube.shape[1:]))}", "inject into fewer frames "
+                     "(files) at a time")
         # the header, and where each frame goes back in the files (issue 37)
         return (np.array(cube.data, float), cube.wavelengths, cube.pixscale, detpa,
                 cube.instrument, cube.name, (cube.header, source_layout(cube)))

@@ -2,7 +2,7 @@
 import numpy as np
 from astropy import units as u
 
-from .._checks import check_inputs
+from .._checks import check_inputs, check_memory
 from .._utils import check_output_path, to_quantity, write_table
 from ..exceptions import KpifsError
 from ..io.readers import read_cube
@@ -28,6 +28,9 @@ def _read(files, args):
         if cube.shape[0] < 4:              # before the frames are read
             raise KpifsError(f"{cube.name}: {cube.shape[0]} frame(s): kpifs model-check needs "
                              f"at least 4 frames of the star")
+        check_memory(16.0 * np.prod(cube.shape), f"{cube.name}: {cube.shape[0]} frames of "
+                     f"{' x '.join(map(str, cube.shape[1:]))}", "check the model on fewer "
+                     "frames (files)")
         return (np.array(cube.data, float), cube.wavelengths, cube.pixscale,
                 (cube.instrument, cube.header))
 

@@ -43,6 +43,7 @@ import numpy as np
 from astropy import units as u
 from astropy.io import fits
 
+from .._memory import check_memory
 from .._utils import to_quantity
 from ..exceptions import KpifsError, KpifsWarning
 from .cube import FrameStack, IFSCube, open_fits
@@ -301,12 +302,17 @@ def _hdu(hdul, name, path, *, required=True):
 def _dq_bad(path, shape, dq_bits):
     """The DQ mask (True = bad) read into memory: DQ is scaled, so never memory-mapped."""
     with fits.open(path, memmap=False) as hdul:
-        if "DQ" not in hdul or hdul["DQ"].data is None:
+        if "DQ" not in hdul or not hdul["DQ"].header.get("NAXIS"):
             return None
+        hdr = hdul["DQ"].header
+        n = np.prod([hdr.get(f"NAXIS{i}", 0) for i in range(1, hdr["NAXIS"] + 1)], dtype=float)
+        # the scaled integers, their mask and the flags (issue 37: bounded before reading)
+        check_memory(13.0 * n, f"{path}: DQ of {n:.3g} pixels", "read fewer integrations")
         dq = np.asarray(hdul["DQ"].data)
     dq = dq[:, None] if dq.ndim == 3 else dq           # (nints, 1, ny, nx) as the frames
     try:
-        return np.broadcast_to((dq.astype(np.uint64) & np.uint64(dq_bits)) != 0, shape)
+        bad = np.bitwise_and(dq, np.asarray(dq_bits, dtype=dq.dtype)) != 0
+        return np.broadcast_to(bad, shape)
     except ValueError:
         raise KpifsError(f"{path}: DQ of shape {dq.shape} does not match SCI") from None
 
