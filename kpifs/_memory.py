@@ -26,7 +26,7 @@ def available_memory():
 def _size(nbytes):
     for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
         if nbytes < 1024 or unit == "PiB":
-            return f"{nbytes:.3g} {unit}"
+            return f"{nbytes:.0f} {unit}" if nbytes >= 1000 else f"{nbytes:.3g} {unit}"
         nbytes /= 1024
 
 
