@@ -547,7 +547,7 @@ def test_sizes_bounded_before_allocation(corpus, tmp_path, capsys, monkeypatch):
     src = corpus["clean_jwst"][0]
     message = _run(corpus, tmp_path, capsys, ["inject", src, "--position", "100,0",
                                               "--contrast", "0.01"], 2)
-    assert f"{src}: DQ of 6.4e+04 pixels needs about 813 KiB" not in message   # 1 MiB: fits
+    assert f"{src}: DQ of 6.4e+04 pixels" not in message   # 1 MiB: fits
     assert f"{src}: 10 frames of 1 x 80 x 80 needs about 1.46 MiB of memory (1 MiB available)" \
         in message
     monkeypatch.setattr(kpifs._memory, "available_memory", lambda: 900 * 2 ** 10)
@@ -555,5 +555,5 @@ def test_sizes_bounded_before_allocation(corpus, tmp_path, capsys, monkeypatch):
     assert f"{src}: 10 frames of 1 x 80 x 80 needs about 1000 KiB" in message
     monkeypatch.setattr(kpifs._memory, "available_memory", lambda: 2 ** 19)
     message = _run(corpus, tmp_path, capsys, ["info", src], 2)
-    assert f"{src}: DQ of 6.4e+04 pixels needs about 813 KiB of memory (512 KiB available)" \
+    assert f"{src}: DQ of 6.4e+04 pixels needs about 812 KiB of memory (512 KiB available)" \
         in message
