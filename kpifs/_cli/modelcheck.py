@@ -2,7 +2,7 @@
 import numpy as np
 from astropy import units as u
 
-from .._checks import check_inputs, check_memory
+from .._checks import check_inputs, check_memory, check_same_setup
 from .._utils import check_output_path, to_quantity, write_table
 from ..exceptions import KpifsError
 from ..io.readers import read_cube
@@ -42,7 +42,8 @@ def run(args):
     data, wl, ps, instrument = _read(args.cubes, args)
     cal = None
     if args.calibrator:
-        cal, wl_c, _, _ = _read(args.calibrator, args)
+        cal, wl_c, _, (_, cal_header) = _read(args.calibrator, args)
+        check_same_setup(instrument[1], cal_header)     # issue 37: one pupil, one filter
         if len(wl_c) != len(wl):
             raise KpifsError(f"{args.calibrator[0]} has {len(wl_c)} "
                              f"channels, {args.cubes[0]} {len(wl)}")
