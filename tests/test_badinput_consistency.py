@@ -288,7 +288,14 @@ CASES = [
 ]
 
 
-@pytest.mark.parametrize("name, argv, code, texts", CASES, ids=[c[0] for c in CASES])
+#: Cases that run an extraction of several seconds (GPI: 8 exposures of 37 channels).
+SLOW_CASES = ("13: one NaN AVPARANG of 8 GPI exposures: left out, said",
+              "13: a missing AVPARANG: left out, said")
+
+
+@pytest.mark.parametrize("name, argv, code, texts", [
+    pytest.param(*c, marks=[pytest.mark.slow] if c[0] in SLOW_CASES else [], id=c[0])
+    for c in CASES])
 @pytest.mark.filterwarnings("ignore::DeprecationWarning", "ignore::ResourceWarning")
 def test_refused_or_said(corpus, tmp_path, capsys, name, argv, code, texts):
     message = _run(corpus, tmp_path, capsys, argv(corpus), code)
@@ -296,6 +303,7 @@ def test_refused_or_said(corpus, tmp_path, capsys, name, argv, code, texts):
         assert text.format(**{k: v for k, v in corpus.items()}) in message, message
 
 
+@pytest.mark.slow
 def test_same_setup_through_the_python_api(corpus):
     """The refusal is made where target and calibrator meet: `calibrate` too."""
     from kpifs.calibrate import calibrate
