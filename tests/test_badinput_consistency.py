@@ -142,6 +142,10 @@ def _err_files(d, f):
         for role, src in (("t", f["clearp"]), ("c", f["clearp_cal"])):
             out[f"err_{name}_{role}"] = _edit(src, d / f"err_{name}_{role}_calints.fits",
                                               data={"ERR": edit})
+    # ERR NaN at 4 pixels of the core, where SCI is good: given the image's largest ERR
+    core = np.pad(np.ones((2, 2), bool), ((39, 39), (39, 39)))
+    out["err_part_t"] = _edit(f["clearp"], d / "err_part_calints.fits",
+                              data={"ERR": lambda e: np.where(core, np.nan, e)})
     # SCI normalised to a total of 1 per integration, ERR left in DN/s
     for role, src in (("t", f["clearp"]), ("c", f["clearp_cal"])):
         with fits.open(src) as h:
@@ -219,6 +223,10 @@ CASES = [
     ("5: ERR negative: said, not used",
      lambda f: ["extract", f["err_neg_t"], "--calibrator", f["err_neg_c"]], 0,
      ["{err_neg_t}: ERR is negative at every pixel used"]),
+    ("5: ERR NaN at a few good pixels: said, the image's largest ERR there",
+     lambda f: ["extract", f["err_part_t"], "--calibrator", f["clearp_cal"]], 0,
+     ["{err_part_t}: ERR is NaN, infinite, zero or negative at 40 of the ",
+      "good pixels used: given the largest ERR of their image"]),
     ("5: ERR 100 x too large: scaled to the frames' scatter, said",
      lambda f: ["extract", f["err_x100_t"], "--calibrator", f["clearp_cal"]], 0,
      ["{err_x100_t}: ERR predicts kernel-phase errors 93.6 times the frames' own scatter (10 "
