@@ -101,6 +101,10 @@ def inject_companion(cube, *, position, contrast, pixscale, frame="detector", de
     if np.shape(pos) != (2,) or not np.all(np.isfinite(pos)):
         raise KpifsError(f"inject: a position is two finite offsets, got {position!r}")
     ps = to_quantity(pixscale, u.mas, name="pixel scale").value
+    if np.max(np.abs(pos)) / ps > max(cube.shape[-2:]):      # issue 37: before any padding
+        raise KpifsError(f"inject: a companion at ({pos[0]:g}, {pos[1]:g}) mas ({frame}) falls "
+                         f"off the image: 100% of its flux would be lost (the image reaches "
+                         f"about {0.5 * min(cube.shape[-2:]) * ps:.0f} mas from its centre)")
     c = np.atleast_1d(np.asarray(contrast, float))
     if c.ndim != 1 or c.size not in (1, nwave):
         raise KpifsError(f"inject: {c.size} contrasts for {nwave} channel(s): give one, or "

@@ -419,6 +419,8 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
     params.companion_offset = to_quantity(params.companion_offset, u.mas, name="offset")
     params.wavefront_rms = to_quantity(params.wavefront_rms, u.nm, name="wavefront rms")
     params.exptime = to_quantity(params.exptime, u.s, name="exposure time")
+    if not (np.isfinite(params.exptime.value) and params.exptime.value > 0):
+        raise KpifsError(f"the exposure time must be > 0, got {params.exptime}")
     for name in ("drift_rms", "static_rms", "static_diff_rms"):
         setattr(params, name, to_quantity(getattr(params, name), u.nm, name=name))
     if not params.drift_time > 0:

@@ -14,7 +14,7 @@ from ..exceptions import KpifsError, KpifsWarning
 from ..inject import inject_companion, injection_limits
 from ..io import parse_wavelengths, read_cube
 from ..io._kpfits_common import ascii_text
-from ..io.angles import frame_detpa
+from ..io.angles import frame_detpa, parse_angles
 from ..io.layouts_like import source_layout, write_added
 from ..plotting import _save, analytic_column, plot_injection_limits
 from ..workflow import (calibrate_observation, calibrator_options, detect_observation,
@@ -119,8 +119,8 @@ def run(args):
         check_output_dir(args.plots)
     _check_args(args)
     data, wl, ps, detpa, instrument, name, (header, sources) = _read(args, options)
-    if args.pa is not None:
-        detpa = frame_detpa(args.pa, data.shape[0], source="--pa")
+    if args.pa is not None:        # one rule for angle arguments (values, lists, files)
+        detpa = frame_detpa(parse_angles(args.pa, source="--pa"), data.shape[0], source="--pa")
     if not args.curve:
         if args.position is None or args.contrast is None:
             raise KpifsError("inject: give --position and --contrast (or --curve)")
