@@ -10,8 +10,10 @@ import numpy as np
 from astropy import units as u
 from astropy.io import fits
 
+from ._memory import available_memory, check_memory  # noqa: F401  (kpifs._checks.*)
 from .data import KernelPhaseData
 from .exceptions import KpifsError, KpifsWarning
+from .io.readers import observing_setup, setup_differences
 
 __all__ = []
 
@@ -58,6 +60,42 @@ def check_inputs(target, calibrators=(), *, outputs=()):
                              f"({inputs[_real(out)]})")
 
 
+def check_same_setup(target, calibrator):
+    """Refuse a calibrator observed in another set-up than its target (another instrument,
+    filter, pupil element or mask, band or mode: `kpifs.io.readers.observing_setup` of
+    their headers), naming both. *target* and *calibrator* are
+    `~kpifs.data.KernelPhaseData` (their ``header`` is their cube's) or headers.
+
+    Called where a target and its calibrator meet (`kpifs.calibrate.check_compatible`):
+    every command and the Python API go through it.
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs._checks import check_same_setup
+    >>> from kpifs.exceptions import KpifsError
+    >>> t = fits.Header({"INSTRUME": "NIRISS", "FILTER": "F480M", "PUPIL": "CLEARP"})
+    >>> c = fits.Header({"INSTRUME": "NIRISS", "FILTER": "F480M", "PUPIL": "NRM"})
+    >>> try:
+    ...     check_same_setup(t, c)
+    ... except KpifsError as err:
+    ...     print(str(err).split(": a calibrator")[0])
+    calibrator: pupil element NRM, but the target: CLEARP
+    """
+    def facts(x):
+        if isinstance(x, fits.Header):
+            return "", observing_setup(x)
+        return f" {x.meta.get('source', getattr(x, 'name', '?'))}", observing_setup(x.header)
+    tname, tset = facts(target)
+    cname, cset = facts(calibrator)
+    diff = setup_differences(tset, cset)
+    if diff:
+        raise KpifsError(f"calibrator{cname}: " + ", ".join(f"{k} {c}" for k, _, c in diff)
+                         + f", but the target{tname}: " + ", ".join(f"{t}" for _, t, _ in diff)
+                         + ": a calibrator must be observed through its target's instrument, "
+                           "filter and pupil (its kernel phases are of another pupil)")
+
+
 def check_seed(seed, option="--seed"):
     """Refuse a seed numpy cannot take (negative, not a whole number)."""
     if seed is None:
@@ -67,36 +105,6 @@ def check_seed(seed, option="--seed"):
     if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) \
             or seed < 0:
         raise KpifsError(f"{option} must be a whole number >= 0, got {seed!r}")
-
-
-def available_memory():
-    """Bytes of memory available to a new allocation (MemAvailable; else physical)."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (ValueError, OSError, AttributeError):
-        return 2 ** 40
-
-
-def _size(nbytes):
-    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
-        if nbytes < 1024 or unit == "PiB":
-            return f"{nbytes:.3g} {unit}"
-        nbytes /= 1024
-
-
-def check_memory(nbytes, what, advice):
-    """Refuse a computation whose estimated memory exceeds what is available."""
-    avail = available_memory()
-    if nbytes > avail:
-        raise KpifsError(f"{what} needs about {_size(nbytes)} of memory ({_size(avail)} "
-                         f"available): {advice}")
 
 
 def check_draws_memory(n_draws, option="--draws"):

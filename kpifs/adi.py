@@ -50,6 +50,7 @@ def angular_differential(target, calibrated=None, *, n_modes=NOISE_MODES):
     ('angular-differential', (1, 1, 37), False)
     """
     name = target.meta.get("source", "target")
+    _check_angles_known(target, name)
     if calibrated is not None:
         if calibrated.rotation is None:
             raise KpifsError(f"{name}: --angular-differential needs frames whose angles turn "
@@ -85,6 +86,18 @@ def angular_differential(target, calibrated=None, *, n_modes=NOISE_MODES):
     log.info("%s: angular-differential product: %d blocks over %.1f deg, %d modes per channel",
              name, rb.n_blocks, rb.span, k)
     return out
+
+
+def _check_angles_known(target, name):
+    """Refuse frames whose angles are unknown, saying so (issue 37: they were reported as
+    "angles do not turn (span 0.0 deg)")."""
+    a = None if target.detpa is None else np.asarray(target.detpa, float)
+    bad = target.n_frame if a is None else int(np.sum(~np.isfinite(a)))
+    if bad:
+        where = target.meta.get("detpa_source") or "the header"
+        raise KpifsError(f"{name}: --angular-differential needs the detector position angle "
+                         f"of every frame: unknown for {bad} of {target.n_frame} ({where}: "
+                         f"missing, NaN or 'unavailable'); give them with --pa")
 
 
 #: An angular-differential search is refused when it keeps less than this fraction of a

@@ -17,6 +17,7 @@ import warnings
 import numpy as np
 from astropy import units as u
 
+from ._checks import check_same_setup
 from .covariance import (calibrated_covariance, empirical_covariance, hartlap_factor,
                          rows_covariance)
 from .data import KernelPhaseData
@@ -37,7 +38,8 @@ def _name(kpd):
 
 
 def check_compatible(target, other):
-    """Raise `~kpifs.KpifsError` unless *other* has the target's channels, scale and kernel.
+    """Raise `~kpifs.KpifsError` unless *other* has the target's set-up
+    (`kpifs._checks.check_same_setup`), channels, scale and kernel.
 
     Examples
     --------
@@ -53,6 +55,7 @@ def check_compatible(target, other):
     ...     print("pixel scale" in str(err))
     True
     """
+    check_same_setup(target, other)          # instrument, filter, pupil element (issue 37)
     t, o = _name(target), _name(other)
     if other.n_wave != target.n_wave or not np.allclose(
             other.wavelengths.to_value(u.um), target.wavelengths.to_value(u.um), rtol=1e-4):

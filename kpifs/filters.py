@@ -34,14 +34,18 @@ scatter, and the long baselines, near the pupil's edge, add noisy ones (see
 docs/user/jwst.rst for the measured depths).
 """
 import logging
+import warnings
+from dataclasses import replace
 
 import numpy as np
 from astropy import units as u
 from astropy.io import fits
 
 from .data import KernelPhaseData
-from .exceptions import KpifsError
-from .io.jwst import JWST_FILTERS, JWST_PIXSCALES, jwst_mode
+from ._utils import to_quantity
+from .exceptions import KpifsError, KpifsWarning
+from .io.cube import open_fits
+from .io.jwst import JWST_FILTERS, jwst_mode, own_pixscale, pixscale_fits
 from .kernel import KernelModel, nyquist_usable
 from .sampling import nested_kernel
 from .window import DEFAULT_WINDOW_RADIUS, ExtractionWindow
@@ -67,8 +71,8 @@ def jwst_filters(paths):
     out = {}
     for p in paths:
         try:
-            hdr = fits.getheader(p)
-        except (OSError, ValueError):          # the reader names unreadable files
+            hdr = file_headers(p)[0]
+        except KpifsError:                     # the reader names unreadable files
             return {}
         if str(hdr.get("TELESCOP", "")).strip().upper() != "JWST":
             return {}
@@ -76,20 +80,56 @@ def jwst_filters(paths):
     return out
 
 
-def _scale(path):
-    hdr = fits.getheader(path)
+def file_headers(path):
+    """The primary and ``SCI`` headers of a file, read as the readers do (cards astropy
+    cannot parse fixed silently, the readers then name what is wrong)."""
+    with open_fits(path) as hdul:
+        return (hdul[0].header.copy(),
+                hdul["SCI"].header.copy() if "SCI" in hdul else fits.Header())
+
+
+def _scale(path, given):
+    """A filter's mean wavelength (um), pixel scale (mas: *given* where it fits the file's
+    own, `kpifs.io.jwst.pixscale_fits`), image width, whether *given* fits and the file's
+    own scale."""
+    hdr, sci = file_headers(path)
     inst, filt, _ = jwst_mode(hdr, source=path)
-    chan = str(hdr.get("CHANNEL", "")).strip().upper() if inst == "NIRCAM" else None
     wl, _ = JWST_FILTERS[(inst, filt)]
-    return wl, JWST_PIXSCALES.get((inst, chan)), fits.getval(path, "NAXIS1", "SCI")
+    own = own_pixscale(hdr, sci, source=path)
+    fit = given is not None and pixscale_fits(given, own)
+    return wl, (given if fit else own[0]), sci["NAXIS1"], fit, own[0]
 
 
-def filter_groups(targets, calibrators):
+def filter_options(options, groups, order, scales):
+    """Each filter's options: a pixel scale given is kept where it fits the filter's own,
+    with a note for the filters it does not fit; refused when it fits none.
+
+    ``order``, ``groups`` and ``scales`` come from `filter_groups` (called with
+    the same pixel scale).
+    """
+    if options.pixscale is None:
+        return {f: options for f in order}
+    given = to_quantity(options.pixscale, u.mas, name="pixel scale").value
+    fit = [f for f in order if scales[f][3]]
+    own = ", ".join(f"{f} {scales[f][4]:g} mas ({groups[f][0]})" for f in order
+                    if not scales[f][3])
+    if not fit:
+        raise KpifsError(f"the pixel scale given ({given:g} mas) fits none of the filters' own "
+                         f"({own}): give one that does, or none")
+    if len(fit) < len(order):
+        warnings.warn(f"the pixel scale given ({given:g} mas) is applied to {', '.join(fit)} "
+                      f"only: it contradicts the own scale of {own}, which is kept",
+                      KpifsWarning, stacklevel=3)
+    return {f: options if scales[f][3] else replace(options, pixscale=None) for f in order}
+
+
+def filter_groups(targets, calibrators, *, pixscale=None):
     """The filters of a target's JWST files, their files and facts, after the refusals.
 
     Returns ``(order, groups, cal_groups, scales)``: the filters by wavelength,
     ``{filter: [target files]}``, one such dict per calibrator star, and
-    ``{filter: (wavelength um, pixel scale mas, image side px)}``. Refused:
+    ``{filter: (wavelength um, pixel scale mas, image side px, whether *pixscale*
+    fits the file's own, the file's own scale mas)}``. Refused:
     fewer than two filters, files of different targets, no calibrator, and a
     calibrator without one of the target's filters.
 
@@ -107,7 +147,7 @@ def filter_groups(targets, calibrators):
     if len(groups) < 2:
         raise KpifsError(f"{targets[0] if targets else 'no files'}: filters as channels need "
                          f"JWST files in two filters or more")
-    names = {str(p): str(fits.getval(p, "TARGNAME", default="") or "").strip() for p in targets}
+    names = {str(p): str(file_headers(p)[0].get("TARGNAME", "") or "").strip() for p in targets}
     if len(set(names.values())) > 1:
         raise KpifsError("files of different targets: " + ", ".join(
             f"{p} ({t or '?'})" for p, t in names.items()) + ": give the calibrator with "
@@ -123,7 +163,9 @@ def filter_groups(targets, calibrators):
         if missing:
             raise KpifsError(f"calibrator {star[0]}: no files in filter(s) "
                              f"{', '.join(missing)} of the target")
-    scales = {f: _scale(files[0]) for f, files in groups.items()}
+    given = (None if pixscale is None
+             else to_quantity(pixscale, u.mas, name="pixel scale").value)
+    scales = {f: _scale(files[0], given) for f, files in groups.items()}
     order = sorted(groups, key=lambda f: scales[f][0])
     return order, groups, cal_groups, scales
 

@@ -101,6 +101,10 @@ def inject_companion(cube, *, position, contrast, pixscale, frame="detector", de
     if np.shape(pos) != (2,) or not np.all(np.isfinite(pos)):
         raise KpifsError(f"inject: a position is two finite offsets, got {position!r}")
     ps = to_quantity(pixscale, u.mas, name="pixel scale").value
+    if np.max(np.abs(pos)) / ps > max(cube.shape[-2:]):      # issue 37: before any padding
+        raise KpifsError(f"inject: a companion at ({pos[0]:g}, {pos[1]:g}) mas ({frame}) falls "
+                         f"off the image: 100% of its flux would be lost (the image reaches "
+                         f"about {0.5 * min(cube.shape[-2:]) * ps:.0f} mas from its centre)")
     c = np.atleast_1d(np.asarray(contrast, float))
     if c.ndim != 1 or c.size not in (1, nwave):
         raise KpifsError(f"inject: {c.size} contrasts for {nwave} channel(s): give one, or "
@@ -206,8 +210,9 @@ class _Injector:
     searched; returns whether a candidate lies within *radius* of the injection."""
 
     def __init__(self, target, calibrators, model, *, wavelengths, pixscale, window, pfa, pd,
-                 n_draws):
+                 n_draws, reference=None, extract_kwargs=None):
         self.target, self.calibrators, self.model = target, calibrators, model
+        self.reference, self.kwargs = reference, dict(extract_kwargs or {})
         self.wl, self.ps, self.window = wavelengths, pixscale, window
         self.pfa, self.pd, self.n_draws = pfa, pd, n_draws
         ps = to_quantity(pixscale, u.mas, name="pixel scale").value
@@ -218,8 +223,11 @@ class _Injector:
     def __call__(self, x, y, contrast, seed):
         cube = inject_companion(self.target, position=[x, y] * u.mas, contrast=contrast,
                                 pixscale=self.ps)
+        ref = self.reference
         kpd = extract_kernel_phases(cube, self.model, wavelengths=self.wl, pixscale=self.ps,
-                                    window=self.window, keep_phases=False, source="injected")
+                                    window=self.window, keep_phases=False, source="injected",
+                                    header=None if ref is None else ref.header, **self.kwargs)
+        _reuse_pixel_noise(kpd, ref)
         # found or not is all that is asked: one error model (no characterisation model),
         # no limits, and a search that stops after a few candidates
         with warnings.catch_warnings():
@@ -230,9 +238,22 @@ class _Injector:
         return _detected(res, x, y, self.radius)
 
 
+def _reuse_pixel_noise(kpd, reference):
+    """The target's own per-pixel noise (ERR) for its injected copy: a faint companion
+    changes neither the frames kept nor their noise (issue 37: without it the injected
+    target was calibrated on its frames' scatter alone, the analytic limit with ERR)."""
+    if reference is None or reference.meta.get("pixel_covariance") is None:
+        return
+    if reference.kp_err is not None and reference.kp_err.shape == kpd.shape:
+        kpd.kp_err = reference.kp_err
+    kpd.meta["pixel_covariance"] = reference.meta["pixel_covariance"]
+    kpd.meta["pixel_noise"] = reference.meta.get("pixel_noise")
+
+
 def injection_limits(target, calibrators, model, *, wavelengths, pixscale, window,
                      separations, contrasts=None, start=None, n_angles=4, pfa=1e-3, pd=0.5,
-                     seed=0, n_draws=1000, max_steps=8, progress=False):
+                     seed=0, n_draws=1000, max_steps=8, progress=False, reference=None,
+                     extract_kwargs=None):
     """Empirical contrast curve from companions injected into the target's frames.
 
     At each separation, companions of one contrast are injected at *n_angles*
@@ -281,6 +302,14 @@ def injection_limits(target, calibrators, model, *, wavelengths, pixscale, windo
     progress : bool
         Progress on stderr (a bar on a terminal, otherwise a line every few
         seconds with the time left).
+    reference : `~kpifs.KernelPhaseData`, optional
+        The target's own extraction (`~kpifs.workflow.extract_observation`, as
+        for the analytic limit): every injected extraction gets its header (the
+        instrument's facts, checked against the calibrators') and its per-pixel
+        noise (ERR), so that the injections are reduced as the target is.
+    extract_kwargs : dict, optional
+        More options of `~kpifs.extract_kernel_phases` (centroid, bad pixels
+        and frames, Nyquist, precision), as the target's extraction used.
 
     Returns
     -------
@@ -321,7 +350,8 @@ def injection_limits(target, calibrators, model, *, wavelengths, pixscale, windo
         raise KpifsError("injection limits: contrasts must be finite and > 0")
     rng = np.random.default_rng(seed)
     inject = _Injector(target, calibrators, model, wavelengths=wavelengths, pixscale=pixscale,
-                       window=window, pfa=pfa, pd=pd, n_draws=n_draws)
+                       window=window, pfa=pfa, pd=pd, n_draws=n_draws, reference=reference,
+                       extract_kwargs=extract_kwargs)
     bar = progress_bar(desc="injections", unit="injection",
                        total=sum(len(lad) for lad in ladders) * n_angles, enabled=progress)
     rows, limits, flags = [], [], []

@@ -24,16 +24,18 @@ out, so that a calibration keeps every kernel phase, each weighted by its
 own noise (`~kpifs.calibrate.calibrate`, ``pixel_noise='auto'``).
 """
 import logging
+import warnings
 
 import numpy as np
 from astropy import units as u
 
 from .covariance import kernel_jacobian
+from .exceptions import KpifsWarning
 from .prepare import cut_out
 from .sampling import unmeasured
 
-__all__ = ["attach_pixel_noise", "pixel_noise", "calibrated_pixel_covariance",
-           "complement_rows"]
+__all__ = ["attach_pixel_noise", "pixel_noise", "scatter_ratio", "calibrated_pixel_covariance",
+           "complement_rows", "MIN_SCATTER_RATIO", "MIN_SCATTER_DOF"]
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +49,7 @@ def _channel_index(cube_wl, kpd_wl):
     return [int(np.argmin(np.abs(cw - w))) for w in kpd_wl.to_value(u.um)]
 
 
-def pixel_noise(images, variance, kpd):
+def pixel_noise(images, variance, kpd, *, counts=None):
     """Kernel-phase errors of each frame and one frame's covariance, from pixel variances.
 
     Parameters
@@ -59,6 +61,12 @@ def pixel_noise(images, variance, kpd):
     kpd : `~kpifs.data.KernelPhaseData`
         Their extraction: its kernel model, window, channels and centres
         (``kpd.centres``: the frames kept, by index).
+    counts : dict, optional
+        Filled with ``'pixels'``, the pixels of the cut-outs whose image is
+        finite, and ``'invalid'``, those of them whose variance is not a number
+        > 0 (NaN, infinite, zero or negative: no pixel is noiseless). Those are
+        given the largest valid variance of their cut-out (never less noise
+        than their neighbours).
 
     Returns
     -------
@@ -95,8 +103,11 @@ def pixel_noise(images, variance, kpd):
         vcuts = []
         for b in range(0, len(frames), BATCH):
             idx = frames[b:b + BATCH]
-            img = np.nan_to_num(np.asarray(images[idx, j], float))
-            var = np.nan_to_num(np.asarray(variance[idx, j], float), nan=0.0, posinf=0.0)
+            img = np.asarray(images[idx, j], float)
+            good = np.isfinite(img)
+            # bad pixels (NaN or infinite) count 0 in the Jacobian's PSF, as no flux
+            img = np.where(good, img, 0.0)
+            var = _valid_variance(np.asarray(variance[idx, j], float), good, counts)
             cut, delta = cut_out(img, cen[b:b + BATCH, j], ws)
             vcut, _ = cut_out(var, cen[b:b + BATCH, j], ws)
             total += cut.sum(0)
@@ -111,12 +122,96 @@ def pixel_noise(images, variance, kpd):
     return err, cov
 
 
+def _valid_variance(var, good, counts):
+    """Variances of a batch of images: 0 at bad pixels (their flux is filled in, not
+    measured); at good pixels whose variance is not a number > 0, the largest valid one of
+    their image; counted in *counts*."""
+    valid = np.isfinite(var) & (var > 0)
+    bad = good & ~valid
+    if counts is not None:
+        counts["pixels"] = counts.get("pixels", 0) + int(good.sum())
+        counts["invalid"] = counts.get("invalid", 0) + int(bad.sum())
+        counts["negative"] = counts.get("negative", 0) + int((good & (var < 0)).sum())
+        counts["zero"] = counts.get("zero", 0) + int((good & (var == 0)).sum())
+    out = np.where(valid & good, var, 0.0)
+    if bad.any():
+        top = out.reshape(len(out), -1).max(axis=1)
+        out = np.where(bad, top[:, None, None], out)
+    return out
+
+
+#: Frames' scatter over propagated pixel noise (mean ratio of variances over the kernel
+#: phases) below which the per-pixel noise contradicts the data: a pixel noise over twice
+#: the frames' whole scatter (which it is part of). Under pixel noise alone the ratio
+#: follows chi2_d / d with d >= `MIN_SCATTER_DOF` degrees of freedom: below 0.25 with
+#: probability < 1e-4.
+MIN_SCATTER_RATIO = 0.25
+#: Fewest degrees of freedom (kernel phases x (frames - 1)) of the comparison.
+MIN_SCATTER_DOF = 20
+
+
+def scatter_ratio(kpd):
+    """Mean, over the kernel phases each channel measures, of the frames' sample variance
+    over the propagated pixel noise's (``kpd.kp_err**2`` averaged over the frames), and
+    its degrees of freedom; ``(nan, 0)`` without per-frame errors or with one frame.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs.pixelnoise import scatter_ratio
+    >>> km = KernelModel.from_pupil(make_pupil("niriss_nrm"))
+    >>> kp = np.random.default_rng(1).normal(0, 0.1, (50, 1, 15))
+    >>> kpd = KernelPhaseData(kp, [4.8] * u.um, 65.6 * u.mas, km)
+    >>> kpd.kp_err = np.full(kp.shape, 10.0)                 # 100 times the scatter
+    >>> ratio, dof = scatter_ratio(kpd)
+    >>> round(ratio, 5), dof
+    (0.0001, 735)
+    """
+    if kpd.kp_err is None or kpd.n_frame < 2:
+        return np.nan, 0
+    err2 = np.mean(np.asarray(kpd.kp_err, float) ** 2, axis=0)
+    var = np.nanvar(np.asarray(kpd.kp, float), axis=0, ddof=1)
+    use = (err2 > 0) & np.isfinite(err2) & np.isfinite(var)
+    if not use.any():
+        return np.nan, 0
+    return float(np.mean(var[use] / err2[use])), int(use.sum() * (kpd.n_frame - 1))
+
+
+def _check_variance(kpd, cube, counts):
+    """Whether *cube*'s per-pixel noise can be used for *kpd*: ``(None, 1)`` when it can,
+    ``(why, 1)`` when it cannot (a sentence), ``(why, factor)`` when its variance must be
+    scaled by *factor* to match the frames' own scatter."""
+    src = cube.variance_source or "the variance"
+    n, bad = counts.get("pixels", 0), counts.get("invalid", 0)
+    if n and bad == n:
+        kind = ("negative" if counts.get("negative") == n else "zero" if counts.get("zero")
+                == n else "NaN, infinite, zero or negative")
+        return f"{src} is {kind} at every pixel used: no noise can be read from it", None
+    if bad:
+        warnings.warn(f"{cube.name}: {src} is NaN, infinite, zero or negative at {bad} of the "
+                      f"{n} good pixels used: given the largest {src} of their image",
+                      KpifsWarning, stacklevel=3)
+    ratio, dof = scatter_ratio(kpd)
+    if dof >= MIN_SCATTER_DOF and ratio < MIN_SCATTER_RATIO:
+        return (f"{src} predicts kernel-phase errors {1 / np.sqrt(ratio):.3g} times the "
+                f"frames' own scatter ({kpd.n_frame} frames), which they are part of: it "
+                f"contradicts the data (another unit than SCI, e.g. SCI normalised and "
+                f"{src} not?)"), ratio
+    return None, 1.0
+
+
 def attach_pixel_noise(kpd, cube):
     """Propagate ``cube.variance`` (when the reader found one) into *kpd*.
 
     Sets ``kpd.kp_err``, ``kpd.meta['pixel_covariance']`` and
     ``kpd.meta['pixel_noise']`` (`pixel_noise`); does nothing without a
-    variance. Returns *kpd*.
+    variance. A variance that cannot be a noise (NaN, zero or negative at
+    every pixel used) is not used; one whose propagated errors exceed the
+    frames' own scatter by more than a factor ``1 / sqrt(MIN_SCATTER_RATIO)``
+    (`scatter_ratio`: a pixel noise larger than the whole noise, e.g. SCI
+    normalised and ERR left in DN/s) is scaled down to that scatter; a
+    warning says which. Returns *kpd*.
 
     Examples
     --------
@@ -137,11 +232,26 @@ def attach_pixel_noise(kpd, cube):
     chans = _channel_index(cube.wavelengths, kpd.wavelengths)
     images = _Channels(cube.data, chans)
     variance = _Channels(cube.variance, chans)
-    kpd.kp_err, cov = pixel_noise(images, variance, kpd)
+    counts = {}
+    kpd.kp_err, cov = pixel_noise(images, variance, kpd, counts=counts)
     if kpd.meta.get("channel_n_kp") is not None:      # rows a channel does not measure
         off = unmeasured(kpd.channel_n_kp, kpd.n_kp)
         kpd.kp_err = np.where(off, 0.0, kpd.kp_err)
         cov[off[:, :, None] | off[:, None, :]] = 0.0
+    why, factor = _check_variance(kpd, cube, counts)
+    if factor is None:
+        kpd.kp_err = None
+        warnings.warn(f"{cube.name}: {why}; not used: the kernel phases' noise is taken "
+                      f"from the frames' scatter alone", KpifsWarning, stacklevel=2)
+        kpd.header["KPPIXNOI"] = ("none", "per-pixel noise unusable: not propagated")
+        return kpd
+    if why is not None:
+        warnings.warn(f"{cube.name}: {why}; its variance is scaled by {factor:.3g} to the "
+                      f"frames' scatter (conservative: that scatter holds more than pixel "
+                      f"noise)", KpifsWarning, stacklevel=2)
+        kpd.kp_err = kpd.kp_err * np.sqrt(factor)
+        cov = cov * factor
+        kpd.header["KPPIXSCL"] = (float(f"{factor:.6g}"), "pixel variance scaled to frame scatter")
     kpd.meta["pixel_covariance"] = cov
     kpd.meta["pixel_noise"] = cube.variance_source or "variance"
     kpd.header["KPPIXNOI"] = (kpd.meta["pixel_noise"], "per-pixel noise propagated to KP-SIGM")

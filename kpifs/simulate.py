@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from astropy import units as u
 
+from ._memory import check_memory
 from ._utils import as_rng, one_blas_thread, to_quantity
 from ._utils import progress as progress_bar
 from .exceptions import KpifsError
@@ -418,6 +419,8 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
     params.companion_offset = to_quantity(params.companion_offset, u.mas, name="offset")
     params.wavefront_rms = to_quantity(params.wavefront_rms, u.nm, name="wavefront rms")
     params.exptime = to_quantity(params.exptime, u.s, name="exposure time")
+    if not (np.isfinite(params.exptime.value) and params.exptime.value > 0):
+        raise KpifsError(f"the exposure time must be > 0, got {params.exptime}")
     for name in ("drift_rms", "static_rms", "static_diff_rms"):
         setattr(params, name, to_quantity(getattr(params, name), u.nm, name=name))
     if not params.drift_time > 0:
@@ -428,6 +431,11 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
         raise KpifsError("n_frames must be at least 1")
     rng = as_rng(seed)
     nf, nw = params.n_frames, len(params.wavelengths)
+    # target, calibrator and their variances (float32), bounded before they are made
+    check_memory(16.0 * nf * nw * int(np.prod(params.shape)),
+                 f"a simulation of {nf} frames x {nw} channels of {params.shape[0]} x "
+                 f"{params.shape[1]} pixels", "simulate fewer frames (--frames) or smaller "
+                 "images (--shape)")
     params.pupil_rotation = to_quantity(params.pupil_rotation, u.deg, name="pupil rotation")
     pimg, dx = pupil_image(params.telescope, npix=params.npup, rotation=params.pupil_rotation)
     nphot = params.star_photons()

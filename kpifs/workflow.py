@@ -25,7 +25,6 @@ from pathlib import Path
 
 import numpy as np
 from astropy import units as u
-from astropy.io import fits
 
 from . import _checks
 from . import filters as _filters
@@ -287,7 +286,7 @@ def extract_observation(files, options=None, *, model=None, progress=False):
     pa = parse_angles(options.pa, source="--pa")
     with read_cube(files, instrument=options.instrument, dq_bits=options.dq_bits,
                    wavelengths=parse_wavelengths(options.wavelengths, source="--wavelengths"),
-                   pixscale=_pixscale(options)) as cube:
+                   pixscale=_pixscale(options), pa_given=pa is not None) as cube:
         log.info("%s read as %s: %s", cube.name, cube.instrument, cube.shape)
         km = model or kernel_model_for(options, cube.instrument, cube.header)
         try:
@@ -423,14 +422,16 @@ def extract_filters(targets, calibrators, options=None, *, progress=False):
     (2, ['F150W', 'F480M'])
     """
     options = options or ExtractOptions()
-    order, groups, cal_groups, scales = _filters.filter_groups(list(targets), list(calibrators))
-    km = kernel_model_for(options, "jwst", fits.getheader(groups[order[0]][0]))
+    order, groups, cal_groups, scales = _filters.filter_groups(
+        list(targets), list(calibrators), pixscale=options.pixscale)
+    per_filter = _filters.filter_options(options, groups, order, scales)
+    km = kernel_model_for(options, "jwst", _filters.file_headers(groups[order[0]][0])[0])
     model, own = _filters.filter_models(km, order, groups, scales,
                                         filter_kernels=options.filter_kernels)
     radius = _filters.filter_window_radius(order, scales, options.window_radius)
     products = []
     for f in order:
-        opts = dataclasses.replace(options, window_radius=radius[f])
+        opts = dataclasses.replace(per_filter[f], window_radius=radius[f])
         t = extract_observation(groups[f], opts, model=own[f], progress=progress)
         cals = [extract_observation(cg[f], opts, model=own[f], progress=progress)
                 for cg in cal_groups]

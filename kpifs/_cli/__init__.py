@@ -16,7 +16,7 @@ import os
 import sys
 import warnings
 
-from ._parser import build_parser
+from ._parser import build_parser, join_negative_values
 
 __all__ = ["main"]
 
@@ -62,7 +62,8 @@ def _blas_threads():
 def main(argv=None):
     """Run the ``kpifs`` command line; return the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(join_negative_values(sys.argv[1:] if argv is None else
+                                                  [str(a) for a in argv]))
     if args.command is None:
         parser.print_help()
         return 2

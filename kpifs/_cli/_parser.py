@@ -9,6 +9,7 @@ without a unit is in the unit the option's help names. Every option's help
 says its default.
 """
 import argparse
+import re
 
 from .._defaults import DETECT, EXTRACT
 from .._meta import VERSION
@@ -431,6 +432,32 @@ def _demo(command):
 #: The commands, in the order ``kpifs --help`` lists them.
 COMMANDS = (_kernel, _extract, _modelcheck, _inject, _info, _simulate, _detect, _roc, _batch,
             _demo)
+
+
+#: A value that starts with a minus sign and a digit but is no plain number (a list such
+#: as -60,40 or -3,-2,-1; a number with a unit, -2deg): no kpifs option looks like that.
+_NEGATIVE_VALUE = re.compile(r"^-(\d|\.\d)")
+
+
+def join_negative_values(argv):
+    """``['--position', '-60,40']`` as ``['--position=-60,40']``: argparse takes a value that
+    starts with a minus sign for an option unless it is a plain number (issue 37: the
+    model-check example ``--rotations -3,-2,-1,0,1,2,3`` failed).
+
+    Examples
+    --------
+    >>> from kpifs._cli._parser import join_negative_values
+    >>> join_negative_values(["inject", "c.fits", "--position", "-60,40", "--pa", "-5"])
+    ['inject', 'c.fits', '--position=-60,40', '--pa=-5']
+    """
+    out = []
+    for arg in argv:
+        if (out and _NEGATIVE_VALUE.match(arg) and out[-1].startswith("--")
+                and "=" not in out[-1]):
+            out[-1] = f"{out[-1]}={arg}"
+        else:
+            out.append(arg)
+    return out
 
 
 def build_parser():

@@ -1,12 +1,14 @@
 """``kpifs info``: describe a cube, a KPFITS file, a kernel model or detection products."""
+import warnings
+
 import numpy as np
 from astropy import units as u
 from astropy.table import QTable
 
 from ..data import DetectionResult, KernelPhaseData
-from ..exceptions import KpifsError, MissingInformation
+from ..exceptions import KpifsError, KpifsWarning, MissingInformation
 from ..field import field_sentence
-from ..io.cube import open_fits
+from ..io.cube import check_header_checksums, open_fits
 from ..io.kpfits_read import _layout, _read_pixscale, _read_wavelengths
 from ..io.readers import detect_instrument, read_cube
 from ..io.wavelengths import parse_wavelengths
@@ -21,9 +23,20 @@ _MODEL_OPTIONS = ("pupil_scale", "step", "offset", "min_transmission", "grey",
                   "hexagonal")
 
 
+def _check_headers(path):
+    """Say when a header no longer matches its CHECKSUM (issue 37: a header edited or
+    corrupted after writing went unnoticed): the description that follows may be wrong."""
+    try:
+        check_header_checksums(path)
+    except KpifsError as exc:
+        warnings.warn(f"{exc} (edited without updating CHECKSUM, or corrupted): what follows "
+                      f"describes the header as it is now", KpifsWarning, stacklevel=2)
+
+
 def run(args):
     for path in args.files:
         with open_fits(path) as hdul:
+            _check_headers(path)
             is_kp = "KP-DATA" in hdul
             is_model = "KER-MAT" in hdul
             content = hdul[0].header.get("CONTENT")

@@ -1,4 +1,5 @@
 """``kpifs inject``: companions made of each frame's own PSF; the injection contrast curve."""
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -6,15 +7,15 @@ from astropy import units as u
 from astropy.io import fits
 from astropy.table import QTable
 
-from .._checks import check_inputs, check_seed
+from .._checks import check_inputs, check_memory, check_seed
 from .._meta import VERSION
 from .._utils import check_output_dir, check_output_path, to_quantity, write_hdulist
-from ..exceptions import KpifsError
+from ..exceptions import KpifsError, KpifsWarning
 from ..inject import inject_companion, injection_limits
 from ..io import parse_wavelengths, read_cube
 from ..io._kpfits_common import ascii_text
-from ..io.angles import frame_detpa
-from ..io.layouts import write_plain_cube
+from ..io.angles import frame_detpa, parse_angles
+from ..io.layouts_like import source_layout, write_added
 from ..plotting import _save, analytic_column, plot_injection_limits
 from ..workflow import (calibrate_observation, calibrator_options, detect_observation,
                         extract_observation, kernel_model_for, DetectOptions)
@@ -79,23 +80,47 @@ def _read(args, options):
     ps = (None if options.pixscale is None
           else to_quantity(options.pixscale, u.mas, name="pixel scale"))
     with read_cube(args.cubes, instrument=options.instrument, wavelengths=wl,
-                   pixscale=ps, dq_bits=options.dq_bits) as cube:
+                   pixscale=ps, dq_bits=options.dq_bits, pa_given=args.pa is not None) as cube:
         if not args.curve and args.contrast is not None:
             _contrasts(args.contrast, "--contrast", cube.shape[1])   # before the data are read
         detpa = None if cube.detpa is None else cube.detpa.to_value(u.deg)
+        # the frames, the injected copy and the companion, in float64 (issue 37)
+        check_memory(24.0 * np.prod(cube.shape), f"{cube.name}: {cube.shape[0]} frames of "
+                     f"{' x '.join(map(str, cube.shape[1:]))}", "inject into fewer frames "
+                     "(files) at a time")
+        # the header, and where each frame goes back in the files (issue 37)
         return (np.array(cube.data, float), cube.wavelengths, cube.pixscale, detpa,
-                cube.instrument, cube.name)
+                cube.instrument, cube.name, (cube.header, source_layout(cube)))
+
+
+def _outputs(args):
+    """The injected files: -o itself for one input file, else one file per input (its own
+    name) in the folder -o; refused now if any exists (without --overwrite) or is an input."""
+    if args.curve or len(args.cubes) == 1:
+        check_output_path(args.output, overwrite=args.overwrite)
+        return [Path(args.output)]
+    folder = check_output_dir(args.output)
+    outs = [folder / Path(c).name for c in args.cubes]
+    if len(set(outs)) < len(outs):
+        names = ", ".join(map(str, args.cubes))
+        raise KpifsError(f"{args.output}: input files of the same name ({names}) would be "
+                         f"written over each other: inject them in turn")
+    if folder.is_dir():                          # else made when writing
+        for o in outs:
+            check_output_path(o, overwrite=args.overwrite)
+    check_inputs(args.cubes, outputs=outs)
+    return outs
 
 
 def run(args):
     options = extract_options(args)
-    check_output_path(args.output, overwrite=args.overwrite)
+    outputs = _outputs(args)
     if args.plots:
         check_output_dir(args.plots)
     _check_args(args)
-    data, wl, ps, detpa, instrument, name = _read(args, options)
-    if args.pa is not None:
-        detpa = frame_detpa(args.pa, data.shape[0], source="--pa")
+    data, wl, ps, detpa, instrument, name, (header, sources) = _read(args, options)
+    if args.pa is not None:        # one rule for angle arguments (values, lists, files)
+        detpa = frame_detpa(parse_angles(args.pa, source="--pa"), data.shape[0], source="--pa")
     if not args.curve:
         if args.position is None or args.contrast is None:
             raise KpifsError("inject: give --position and --contrast (or --curve)")
@@ -107,17 +132,33 @@ def run(args):
         cards = {"INJFRAME": ("sky" if args.sky else "detector", "frame of INJPOS1/2"),
                  "INJPOS1": (float(pos.value[0]), "[mas] injected offset x or dRA"),
                  "INJPOS2": (float(pos.value[1]), "[mas] injected offset y or dDec"),
-                 "INJSRC": (ascii_text(name)[:60], "cube the companion was injected into")}
+                 "INJSRC": (ascii_text(name)[-45:], "input cube")}
         for i, v in enumerate(np.broadcast_to(c, (len(wl),)), 1):
             cards[f"INJC{i}"] = (float(v), f"injected contrast, channel {i}")
-        write_plain_cube(args.output, out, wl, ps, cards=cards, overwrite=args.overwrite)
-        with fits.open(args.output, mode="update") as h:
-            h[0].header.add_history(f"kpifs {VERSION}: companion injected into "
-                                    f"{ascii_text(name)}")
+        _write((header, sources), data, out, outputs, instrument, wl, ps, cards, name, args)
         print(f"injected a companion at {args.position} ({'sky' if args.sky else 'detector'}) "
               f"with contrast {args.contrast} into {name} -> {args.output}")
         return 0
-    return _curve(args, options, data, wl, ps, instrument, name)
+    return _curve(args, options, data, wl, ps, instrument, name, header)
+
+
+def _write(read_from, data, out, outputs, instrument, wl, ps, cards, name, args):
+    """The injected images in copies of the input files, in their instrument's layout
+    (`kpifs.io.layouts_like`): JWST keeps ERR, DQ, ROLL_REF and PUPIL, GPI its mirror and
+    AVPARANG, CHARIS its inverse variance and PARANG, a plain cube its DETPA."""
+    header, sources = read_from
+    if instrument == "generic":               # what was given on the command line
+        cards.update({f"KPWL{i}": (float(w), f"[um] wavelength of channel {i}")
+                      for i, w in enumerate(wl.to_value(u.um), 1) if f"KPWL{i}" not in header})
+        if "PIXSCALE" not in header:
+            cards["PIXSCALE"] = (float(ps.to_value(u.mas)), "[mas] pixel scale")
+    outputs[0].parent.mkdir(parents=True, exist_ok=True)
+    write_added(sources, data, out - data, outputs, cards=cards, overwrite=args.overwrite,
+                history=f"kpifs {VERSION}: companion injected into {ascii_text(name)}")
+    if instrument == "sphere":
+        warnings.warn(f"{outputs[0]}: a SPHERE-IFS cube: its wavelengths and frame angles are "
+                      f"in the files beside {name}; copy them beside it, or give them "
+                      f"(--wavelengths, --pa) to read it", KpifsWarning, stacklevel=2)
 
 
 #: How each limit is known, in words (``LIMITS.flag``).
@@ -125,13 +166,13 @@ _FLAG_WORDS = {"=": "bracketed", "<": "found at every step: an upper bound",
                ">": "not found often enough at any step: a lower bound"}
 
 
-def _curve(args, options, data, wl, ps, instrument, name):
+def _curve(args, options, data, wl, ps, instrument, name, header):
     if not args.calibrator:
         raise KpifsError("inject --curve: give the calibrator's cubes (--calibrator)")
     say = (lambda text: None) if args.quiet else (lambda text: print(text, flush=True))
     seps = np.atleast_1d(_floats(args.separations, "--separations", u.mas))
     say("[1/2] the analytic limits: extraction, calibration and search of the target")
-    model = kernel_model_for(options, instrument)
+    model = kernel_model_for(options, instrument, header)     # the header's pupil (issue 37)
     window = options.window_for(data.shape)
     _check_reach(args, seps, window, ps, wl, model)
     cals = [extract_observation(c, calibrator_options(options), model=model)
@@ -154,7 +195,11 @@ def _curve(args, options, data, wl, ps, instrument, name):
     tab = injection_limits(data, cals, cals[0].kernel_model, wavelengths=wl, pixscale=ps,
                            window=window, separations=seps, contrasts=ladder, start=ana,
                            n_angles=args.angles, pfa=args.pfa, seed=args.seed,
-                           n_draws=args.injection_draws, progress=not args.quiet)
+                           n_draws=args.injection_draws, progress=not args.quiet,
+                           reference=target, extract_kwargs=dict(
+                               centroid=options.centroid, bad_pixels=options.bad_pixels,
+                               bad_frames=options.bad_frames, on_nyquist=options.on_nyquist,
+                               precision=options.precision))
     write_hdulist(_curve_hdulist(tab, seps, ana, args, name), args.output,
                   overwrite=args.overwrite)
     print(f"injection curve of {name} (P_FA {args.pfa:g}, P_D 0.5) -> {args.output}")

@@ -2,7 +2,7 @@
 import numpy as np
 from astropy import units as u
 
-from .._checks import check_inputs
+from .._checks import check_inputs, check_memory, check_same_setup
 from .._utils import check_output_path, to_quantity, write_table
 from ..exceptions import KpifsError
 from ..io.readers import read_cube
@@ -28,6 +28,9 @@ def _read(files, args):
         if cube.shape[0] < 4:              # before the frames are read
             raise KpifsError(f"{cube.name}: {cube.shape[0]} frame(s): kpifs model-check needs "
                              f"at least 4 frames of the star")
+        check_memory(16.0 * np.prod(cube.shape), f"{cube.name}: {cube.shape[0]} frames of "
+                     f"{' x '.join(map(str, cube.shape[1:]))}", "check the model on fewer "
+                     "frames (files)")
         return (np.array(cube.data, float), cube.wavelengths, cube.pixscale,
                 (cube.instrument, cube.header))
 
@@ -39,7 +42,8 @@ def run(args):
     data, wl, ps, instrument = _read(args.cubes, args)
     cal = None
     if args.calibrator:
-        cal, wl_c, _, _ = _read(args.calibrator, args)
+        cal, wl_c, _, (_, cal_header) = _read(args.calibrator, args)
+        check_same_setup(instrument[1], cal_header)     # issue 37: one pupil, one filter
         if len(wl_c) != len(wl):
             raise KpifsError(f"{args.calibrator[0]} has {len(wl_c)} "
                              f"channels, {args.cubes[0]} {len(wl)}")

@@ -90,7 +90,10 @@ def _rotation(args, over):
     params.update(over)
     n = params.get("n_frames", SceneParameters().n_frames)
     if args.rotation is not None:
-        det = sequence_angles(n, span=to_quantity(args.rotation, u.deg, name="--rotation"),
+        span = to_quantity(args.rotation, u.deg, name="--rotation")
+        if not abs(span.value) <= 360:
+            raise KpifsError(f"--rotation {args.rotation}: a sequence turns by at most 360 deg")
+        det = sequence_angles(n, span=span,
                               start=offset)
     else:
         try:
@@ -102,6 +105,9 @@ def _rotation(args, over):
                              f"{args.hour_angle!r}")
         if args.declination is None:
             raise KpifsError("--hour-angle needs the star's --declination")
+        if not abs(to_quantity(args.declination, u.deg, name="--declination").value) <= 90:
+            raise KpifsError(f"--declination {args.declination}: a declination is within "
+                             f"+-90 deg")
         lat = args.site if args.site is not None else site
         try:
             lat = float(lat) * u.deg

@@ -23,8 +23,8 @@ from .limits import (energy_lambda, limit_binary, limit_binary_correlated_forms,
 from .blocks import block_stack
 from .maps import DetectionModel
 from .null import DEFAULT_DRAWS, check_draws, search_null
-from .channels import (NOISE_CONFIDENCE, combined_scale, correlated_inputs, energy_null,
-                       energy_spread, map_noise, np_correlated, scale_block_rows,
+from .channels import (MIN_SCALE, NOISE_CONFIDENCE, combined_scale, correlated_inputs,
+                       energy_null, energy_spread, map_noise, np_correlated, scale_block_rows,
                        subspace_scale, annulus_noise, ring_noise)
 from .quality import add_spectrum_model, flag_candidates, resolution_mas
 from ..field import search_field
@@ -333,6 +333,7 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
         model, kp, w, kpd, threshold=threshold, null=null, spectrum=spectrum, fit=fit,
         max_candidates=max_candidates, scaler=scaler, ring=ring, poses=poses,
         characterise=characterise, stack=stack)
+    _warn_clamped(kpd, scale)
     if frame == "sky":
         sky_search_columns(cands, poses)
     else:
@@ -436,6 +437,15 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
              len(cands), form, threshold, pfa)
     return _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands,
                    threshold, energy, meta, curves)
+
+
+def _warn_clamped(kpd, scale):
+    """Never clamp the noise scale silently (issue 37)."""
+    if scale <= MIN_SCALE:
+        warnings.warn(f"{kpd.name}: the data scatter less than a tenth of what their errors "
+                      f"say (noise scale clamped at {MIN_SCALE}): the errors (KP-SIGM, KP-COV "
+                      f"or the pixel noise) are too large for these data, and every test and "
+                      f"limit is too conservative", KpifsWarning, stacklevel=4)
 
 
 def _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands, threshold,

@@ -13,6 +13,7 @@ from (CHARIS: ``PARANG`` + 113 deg; SPHERE-IFS: the angle file plus an offset);
 `parse_angles` reads the ``--pa`` override and `header_detpa` the angles of a
 generic cube.
 """
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -20,9 +21,9 @@ from astropy import units as u
 from astropy.io import fits
 
 from .._utils import to_quantity
-from ..exceptions import KpifsError
+from ..exceptions import KpifsError, KpifsWarning
 
-__all__ = ["parse_angles", "header_detpa", "frame_detpa"]
+__all__ = ["parse_angles", "header_detpa", "frame_detpa", "known_angle_files"]
 
 
 def parse_angles(value, *, source="--pa"):
@@ -133,3 +134,30 @@ def frame_detpa(values, nframe, *, source="--pa"):
         raise KpifsError(f"{source}: {values.size} detector position angles for {nframe} "
                          f"frame(s) (give one value, or one per frame)")
     return values.copy()
+
+
+def known_angle_files(paths, angles, *, keyword="the angle"):
+    """Indices of the exposures (one per file) to keep: those whose angle is known, when
+    some are and some are not, with a warning naming the files left out; every one
+    otherwise. One unknown angle would turn the whole search to the detector frame
+    (issue 37: one NaN AVPARANG of 6 GPI exposures lost the companion).
+
+    Examples
+    --------
+    >>> import warnings
+    >>> from kpifs.io.angles import known_angle_files
+    >>> with warnings.catch_warnings(record=True) as w:
+    ...     warnings.simplefilter("always")
+    ...     keep = known_angle_files(["a.fits", "b.fits", "c.fits"], [10.0, float("nan"), 12.0])
+    >>> keep, "b.fits" in str(w[0].message)
+    ([0, 2], True)
+    """
+    a = np.asarray(angles, float)
+    known = np.isfinite(a)
+    if known.all() or not known.any():
+        return list(range(len(a)))
+    gone = [str(p) for p, k in zip(paths, known) if not k]
+    warnings.warn(f"{len(gone)} of {len(a)} exposure(s) left out: {keyword} unknown (NaN, "
+                  f"missing or not a number) in {', '.join(gone)}: the others are searched on "
+                  f"the sky (give --pa to keep them all)", KpifsWarning, stacklevel=3)
+    return [int(i) for i in np.flatnonzero(known)]

@@ -22,10 +22,11 @@ from astropy import units as u
 
 from .._utils import to_quantity
 from ..exceptions import KpifsError, KpifsWarning
+from .angles import known_angle_files
 from .cube import FrameStack, IFSCube, open_fits
 from .wavelengths import check_wavelengths, parse_wavelengths
 
-__all__ = ["read_charis", "is_charis", "charis_wavelengths", "CHARIS_PIXSCALE",
+__all__ = ["read_charis", "is_charis", "charis_wavelengths", "charis_setup", "CHARIS_PIXSCALE",
            "CHARIS_DETPA_OFFSET"]
 
 log = logging.getLogger(__name__)
@@ -56,6 +57,20 @@ def is_charis(hdul):
     return has_keys and len(hdul) > 1 and hdul[1].data is not None and hdul[1].data.ndim == 3
 
 
+def charis_setup(header):
+    """What a CHARIS target's and calibrator's cubes must share: the mode (``CAL_BAND``).
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.charis import charis_setup
+    >>> charis_setup(fits.Header({"CAL_BAND": "H"}))
+    {'mode': 'H'}
+    """
+    band = str(header.get("CAL_BAND", "") or "").strip()
+    return {"mode": {"LOWRES": "BROADBAND"}.get(band.upper(), band.upper())} if band else {}
+
+
 def charis_wavelengths(header, nlam_cube, *, source="CHARIS cube"):
     """Channel wavelengths from a CHARIS header, checked for consistency.
 
@@ -79,20 +94,25 @@ def charis_wavelengths(header, nlam_cube, *, source="CHARIS cube"):
         raise KpifsError(f"{source}: bad wavelength keyword: {exc}") from None
     if nlam != nlam_cube:
         raise KpifsError(f"{source}: NLAM = {nlam} but the cube has {nlam_cube} channels")
-    if not (lmin > 0 and dlog > 0):
-        raise KpifsError(f"{source}: LAM_MIN = {lmin} and DLOGLAM = {dlog} must be > 0")
+    if not (lmin > 0 and 0 < dlog < 1):        # a log step of 1: a factor e per channel
+        raise KpifsError(f"{source}: LAM_MIN = {lmin} and DLOGLAM = {dlog} must be > 0 "
+                         f"(DLOGLAM < 1)")
     if not 300 < lmin < 30000:
         raise KpifsError(f"{source}: LAM_MIN = {lmin} is not a wavelength in nm")
-    wl = lmin * np.exp(np.arange(nlam) * dlog)
+    with np.errstate(over="ignore", invalid="ignore"):
+        wl = lmin * np.exp(np.arange(nlam) * dlog)
     if "LAM_MAX" in header:
-        lmax = float(header["LAM_MAX"])
-        if abs(wl[-1] - lmax) > 0.005 * lmax:
+        try:
+            lmax = float(header["LAM_MAX"])
+        except (TypeError, ValueError):
+            lmax = np.nan
+        if not abs(wl[-1] - lmax) <= 0.005 * lmax:
             raise KpifsError(f"{source}: LAM_MAX = {lmax} nm disagrees with LAM_MIN * "
                              f"exp((NLAM-1) * DLOGLAM) = {wl[-1]:.2f} nm")
     return check_wavelengths((wl * u.nm).to(u.um), source=source)
 
 
-def read_charis(paths, *, wavelengths=None, pixscale=None):
+def read_charis(paths, *, wavelengths=None, pixscale=None, keep_unknown_angles=False):
     """Read one or many CHARIS pipeline cubes as one `~kpifs.io.IFSCube`.
 
     Parameters
@@ -106,8 +126,14 @@ def read_charis(paths, *, wavelengths=None, pixscale=None):
     pixscale : `~astropy.units.Quantity`, optional
         Lenslet scale; default `CHARIS_PIXSCALE` (16.2 mas).
 
+    keep_unknown_angles : bool
+        Keep the exposures whose ``PARANG`` is unknown ('unavailable', NaN or
+        missing) among others that have it (when the angles are given, ``--pa``);
+        otherwise they are left out with a warning
+        (`~kpifs.io.angles.known_angle_files`).
+
     The cube's ``angles`` are the files' ``PARANG`` and its ``detpa``
-    ``PARANG + CHARIS_DETPA_OFFSET`` (NaN where ``PARANG`` is 'unavailable').
+    ``PARANG + CHARIS_DETPA_OFFSET`` (NaN where ``PARANG`` is unknown).
 
     Examples
     --------
@@ -168,7 +194,16 @@ def read_charis(paths, *, wavelengths=None, pixscale=None):
                 angles.append(float(par))
             except (TypeError, ValueError):
                 angles.append(np.nan)
-        angles = np.array(angles)
+            if not np.isfinite(angles[-1]):        # NaN, inf: unknown
+                angles[-1] = np.nan
+            elif abs(angles[-1]) > 360:
+                raise KpifsError(f"{path}: PARANG = {par} is not an angle (deg)")
+        keep = (list(range(len(paths))) if keep_unknown_angles
+                else known_angle_files(paths, angles, keyword="PARANG"))
+        for i in set(range(len(paths))) - set(keep):
+            files[i].close()
+        paths, files, data, bad = ([x[i] for i in keep] for x in (paths, files, data, bad))
+        angles = np.array(angles)[keep]
         cube = IFSCube(data=FrameStack(data, bad), wavelengths=wl, pixscale=ps, header=header,
                        angles=angles * u.deg, detpa=(angles + CHARIS_DETPA_OFFSET) * u.deg,
                        detpa_source=f"PARANG + {CHARIS_DETPA_OFFSET:g} deg",

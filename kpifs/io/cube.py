@@ -13,7 +13,7 @@ from ..exceptions import KpifsError, MissingInformation
 from .angles import header_detpa
 from .wavelengths import check_wavelengths, parse_wavelengths
 
-__all__ = ["IFSCube", "read_generic", "FrameStack", "open_fits"]
+__all__ = ["IFSCube", "read_generic", "FrameStack", "open_fits", "check_header_checksums"]
 
 log = logging.getLogger(__name__)
 
@@ -230,6 +230,58 @@ def open_fits(path, *, verify=False):
     return hdul
 
 
+def _ones_complement_sum(raw, start=0):
+    """The 32-bit ones'-complement sum of big-endian words (the FITS checksum's)."""
+    total = int(np.frombuffer(raw, dtype=">u4").sum(dtype=np.uint64)) + int(start)
+    while total >> 32:
+        total = (total & 0xFFFFFFFF) + (total >> 32)
+    return total
+
+
+def check_header_checksums(path):
+    """Refuse a file whose header was changed after its CHECKSUM was written.
+
+    Each HDU with ``CHECKSUM`` and ``DATASUM`` cards: the ones'-complement sum of its
+    header as stored plus its ``DATASUM`` must be all ones (the FITS checksum
+    convention). Only the headers are read: a header edited by hand (a scale, a
+    wavelength, an angle) is caught without reading a large cube's data (whose
+    ``DATASUM`` the readers check where they read it).
+
+    Examples
+    --------
+    >>> import pathlib, tempfile, numpy as np
+    >>> from astropy.io import fits
+    >>> from kpifs.io.cube import check_header_checksums
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "a.fits"
+    >>> fits.writeto(path, np.zeros((4, 4)), fits.Header({"PIXSCALE": 10.0}), checksum=True)
+    >>> check_header_checksums(path)
+    >>> _ = path.write_bytes(path.read_bytes().replace(b"PIXSCALE=                 10.0",
+    ...                                                b"PIXSCALE=                 12.0"))
+    >>> try:
+    ...     check_header_checksums(path)
+    ... except Exception as err:
+    ...     print(str(err).split(": ", 1)[1])
+    header checksum mismatch in HDU 0 (PRIMARY): its header was changed after it was written
+    """
+    with fits.open(path, memmap=True, lazy_load_hdus=False) as hdul, open(path, "rb") as f:
+        for i, h in enumerate(hdul):
+            hdr = h.header
+            if "CHECKSUM" not in hdr or "DATASUM" not in hdr:
+                continue
+            try:
+                datasum = int(str(hdr["DATASUM"]).strip())
+            except (TypeError, ValueError):
+                raise KpifsError(f"{path}: DATASUM {hdr['DATASUM']!r} in HDU {i} is not a "
+                                 f"checksum (corrupted?)") from None
+            info = hdul.fileinfo(i)
+            f.seek(info["hdrLoc"])
+            raw = f.read(info["datLoc"] - info["hdrLoc"])
+            if _ones_complement_sum(raw, datasum) != 0xFFFFFFFF:
+                raise KpifsError(f"{path}: header checksum mismatch in HDU {i} "
+                                 f"({h.name or 'no name'}): its header was changed after it "
+                                 f"was written")
+
+
 def _scaled(hdul):
     """True when an image HDU stores scaled integers (BZERO, BSCALE or BLANK cards)."""
     for h in hdul:
@@ -245,7 +297,14 @@ def _header_wavelengths(hdr, path):
                   key=lambda k: int(k[4:]))
     if not keys:
         return None
-    return check_wavelengths([hdr[k] for k in keys] * u.um, source=f"{path}: KPWLn cards")
+    values = []
+    for k in keys:
+        try:
+            values.append(float(hdr[k]))
+        except (TypeError, ValueError, fits.VerifyError):
+            raise KpifsError(f"{path}: {k} = {hdr.cards[k].image[10:30].strip()!r} is not a "
+                             f"wavelength (um): give the wavelengths (--wavelengths)") from None
+    return check_wavelengths(values * u.um, source=f"{path}: KPWLn cards")
 
 
 def read_generic(path, *, wavelengths=None, pixscale=None):

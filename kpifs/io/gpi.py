@@ -2,8 +2,8 @@
 
 ``*_spdc.fits`` and ``*_spdc_distorcorr.fits``, one exposure per file: the
 header in HDU 0, the cube ``(37, 281, 281)`` in the extension named ``SCI``,
-an optional ``DQ`` (uint8, bit 0 do not use). About half of each slice is NaN,
-outside the tilted lenslet field.
+an optional ``DQ`` (uint8, bit 0 do not use; refused unless of SCI's shape).
+About half of each slice is NaN, outside the tilted lenslet field.
 
 - Wavelengths (um): ``CRVAL3 + (i + 1 - CRPIX3) * CD3_3`` (``CDELT3`` in older
   files), else the centres of 37 equal bins between the band edges of
@@ -12,6 +12,9 @@ outside the tilted lenslet field.
   (``x' = nx - 1 - x``), then ``DETPA = AVPARANG + IFSROTAT - 90`` deg
   (``AVPARANG`` from ``SCI``, ``IFSROTAT`` from HDU 0), which reproduces
   the pipeline's WCS. The pupil is fixed on the detector and the sky turns.
+  An exposure whose angle is unknown (``AVPARANG`` NaN or missing) among
+  others that have it is left out with a warning: one unknown angle would
+  turn the whole search to the detector frame.
 - Field: each cube is cut to the largest square around the star (``PSFCENTX``/
   ``PSFCENTY`` when present, else the field's centre) whose border stays
   inside the lenslet field, so that centring and the window never reach the
@@ -30,10 +33,12 @@ from astropy import units as u
 
 from .._utils import to_quantity
 from ..exceptions import KpifsError, KpifsWarning
+from .angles import known_angle_files
 from .cube import FrameStack, IFSCube, open_fits
 from .wavelengths import check_wavelengths
 
-__all__ = ["read_gpi", "is_gpi", "gpi_wavelengths", "gpi_pupil", "GPI_PIXSCALE", "GPI_BANDS",
+__all__ = ["read_gpi", "is_gpi", "gpi_wavelengths", "gpi_pupil", "gpi_setup", "GPI_PIXSCALE",
+           "GPI_BANDS",
            "GPI_DIAMETER", "MIN_FIELD"]
 
 log = logging.getLogger(__name__)
@@ -80,6 +85,26 @@ def gpi_pupil(header):
     return "gpi_nrm" if _card(header, "OBSMODE").upper().startswith("NRM") else "gpi"
 
 
+def gpi_setup(header):
+    """What a GPI target's and calibrator's exposures must share: the band (``IFSFILT``),
+    the mode (``OBSMODE``), the apodizer or mask (``APODIZER``) and the Lyot stop
+    (``LYOTMASK``), as far as the header says.
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.gpi import gpi_setup
+    >>> gpi_setup(fits.Header({"IFSFILT": "IFSFILT_H_G1213", "OBSMODE": "NRM_H"}))
+    {'band': 'H', 'mode': 'NRM_H'}
+    """
+    band = _card(header, "IFSFILT").split("_")
+    out = {"band": band[1].upper()} if len(band) > 1 and band[1] else {}
+    for key, name in (("OBSMODE", "mode"), ("APODIZER", "apodizer"), ("LYOTMASK", "Lyot stop")):
+        if _card(header, key):
+            out[name] = _card(header, key)
+    return out
+
+
 def gpi_wavelengths(phu, sci, nchan, *, source="GPI cube"):
     """Channel wavelengths (um) from the ``SCI`` WCS, else from ``IFSFILT``'s band.
 
@@ -98,9 +123,13 @@ def gpi_wavelengths(phu, sci, nchan, *, source="GPI cube"):
             crpix = float(sci.get("CRPIX3", 1.0))
         except (TypeError, ValueError) as exc:
             raise KpifsError(f"{source}: bad wavelength WCS: {exc}") from None
+        if step == 0:
+            raise KpifsError(f"{source}: CD3_3 (or CDELT3) = 0: every channel would have one "
+                             f"wavelength")
         unit = _card(sci, "CUNIT3").lower() or "um"
         unit = u.um if unit.startswith("micron") or unit == "um" else u.Unit(unit)
-        wl = (crval + (np.arange(nchan) + 1 - crpix) * step) * unit
+        with np.errstate(invalid="ignore", over="ignore"):
+            wl = (crval + (np.arange(nchan) + 1 - crpix) * step) * unit
         return check_wavelengths(wl.to(u.um), source=f"{source}: CRVAL3/CD3_3")
     band = _card(phu, "IFSFILT").split("_")
     band = band[1].upper() if len(band) > 1 else ""
@@ -133,7 +162,10 @@ def _centre(sci, field, path):
     try:
         cx, cy = float(sci["PSFCENTX"]), float(sci["PSFCENTY"])
         if np.isfinite(cx) and np.isfinite(cy) and 0 <= cx < nx and 0 <= cy < ny:
-            return nx - 1 - cx, cy, "PSFCENTX/Y"
+            if field[int(round(cy)), nx - 1 - int(round(cx))]:
+                return nx - 1 - cx, cy, "PSFCENTX/Y"
+        warnings.warn(f"{path}: PSFCENTX/Y = ({cx:g}, {cy:g}) is not in the lenslet field: "
+                      f"the field's centre is used", KpifsWarning, stacklevel=4)
     except (KeyError, TypeError, ValueError):
         pass
     yy, xx = np.nonzero(field)
@@ -155,6 +187,20 @@ def _half_side(field, cx, cy, *, max_nan=0.02):
     return hmax
 
 
+def _detpa(path, phu, sci):
+    """``AVPARANG + IFSROTAT - 90`` (deg); NaN when either is unknown (NaN, missing or not a
+    number), refused when either is a number no angle can be."""
+    try:
+        avpa, rot = float(sci.get("AVPARANG", np.nan)), float(phu.get("IFSROTAT", np.nan))
+    except (TypeError, ValueError):
+        return np.nan
+    if not (np.isfinite(avpa) and np.isfinite(rot)):
+        return np.nan
+    if abs(avpa) > 360 or abs(rot) > 360:
+        raise KpifsError(f"{path}: AVPARANG = {avpa:g}, IFSROTAT = {rot:g}: not angles (deg)")
+    return avpa + rot - 90
+
+
 class _Crop:
     """One exposure ``(37, ny, nx)``, x reversed and cut, seen as ``(1, 37, h, w)``."""
 
@@ -171,7 +217,7 @@ class _Crop:
         return out[None]
 
 
-def read_gpi(paths, *, wavelengths=None, pixscale=None):
+def read_gpi(paths, *, wavelengths=None, pixscale=None, keep_unknown_angles=False):
     """Read GPI ``*_spdc.fits`` cube(s), one exposure each, as one `IFSCube`.
 
     Parameters
@@ -182,6 +228,10 @@ def read_gpi(paths, *, wavelengths=None, pixscale=None):
         Replaces the header's wavelengths.
     pixscale : `~astropy.units.Quantity`, optional
         Default `GPI_PIXSCALE` (14.161 mas).
+    keep_unknown_angles : bool
+        Keep the exposures whose ``AVPARANG`` (or ``IFSROTAT``) is unknown among
+        others that have it (when the angles are given, ``--pa``); otherwise
+        they are left out with a warning (`~kpifs.io.angles.known_angle_files`).
 
     Examples
     --------
@@ -218,12 +268,18 @@ def read_gpi(paths, *, wavelengths=None, pixscale=None):
                   else gpi_wavelengths(phu, sci, data.shape[0], source=path))
             if len(wl) != data.shape[0]:
                 raise KpifsError(f"{path}: {len(wl)} wavelengths for {data.shape[0]} channels")
-            try:
-                pa = float(sci.get("AVPARANG", np.nan)) + float(phu.get("IFSROTAT", np.nan)) - 90
-            except (TypeError, ValueError):
-                pa = np.nan
+            pa = _detpa(path, phu, sci)
             dq = hdul["DQ"].data if "DQ" in hdul and hdul["DQ"].data is not None else None
+            if dq is not None and dq.shape != data.shape:
+                raise KpifsError(f"{path}: DQ of shape {dq.shape} does not match SCI "
+                                 f"{data.shape}: its bad pixels cannot be placed")
             found.append((data, dq, cx, cy, _half_side(field, cx, cy), wl, pa, how))
+        keep = (list(range(len(paths))) if keep_unknown_angles else
+                known_angle_files(paths, [f[6] for f in found], keyword="AVPARANG or IFSROTAT"))
+        for i in set(range(len(found))) - set(keep):
+            files[i].close()
+        paths, found = [paths[i] for i in keep], [found[i] for i in keep]
+        files = [files[i] for i in keep]
         wl0 = found[0][5]
         for path, f in zip(paths, found):
             if len(f[5]) != len(wl0) or not np.allclose(f[5], wl0, rtol=1e-5):
@@ -241,7 +297,7 @@ def read_gpi(paths, *, wavelengths=None, pixscale=None):
             iy = min(max(int(round(cy)), h), ny - 1 - h)
             ys, xs = slice(iy - h, iy + h + 1), slice(ix - h, ix + h + 1)
             parts.append(_Crop(data, ys, xs))
-            bad.append(_Crop(dq, ys, xs, bad=True) if dq is not None and dq.shape == data.shape
+            bad.append(_Crop(dq, ys, xs, bad=True) if dq is not None
                        else _NoBad(parts[-1].shape))
         pa = np.array([f[6] for f in found])
         header = files[0][0].header.copy()

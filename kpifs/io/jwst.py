@@ -15,7 +15,14 @@ integration is a frame of one channel.
   F405N, F466N, F470N). Wavelength and bandwidth from `JWST_FILTERS`.
 - Pixel scale from `JWST_PIXSCALES` (``INSTRUME`` and NIRCam ``CHANNEL``),
   checked against ``sqrt(PIXAR_A2)`` of ``SCI`` (a warning when they differ
-  by more than 2 %).
+  by more than 2 %). A pixel scale given is a refinement of the file's own
+  (within 2 % of either); one that contradicts it (another detector's) is
+  refused, naming the file.
+- Pupil element: NIRISS ``CLEARP``, ``NRM`` or a pupil-wheel filter, NIRCam
+  ``CLEAR`` or a pupil-wheel filter (`PUPIL_ELEMENTS`); any other ``PUPIL``
+  (grisms, weak lenses, Lyot stops) is refused. Files of one star must share
+  it (`jwst_setup`: instrument, filter and pupil element, also what a
+  calibrator must share with its target, `kpifs._checks.check_same_setup`).
 - Sky orientation: ``DETPA = ROLL_REF - V3I_YANG * VPARITY`` (deg) from the
   ``SCI`` header (the PRIMARY header of newer files holds guide-star values
   under the same names), the relation jwst-kpi writes; the same for every
@@ -36,12 +43,15 @@ import numpy as np
 from astropy import units as u
 from astropy.io import fits
 
+from .._memory import check_memory
 from .._utils import to_quantity
 from ..exceptions import KpifsError, KpifsWarning
 from .cube import FrameStack, IFSCube, open_fits
 
-__all__ = ["read_jwst", "is_jwst", "jwst_mode", "jwst_pupil", "jwst_detpa", "JWST_FILTERS",
-           "JWST_PIXSCALES", "SUPPORTED_EXP_TYPES", "DO_NOT_USE", "DQ_FLAGS", "parse_dq_bits"]
+__all__ = ["read_jwst", "is_jwst", "jwst_mode", "jwst_pupil", "jwst_setup", "jwst_detpa",
+           "JWST_FILTERS", "JWST_PIXSCALES", "PUPIL_ELEMENTS", "PIXSCALE_TOLERANCE",
+           "own_pixscale", "pixscale_fits", "SUPPORTED_EXP_TYPES", "DO_NOT_USE", "DQ_FLAGS",
+           "parse_dq_bits"]
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +112,11 @@ def parse_dq_bits(value, *, source="--dq-bits"):
 #: EXP_TYPEs read (imaging with a full or masked pupil).
 SUPPORTED_EXP_TYPES = ("NIS_AMI", "NIS_IMAGE", "NRC_IMAGE")
 
+#: Pupil elements read, by instrument (``CLEAR``: a filter in the pupil wheel, or NIRCam's
+#: open pupil); NIRISS ``GR700XD``, NIRCam's weak lenses, grisms and coronagraphic Lyot
+#: stops are refused.
+PUPIL_ELEMENTS = {"NIRISS": ("CLEARP", "NRM", "CLEAR"), "NIRCAM": ("CLEAR",)}
+
 #: Pixel scales (mas) by instrument and NIRCam channel (jwst-kpi ``constants.py``).
 JWST_PIXSCALES = {("NIRISS", None): 65.55, ("NIRCAM", "SHORT"): 31.0,
                   ("NIRCAM", "LONG"): 63.0}
@@ -136,7 +151,11 @@ _SCALED = ("BZERO", "BSCALE", "BLANK")
 
 
 def _card(hdr, key):
-    return str(hdr.get(key, "") or "").strip().upper()
+    try:
+        value = hdr.get(key, "")
+    except (fits.VerifyError, ValueError):       # a card astropy cannot parse (NaN, ...)
+        value = hdr.cards[key].image[10:].split("/")[0].strip(" '")
+    return str(value or "").strip().upper()
 
 
 def is_jwst(hdul):
@@ -172,21 +191,57 @@ def jwst_mode(header, *, source="JWST file"):
         raise KpifsError(f"{source}: EXP_TYPE {exp or '(missing)'} is not supported: kpifs "
                          f"reads {', '.join(SUPPORTED_EXP_TYPES)} (kernel phase, AMI and "
                          f"imaging), not coronagraphy, SOSS, grism or MIRI")
-    inst = _card(header, "INSTRUME")
-    filt, pupil = _card(header, "FILTER"), _card(header, "PUPIL")
-    if pupil.startswith("F") and pupil[1:4].isdigit():     # a filter in the pupil wheel
-        filt, pupil = pupil, "CLEAR"
+    inst, filt, pupil = _elements(header)
     if (inst, filt) not in JWST_FILTERS:
         raise KpifsError(f"{source}: {inst} filter {filt or '(missing)'} (FILTER "
                          f"{_card(header, 'FILTER')!r}, PUPIL {_card(header, 'PUPIL')!r}) is "
                          f"not in kpifs's table: give --wavelengths and --pixscale with "
                          f"--instrument generic")
+    if pupil not in PUPIL_ELEMENTS.get(inst, ()):
+        raise KpifsError(f"{source}: {inst} PUPIL {_card(header, 'PUPIL') or '(missing)'!r} is "
+                         f"no pupil element kpifs models (its {inst} pupils: "
+                         f"{', '.join(PUPIL_ELEMENTS.get(inst, ()))} or a pupil-wheel filter):"
+                         f" its images are not those of a known pupil")
     return inst, filt, pupil
+
+
+def _elements(header):
+    """``(INSTRUME, filter, pupil element)`` as the header says (a filter in the pupil wheel
+    moved to the filter, the pupil element then ``CLEAR``), not checked."""
+    inst = _card(header, "INSTRUME")
+    filt, pupil = _card(header, "FILTER"), _card(header, "PUPIL")
+    if pupil.startswith("F") and pupil[1:4].isdigit():     # a filter in the pupil wheel
+        filt, pupil = pupil, "CLEAR"
+    return inst, filt, pupil
+
+
+def jwst_setup(header):
+    """What a JWST target's and calibrator's files must share: instrument, filter and pupil
+    element (NIRISS ``CLEARP`` kernel phase or ``NRM`` aperture masking), as the header
+    says. Empty for a header without ``INSTRUME``.
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.jwst import jwst_setup
+    >>> jwst_setup(fits.Header({"INSTRUME": "NIRISS", "FILTER": "F480M", "PUPIL": "NRM"}))
+    {'instrument': 'NIRISS', 'filter': 'F480M', 'pupil element': 'NRM'}
+    """
+    inst, filt, pupil = _elements(header)
+    if not inst:
+        return {}
+    out = {"instrument": inst}
+    if filt:
+        out["filter"] = filt
+    if pupil:
+        out["pupil element"] = pupil
+    return out
 
 
 def jwst_pupil(header):
     """The built-in pupil (a `~kpifs.pupil.TELESCOPES` or `~kpifs.pupil.MASKS` key) for a
-    JWST header, or None.
+    JWST header, or None (not JWST, or a ``PUPIL`` none of them models: never the full
+    pupil in its place).
 
     Examples
     --------
@@ -197,11 +252,12 @@ def jwst_pupil(header):
     >>> jwst_pupil(fits.Header({"INSTRUME": "NIRCAM", "PUPIL": "CLEAR"}))
     'jwst'
     """
-    inst, pupil = _card(header, "INSTRUME"), _card(header, "PUPIL")
+    inst, _, pupil = _elements(header)
     if inst == "NIRISS":
-        return {"NRM": "niriss_nrm", "CLEARP": "niriss_clearp"}.get(pupil, "jwst")
+        return {"NRM": "niriss_nrm", "CLEARP": "niriss_clearp", "CLEAR": "jwst",
+                "": "jwst"}.get(pupil)
     if inst == "NIRCAM":
-        return "jwst"
+        return "jwst" if pupil in PUPIL_ELEMENTS["NIRCAM"] + ("",) else None
     return None
 
 
@@ -209,7 +265,8 @@ def jwst_detpa(sci_header, *, source="JWST file"):
     """Detector position angle (deg) from ``ROLL_REF``, ``V3I_YANG`` and ``VPARITY``.
 
     ``DETPA = ROLL_REF - V3I_YANG * VPARITY`` (jwst-kpi); None when a card is
-    missing.
+    missing, NaN (with a warning) when one is not finite; refused when they are not
+    angles and a parity.
 
     Examples
     --------
@@ -222,8 +279,15 @@ def jwst_detpa(sci_header, *, source="JWST file"):
         roll, yang, par = (float(sci_header[k]) for k in ("ROLL_REF", "V3I_YANG", "VPARITY"))
     except KeyError:
         return None
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, fits.VerifyError) as exc:
         raise KpifsError(f"{source}: ROLL_REF/V3I_YANG/VPARITY not numbers: {exc}") from None
+    if not np.all(np.isfinite([roll, yang, par])):
+        warnings.warn(f"{source}: ROLL_REF/V3I_YANG/VPARITY = {roll}/{yang}/{par}: the sky "
+                      f"orientation is unknown (give --pa)", KpifsWarning, stacklevel=3)
+        return np.nan
+    if par not in (-1.0, 1.0) or abs(roll) > 360 or abs(yang) > 360:
+        raise KpifsError(f"{source}: ROLL_REF/V3I_YANG/VPARITY = {roll:g}/{yang:g}/{par:g} are "
+                         f"not the angles (deg) and parity (+1 or -1) they should be")
     return round((roll - yang * par) % 360.0, 10)
 
 
@@ -238,12 +302,17 @@ def _hdu(hdul, name, path, *, required=True):
 def _dq_bad(path, shape, dq_bits):
     """The DQ mask (True = bad) read into memory: DQ is scaled, so never memory-mapped."""
     with fits.open(path, memmap=False) as hdul:
-        if "DQ" not in hdul or hdul["DQ"].data is None:
+        if "DQ" not in hdul or not hdul["DQ"].header.get("NAXIS"):
             return None
+        hdr = hdul["DQ"].header
+        n = np.prod([hdr.get(f"NAXIS{i}", 0) for i in range(1, hdr["NAXIS"] + 1)], dtype=float)
+        # the scaled integers, their mask and the flags (issue 37: bounded before reading)
+        check_memory(13.0 * n, f"{path}: DQ of {n:.3g} pixels", "read fewer integrations")
         dq = np.asarray(hdul["DQ"].data)
     dq = dq[:, None] if dq.ndim == 3 else dq           # (nints, 1, ny, nx) as the frames
     try:
-        return np.broadcast_to((dq.astype(np.uint64) & np.uint64(dq_bits)) != 0, shape)
+        bad = np.bitwise_and(dq, np.asarray(dq_bits, dtype=dq.dtype)) != 0
+        return np.broadcast_to(bad, shape)
     except ValueError:
         raise KpifsError(f"{path}: DQ of shape {dq.shape} does not match SCI") from None
 
@@ -256,8 +325,9 @@ class _Variance:
         self.shape = arrays[0].shape
 
     def __getitem__(self, key):
-        if self.square:
-            return np.square(np.asarray(self.arrays[0][key], float))
+        if self.square:          # a negative ERR stays negative: not a noise (refused later)
+            err = np.asarray(self.arrays[0][key], float)
+            return np.copysign(np.square(err), err)
         return sum(np.asarray(a[key], float) for a in self.arrays)
 
 
@@ -281,24 +351,64 @@ def _variance(hdul, path, shape):
     return None, None
 
 
-def _pixscale(path, inst, hdr, sci_hdr, pixscale):
-    channel = _card(hdr, "CHANNEL") if inst == "NIRCAM" else None
+#: Largest relative difference between a pixel scale given and a file's own (kpifs's table
+#: or ``sqrt(PIXAR_A2)``) for the given one to be taken as a refinement of it; beyond it, the
+#: given scale is another detector's (NIRCam SW 31 mas against LW 63 mas).
+PIXSCALE_TOLERANCE = 0.02
+
+
+def own_pixscale(header, sci_header=None, *, source="JWST file"):
+    """A JWST file's own pixel scale (mas): kpifs's table value (`JWST_PIXSCALES`, by
+    ``INSTRUME`` and NIRCam ``CHANNEL``) and ``sqrt(PIXAR_A2)`` of ``SCI`` (NaN without it).
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.jwst import own_pixscale
+    >>> own_pixscale(fits.Header({"INSTRUME": "NIRCAM", "CHANNEL": "LONG"}),
+    ...              fits.Header({"PIXAR_A2": 0.063 ** 2}))
+    (63.0, 63.0)
+    """
+    inst = _card(header, "INSTRUME")
+    channel = _card(header, "CHANNEL") if inst == "NIRCAM" else None
     if (inst, channel) not in JWST_PIXSCALES:
-        raise KpifsError(f"{path}: no pixel scale for {inst} channel {channel!r}: give "
+        raise KpifsError(f"{source}: no pixel scale for {inst} channel {channel!r}: give "
                          f"--pixscale")
-    table = JWST_PIXSCALES[(inst, channel)]
+    try:
+        from_area = 1000 * np.sqrt(float((sci_header or {})["PIXAR_A2"]))
+    except (KeyError, TypeError, ValueError):
+        from_area = np.nan
+    return JWST_PIXSCALES[(inst, channel)], round(float(from_area), 6)
+
+
+def pixscale_fits(given, own):
+    """Whether a pixel scale *given* (mas) agrees with a file's *own* (`own_pixscale`)
+    within `PIXSCALE_TOLERANCE`.
+
+    Examples
+    --------
+    >>> from kpifs.io.jwst import pixscale_fits
+    >>> pixscale_fits(65.6, (65.55, 65.6)), pixscale_fits(31.0, (63.0, 63.0))
+    (True, False)
+    """
+    return any(abs(given / v - 1) <= PIXSCALE_TOLERANCE for v in own if np.isfinite(v))
+
+
+def _pixscale(path, inst, hdr, sci_hdr, pixscale):
+    table, from_area = own_pixscale(hdr, sci_hdr, source=path)
+    what = f"{inst}{' ' + _card(hdr, 'CHANNEL') if inst == 'NIRCAM' else ''}"
     if pixscale is not None:
-        return to_quantity(pixscale, u.mas, name="pixel scale")
-    if "PIXAR_A2" in sci_hdr:
-        try:
-            from_area = 1000 * np.sqrt(float(sci_hdr["PIXAR_A2"]))
-        except (TypeError, ValueError):
-            from_area = np.nan
-        if not abs(from_area / table - 1) <= 0.02:
-            warnings.warn(f"{path}: pixel scale {table} mas ({inst}"
-                          f"{' ' + channel if channel else ''}) differs from sqrt(PIXAR_A2) = "
-                          f"{from_area:.2f} mas; using {table} mas (give --pixscale to "
-                          f"change it)", KpifsWarning, stacklevel=3)
+        given = to_quantity(pixscale, u.mas, name="pixel scale")
+        if not pixscale_fits(given.value, (table, from_area)):
+            raise KpifsError(f"{path}: the pixel scale given ({given.value:g} mas) contradicts "
+                             f"this {what} file's own ({table} mas in kpifs's table, "
+                             f"sqrt(PIXAR_A2) = {from_area:.2f} mas): give that, or no "
+                             f"pixel scale")
+        return given
+    if "PIXAR_A2" in sci_hdr and not abs(from_area / table - 1) <= PIXSCALE_TOLERANCE:
+        warnings.warn(f"{path}: pixel scale {table} mas ({what}) differs from sqrt(PIXAR_A2) "
+                      f"= {from_area:.2f} mas; using {table} mas (give --pixscale to change "
+                      f"it)", KpifsWarning, stacklevel=3)
     return table * u.mas
 
 
@@ -362,7 +472,9 @@ def read_jwst(paths, *, wavelengths=None, pixscale=None, dq_bits=DO_NOT_USE):
     wavelengths : `~astropy.units.Quantity`, optional
         Replaces the filter table's mean wavelength.
     pixscale : `~astropy.units.Quantity`, optional
-        Replaces the table's pixel scale.
+        Replaces the table's pixel scale: a refinement of it (within
+        `PIXSCALE_TOLERANCE` of the table or of ``sqrt(PIXAR_A2)``); a value
+        that contradicts a file's own is refused.
     dq_bits : int or str
         DQ bits that make a pixel bad (`parse_dq_bits`: default ``DO_NOT_USE``
         = 1; e.g. ``1 | 2 | 4`` or ``'SATURATED,JUMP_DET'`` add SATURATED and
@@ -397,6 +509,11 @@ def read_jwst(paths, *, wavelengths=None, pixscale=None, dq_bits=DO_NOT_USE):
             raise KpifsError("files of different targets: " + ", ".join(
                 f"{p} ({t or '?'})" for p, t in zip(paths, targets))
                 + ": give the calibrator with --calibrator")
+        elements = {p: jwst_setup(c.header).get("pupil element") for p, c in zip(paths, cubes)}
+        if len(set(elements.values())) > 1:
+            raise KpifsError("files through different pupil elements: " + ", ".join(
+                f"{p} (PUPIL {e})" for p, e in elements.items()) + ": one cube is one pupil "
+                "(kernel phase and aperture masking are different observations)")
         if len(set(filters)) > 1:
             raise KpifsError(
                 "files in different filters: " + ", ".join(f"{p} ({f})" for p, f in

@@ -1,8 +1,9 @@
 """Write cubes in the instruments' on-disk layouts (used for simulated data).
 
 - ``plain``: one FITS file, primary HDU a float32 cube ``(nframe, nwave, ny, nx)``
-  with the wavelengths in cards ``KPWL1 ... KPWLn`` (um) and ``PIXSCALE`` (mas);
-  what ``kpifs extract`` reads without further options.
+  with the wavelengths in cards ``KPWL1 ... KPWLn`` (um) and ``PIXSCALE`` (mas),
+  and, for a scene with detector angles, a ``DETPA`` extension (deg, one per
+  frame); what ``kpifs extract`` reads without further options.
 - ``charis``: one file per exposure, as the CHARIS data-reduction pipeline
   writes them: HDU 0 header only, HDU 1 the cube ``(nlam, ny, nx)``, HDU 2 its
   inverse variance; ``LAM_MIN``, ``LAM_MAX`` (nm), ``DLOGLAM``, ``NLAM``,
@@ -10,7 +11,8 @@
 - ``sphere``: as the community SPHERE-IFS pipeline: ``science_cube.fits`` of
   shape ``(nwave, nframe, ny, nx)``, ``wavelength.fits`` (nm) and
   ``parallactic_angles.fits`` (deg).
-- ``jwst``, ``gpi``: JWST ``*_calints.fits`` and GPI ``*_spdc.fits``
+- ``jwst``, ``gpi``: JWST ``*_calints.fits`` (one file per detector angle: a
+  rotating sequence is several exposures) and GPI ``*_spdc.fits``
   (`kpifs.io.layouts_instruments`).
 """
 from pathlib import Path
@@ -48,8 +50,9 @@ def _base_header(cards, *, instrument, pixscale, exptime=None, obj="SIMULATED"):
 
 
 def write_plain_cube(path, cube, wavelengths, pixscale, *, cards=None, overwrite=False,
-                     exptime=None, obj="SIMULATED"):
-    """Write a 4-D cube ``(nframe, nwave, ny, nx)`` with its wavelengths in the header.
+                     exptime=None, obj="SIMULATED", detpa=None):
+    """Write a 4-D cube ``(nframe, nwave, ny, nx)`` with its wavelengths in the header, and
+    the detector position angle of each frame (deg, *detpa*) in a ``DETPA`` extension.
 
     Examples
     --------
@@ -65,8 +68,12 @@ def write_plain_cube(path, cube, wavelengths, pixscale, *, cards=None, overwrite
                        obj=obj)
     for i, w in enumerate(wl.value, 1):
         hdr[f"KPWL{i}"] = (float(w), f"[um] wavelength of channel {i}")
-    hdu = fits.PrimaryHDU(np.asarray(cube, np.float32), header=hdr)
-    return [write_hdulist(fits.HDUList([hdu]), path, overwrite=overwrite)]
+    hdus = [fits.PrimaryHDU(np.asarray(cube, np.float32), header=hdr)]
+    if detpa is not None:            # what `kpifs.io.angles.header_detpa` reads (issue 37)
+        pa = np.broadcast_to(np.asarray(detpa, float), (len(hdus[0].data),))
+        hdus.append(fits.ImageHDU(pa, name="DETPA"))
+        hdus[1].header["BUNIT"] = ("deg", "detector position angle of each frame")
+    return [write_hdulist(fits.HDUList(hdus), path, overwrite=overwrite)]
 
 
 def write_charis_exposures(outdir, cube, ivar, wavelengths, pixscale, *, prefix="CRSA",
@@ -183,7 +190,7 @@ def write_observation(obs, outdir, *, layout="plain", overwrite=False):
         common = dict(cards=cards, overwrite=overwrite, exptime=p.exptime, obj=obj)
         if layout == "plain":
             out[role] = write_plain_cube(outdir / f"{role}.fits", cube, p.wavelengths,
-                                         p.pixscale, **common)
+                                         p.pixscale, detpa=p.detpa, **common)
         elif layout == "charis":
             (outdir / role).mkdir(exist_ok=True)
             out[role] = write_charis_exposures(outdir / role, cube, 1 / var, p.wavelengths,
@@ -221,11 +228,26 @@ def _write_instrument(layout, obs, role, cube, var, outdir, common):
                          "wavelength")
     inst = "NIRCAM" if "nircam" in str(p.instrument).lower() else "NIRISS"
     pupil = "NRM" if telescope == "niriss_nrm" else None
-    tag = {"target": "00001", "calibrator": "00002"}[role]
     det = "nis" if inst == "NIRISS" else ("nrca1" if p.pixscale.to_value(u.mas) < 45
                                           else "nrcalong")
-    path = outdir / f"jw01234001001_01101_{tag}_{det}_calints.fits"
-    return [write_jwst_calints(path, cube[:, 0], var[:, 0], p.wavelengths[0], p.pixscale,
-                               instrument=inst, pupil=pupil,
-                               detpa=0.0 if p.detpa is None else float(np.mean(p.detpa)),
-                               seed=obs.seed + (role == "calibrator"), **common)]
+    # one file per detector angle: ROLL_REF is one per exposure (issue 37: a rotating
+    # sequence was written with its mean angle)
+    groups = _angle_groups(p.detpa, len(cube))
+    out = []
+    for k, (angle, frames) in enumerate(groups):
+        tag = ({"target": "00001", "calibrator": "00002"}[role] if len(groups) == 1 else
+               f"{1 if role == 'target' else 2}{k + 1:04d}")
+        path = outdir / f"jw01234001001_01101_{tag}_{det}_calints.fits"
+        out += [write_jwst_calints(path, cube[frames, 0], var[frames, 0], p.wavelengths[0],
+                                   p.pixscale, instrument=inst, pupil=pupil, detpa=angle,
+                                   seed=obs.seed + (role == "calibrator") + 2 * k, **common)]
+    return out
+
+
+def _angle_groups(detpa, nframe):
+    """``[(angle, frames)]``: runs of consecutive frames at one detector angle (deg)."""
+    if detpa is None:
+        return [(0.0, slice(0, nframe))]
+    pa = np.broadcast_to(np.asarray(detpa, float), (nframe,))
+    cuts = [0] + [i for i in range(1, nframe) if pa[i] != pa[i - 1]] + [nframe]
+    return [(float(pa[a]), slice(a, b)) for a, b in zip(cuts[:-1], cuts[1:])]

@@ -8,15 +8,15 @@ from astropy import units as u
 
 from ..apertures import canonical_name
 from ..exceptions import KpifsError, KpifsWarning
-from .charis import is_charis, read_charis
+from .charis import charis_setup, is_charis, read_charis
 from .cube import FrameStack, IFSCube, open_fits, read_generic, refuse_kpfits
-from .gpi import gpi_pupil, is_gpi, read_gpi
-from .jwst import is_jwst, jwst_pupil, parse_dq_bits, read_jwst
-from .sphere import is_sphere, read_sphere
+from .gpi import gpi_pupil, gpi_setup, is_gpi, read_gpi
+from .jwst import is_jwst, jwst_pupil, jwst_setup, parse_dq_bits, read_jwst
+from .sphere import is_sphere, read_sphere, sphere_setup
 from .wavelengths import parse_wavelengths
 
 __all__ = ["read_cube", "detect_instrument", "header_pupil", "check_pupil_header",
-           "INSTRUMENTS"]
+           "observing_setup", "setup_differences", "INSTRUMENTS"]
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +57,7 @@ def detect_instrument(path):
 
 
 def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angles=None,
-              dq_bits=None):
+              dq_bits=None, pa_given=False):
     """Read one or several cube files as an `~kpifs.io.IFSCube`.
 
     Parameters
@@ -79,6 +79,9 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
     dq_bits : int or str, optional
         JWST: the DQ flags read as bad pixels (`~kpifs.io.jwst.parse_dq_bits`;
         default ``DO_NOT_USE``). Ignored by the other readers.
+    pa_given : bool
+        The detector angles will be given (``--pa``): CHARIS and GPI exposures
+        whose header angle is unknown are kept, not left out.
 
     Examples
     --------
@@ -109,12 +112,14 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
         log.info("%s: read as %s", paths[0] if len(paths) == 1 else f"{len(paths)} files",
                  instrument)
     if instrument == "charis":
-        return read_charis(paths, wavelengths=wavelengths, pixscale=pixscale)
+        return read_charis(paths, wavelengths=wavelengths, pixscale=pixscale,
+                           keep_unknown_angles=pa_given)
     if instrument == "jwst":
         return read_jwst(paths, wavelengths=wavelengths, pixscale=pixscale,
                          dq_bits=dq_bits)
     if instrument == "gpi":
-        return read_gpi(paths, wavelengths=wavelengths, pixscale=pixscale)
+        return read_gpi(paths, wavelengths=wavelengths, pixscale=pixscale,
+                        keep_unknown_angles=pa_given)
     readers = {"sphere": lambda p: read_sphere(p, wavelengths=wavelengths, pixscale=pixscale,
                                                angles=angles),
                "generic": lambda p: read_generic(p, wavelengths=wavelengths,
@@ -198,3 +203,49 @@ def check_pupil_header(pupil, header, *, source="cube"):
     if key not in family:
         warnings.warn(f"{source}: INSTRUME {header.get('INSTRUME')!r} but the pupil model is "
                       f"{pupil!r} (expected {expected!r})", KpifsWarning, stacklevel=2)
+
+
+def observing_setup(header):
+    """What a target's and its calibrator's files must share, as the header says: the
+    instrument (``INSTRUME``, unless generic) and that instrument's own facts (JWST
+    filter and pupil element, GPI band, mode, apodizer and Lyot stop, CHARIS and
+    SPHERE-IFS mode: each instrument module's ``*_setup``). Only what the header says
+    is in it.
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.readers import observing_setup
+    >>> observing_setup(fits.Header({"INSTRUME": "NIRISS", "FILTER": "F480M",
+    ...                              "PUPIL": "CLEARP"}))
+    {'instrument': 'NIRISS', 'filter': 'F480M', 'pupil element': 'CLEARP'}
+    >>> observing_setup(None)
+    {}
+    """
+    if header is None:
+        return {}
+    inst = str(header.get("INSTRUME", "") or "").strip().upper()
+    out = {"instrument": inst} if inst and inst != "GENERIC" else {}
+    if inst in ("NIRISS", "NIRCAM"):
+        out.update(jwst_setup(header))
+    elif inst == "GPI":
+        out.update(gpi_setup(header))
+    elif inst == "CHARIS" or "CAL_BAND" in header:
+        out.update(charis_setup(header))
+    elif inst == "SPHERE" or "HIERARCH ESO INS2 COMB IFS" in header:
+        out.update(sphere_setup(header))
+    return out
+
+
+def setup_differences(first, other):
+    """``[(fact, value in first, value in other)]`` for the facts of two
+    `observing_setup` results that both state and that differ.
+
+    Examples
+    --------
+    >>> from kpifs.io.readers import setup_differences
+    >>> setup_differences({"filter": "F480M", "pupil element": "CLEARP"},
+    ...                   {"filter": "F480M", "pupil element": "NRM"})
+    [('pupil element', 'CLEARP', 'NRM')]
+    """
+    return [(k, v, other[k]) for k, v in first.items() if k in other and other[k] != v]

@@ -29,7 +29,7 @@ from ..exceptions import KpifsError, MissingInformation
 from .cube import IFSCube, open_fits
 from .wavelengths import parse_wavelengths, read_wavelength_file
 
-__all__ = ["read_sphere", "is_sphere", "SPHERE_PIXSCALE", "SPHERE_DETPA_OFFSET",
+__all__ = ["read_sphere", "is_sphere", "sphere_setup", "SPHERE_PIXSCALE", "SPHERE_DETPA_OFFSET",
            "SPHERE_PUPIL_OFFSET", "SPHERE_IFS_OFFSET", "SPHERE_TRUE_NORTH"]
 
 log = logging.getLogger(__name__)
@@ -52,6 +52,21 @@ _WAVE_NAMES = ("wavelength.fits", "wavelengths.fits", "lambda.fits")
 
 def _is_dc(header):
     return str(header.get("HIERARCH ESO PRO REC1 ID", "")).strip() == "sph_ifs_science_dr"
+
+
+def sphere_setup(header):
+    """What a SPHERE-IFS target's and calibrator's cubes must share: the mode (``ESO INS2
+    COMB IFS``: ``OBS_YJ`` or ``OBS_H``), when the header has it.
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.sphere import sphere_setup
+    >>> sphere_setup(fits.Header({"HIERARCH ESO INS2 COMB IFS": "OBS_YJ"}))
+    {'mode': 'OBS_YJ'}
+    """
+    mode = str(header.get("HIERARCH ESO INS2 COMB IFS", "") or "").strip().upper()
+    return {"mode": mode} if mode else {}
 
 
 def is_sphere(hdul):
