@@ -547,7 +547,7 @@ CASES = [
                                                          "0.8m"], 0, "kernel phases ->"),
     ("batch: manifest with a byte-order mark",
      lambda f: ["batch", f["m_bom"], "--workers", "1"], 1,
-     "missing_t.fits: file not found"),
+     "missing_t.fits: not found by worker"),
     ("batch: header-only manifest", lambda f: ["batch", f["m_header_only"]], 2,
      "m_header_only.csv: the manifest has no entries"),
     ("batch: folder locked by a running batch",
