@@ -647,4 +647,16 @@ class _Summary:
 
 
 class BatchInterrupted(KeyboardInterrupt):
-    """A batch stopped by Ctrl-C, after its summary was written (the message says where)."""
+    """A batch stopped by Ctrl-C, after its summary was written (the message says where).
+
+    A `KeyboardInterrupt`, so that code which catches Ctrl-C catches it too.
+
+    Examples
+    --------
+    >>> from kpifs.batch import BatchInterrupted
+    >>> try:
+    ...     raise BatchInterrupted("interrupted: summary of what finished in out/summary.ecsv")
+    ... except KeyboardInterrupt as err:
+    ...     print(err)
+    interrupted: summary of what finished in out/summary.ecsv
+    """
