@@ -66,11 +66,13 @@ def run_demo(outdir, *, frames=200, seed=1, overwrite=False, progress=True, draw
     --------
     >>> import tempfile, warnings
     >>> from kpifs.demo import run_demo
+    >>> tmp = tempfile.TemporaryDirectory()
     >>> with warnings.catch_warnings():
     ...     warnings.simplefilter("ignore")    # 20 frames: kpifs warns the null is optimistic
-    ...     res = run_demo(tempfile.mkdtemp(), frames=20, draws=1000, progress=False)
+    ...     res = run_demo(tmp.name, frames=20, draws=1000, progress=False)
     >>> res.test, len(res.wavelengths)
     ('B', 22)
+    >>> tmp.cleanup()
     """
     outdir = check_output_dir(outdir)
     if (outdir / "detection.fits").exists() and not overwrite:

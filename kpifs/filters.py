@@ -105,7 +105,8 @@ def extract_filters(targets, calibrators, options, *, progress=False):
     >>> from kpifs.io import write_observation
     >>> from kpifs.simulate import simulate_scene
     >>> from kpifs.workflow import ExtractOptions
-    >>> d, files = tempfile.mkdtemp(), {"t": [], "c": []}
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> d, files = tmp.name, {"t": [], "c": []}
     >>> for wl, ps in ((1.5106, 31.0), (4.8213, 63.0)):
     ...     obs = simulate_scene("nircam", wavelengths=[wl] * u.um, pixscale=ps * u.mas,
     ...                          n_frames=6, npup=32, shape=(32, 32), seed=int(ps))
@@ -117,6 +118,7 @@ def extract_filters(targets, calibrators, options, *, progress=False):
     ...     kpd = extract_filters(files["t"], [files["c"]], ExtractOptions(pupil="niriss_nrm"))
     >>> kpd.n_wave, kpd.meta["filters"]
     (2, ['F150W', 'F480M'])
+    >>> tmp.cleanup()
     """
     groups = jwst_filters(targets)
     if len(groups) < 2:

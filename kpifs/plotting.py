@@ -279,8 +279,10 @@ def save_detection_plots(result, outdir, *, truth=None, truth_spectrum=None):
     >>> import tempfile
     >>> from kpifs.detect.pipeline import _example_result
     >>> from kpifs.plotting import save_detection_plots
-    >>> [p.name for p in save_detection_plots(_example_result(), tempfile.mkdtemp())]
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> [p.name for p in save_detection_plots(_example_result(), tmp.name)]
     ['detection_map.png', 'contrast_curves.png', 'candidate_spectrum.png']
+    >>> tmp.cleanup()
     """
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
@@ -315,8 +317,10 @@ def save_roc_plots(curves, outdir):
     >>> import tempfile, numpy as np
     >>> from kpifs.plotting import save_roc_plots
     >>> c = (np.logspace(-3, 0, 5), np.linspace(0.5, 1, 5))
-    >>> [p.name for p in save_roc_plots({"all": {"NP": c, "NP theory": c}}, tempfile.mkdtemp())]
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> [p.name for p in save_roc_plots({"all": {"NP": c, "NP theory": c}}, tmp.name)]
     ['roc.png', 'roc_np_channels.png']
+    >>> tmp.cleanup()
     """
     import matplotlib.pyplot as plt
     outdir = Path(outdir)

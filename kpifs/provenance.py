@@ -77,10 +77,12 @@ def inputs_digest(files):
     --------
     >>> import tempfile, pathlib
     >>> from kpifs.workflow import inputs_digest
-    >>> p = pathlib.Path(tempfile.mkdtemp()) / "a.fits"
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> p = pathlib.Path(tmp.name) / "a.fits"
     >>> _ = p.write_bytes(b"x")
     >>> inputs_digest([p]) == inputs_digest([str(p)]), len(inputs_digest([p]))
     (True, 20)
+    >>> tmp.cleanup()
     """
     stats = []
     for f in files:

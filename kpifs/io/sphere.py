@@ -117,10 +117,12 @@ def read_sphere(path, *, wavelengths=None, pixscale=None, angles=None):
     >>> from kpifs.io import read_sphere, write_observation
     >>> from kpifs.simulate import simulate_scene
     >>> obs = simulate_scene("sphere", n_frames=2, npup=32, shape=(32, 32))
-    >>> files = write_observation(obs, tempfile.mkdtemp(), layout="sphere")
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> files = write_observation(obs, tmp.name, layout="sphere")
     >>> with read_sphere(files["target"][0]) as cube:   # wavelength.fits is found beside it
     ...     print(cube.shape, f"{cube.wavelengths[0]:.3f}")
     (2, 39, 32, 32) 0.957 um
+    >>> tmp.cleanup()
     """
     hdul = open_fits(path)
     try:
