@@ -352,6 +352,9 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     # per annulus, the map's own noise where it exceeds the scale (`annulus_noise`)
     smap = np.fmax(scale, np.nan_to_num(ring(last["res"], None), nan=0.0))
     t = t / smap ** _POWER[form]
+    # what decided: the map of the residual the search stopped on (the candidates
+    # subtracted), at the same noise scale (`DetectionResult.search_map`)
+    search_map = model.maps(whiten(last["res"], w), form, spectrum)[0] / smap ** _POWER[form]
     cerr = cerr * np.sqrt(last["scale"])
     valid = grid.valid
     pglob = np.where(valid, null.pfa(t), np.nan)
@@ -371,7 +374,8 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     te = None
     if not limits:
         return _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, {}, cands, threshold,
-                       energy, {"frame": frame, "chi2_red": kappa, "noise_scale": scale,
+                       energy, {"search_map": search_map, "frame": frame, "chi2_red": kappa,
+                                "noise_scale": scale,
                                 "n_draws": n_draws, "seed": seed, "test": test, "pfa": pfa,
                                 "pd": pd, "null": null_info, "static": static_info,
                                 "blocks": None if stack is None else stack.info})
@@ -416,7 +420,8 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     limits = {k: np.where(valid, v * np.sqrt(np.fmax(scales[k], gmap if k == "S" else zmap)),
                           np.nan) for k, v in limits.items()}
     curves = radial_curves(limits, grid)
-    meta = {"test": test, "pfa": pfa, "pd": pd, "n_draws": n_draws, "seed": seed,
+    meta = {"search_map": search_map, "test": test, "pfa": pfa, "pd": pd, "n_draws": n_draws,
+            "seed": seed,
             "chi2_red": kappa, "noise_scale": scale, "noise_scale_common": common,
             "noise_scale_S": scales["S"], "error_model": kpd.meta.get("error_model"),
             "energy_spread": spread, "map_noise_low": map_low,
@@ -444,12 +449,14 @@ def _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands, th
     meta["excluded_channels"] = list(kpd.meta.get("excluded_channels", []))
     if curves is None:
         curves = radial_curves(limits, grid)
+    search = meta.pop("search_map", None)
     return DetectionResult(grid=grid, test=test, pfa=pfa, pd=pd, statistic=t, pfa_local=ploc,
                            pfa_global=pglob, contrast=np.where(valid, c, np.nan),
                            contrast_err=np.where(valid, cerr, np.nan), limits=limits,
                            curves=curves, candidates=cands, threshold=threshold,
                            wavelengths=kpd.wavelengths, energy=energy, meta=meta,
-                           header=kpd.header.copy())
+                           header=kpd.header.copy(),
+                           search_map=None if search is None else np.where(valid, search, np.nan))
 
 
 #: Draws of the energy detector's correlated null (its threshold read from them).

@@ -127,6 +127,9 @@ def detection_hdulist(result, *, header=None, inputs=()):
             _image(result.pfa_global, "PFA", wcs_hdr, comment="global false-alarm probability"),
             _image(result.pfa_local, "PFA_LOCAL", wcs_hdr,
                    comment="false-alarm probability at a known position"),
+            *([] if result.search_map is None else [
+                _image(result.search_map, "SEARCH", wcs_hdr,
+                       comment="residual map the search stopped on")]),
             _image(result.contrast, "CONTRAST", wcs3, comment=f"{q} channels"),
             _image(result.contrast_err, "CONTRAST_ERR", wcs3, comment="1-sigma"),
             _image(result.limit, "LIMIT", wcs_hdr,
