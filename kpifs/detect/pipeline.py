@@ -334,7 +334,8 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     if frame == "sky":
         sky_search_columns(cands, poses)
     else:
-        add_sky_columns(cands, kpd.detpa)
+        # sky offsets only from angles the data know (not the 0 assumed without any)
+        add_sky_columns(cands, kpd.detpa if data_angles(kpd) is not None else None)
     fit_w, fit_rows = (w, null.noise_rows) if characterise is None else characterise[:2]
     if frame == "detector" and fit and refit_on_sky(cands, kp, fit_w, kpd, noise_rows=fit_rows) \
             and "chi2_red" in cands.colnames:
