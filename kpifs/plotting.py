@@ -173,12 +173,15 @@ def analytic_column(result):
 
 
 def plot_injection_limits(table, *, analytic=None, ax=None):
-    """Empirical 50 % limit from injections (points: found / not found) beside the analytic one.
+    """What injections say of the limit (points: the steps, coloured by the fraction found;
+    bars: the bracket of `~kpifs.inject.limit_bracket`) beside the analytic limit.
 
     *table* is `~kpifs.inject.injection_limits`'s; *analytic* a
     `~kpifs.DetectionResult` of the same data without injections (its own test's median
-    curve). A limit the ladder did not bracket (``table.meta['flags']``) is
-    drawn as an arrow: down for an upper bound, up for a lower one.
+    curve). Each separation's bar runs from the highest step found significantly
+    less than P_D of the time to the lowest found significantly more; an arrow
+    where the ladder has no such step (a bound). A point on the bar marks the
+    interpolated limit, drawn only where the bracket's ends are adjacent steps.
 
     Examples
     --------
@@ -192,27 +195,39 @@ def plot_injection_limits(table, *, analytic=None, ax=None):
     'contrast (companion / star)'
     """
     from matplotlib.lines import Line2D
+    from .inject import injection_brackets
     fig, ax = _axes(ax, figsize=(6.4, 4.8))
     sep = np.asarray(table["separation"].to_value(u.mas))
     c = np.asarray(table["contrast"], float)
     p = np.asarray(table["pd"], float)
     pd = table.meta.get("pd", 0.5)
     sc = ax.scatter(sep, c, c=p, cmap="RdYlGn", vmin=0, vmax=1, s=30, edgecolors="k",
-                    linewidths=0.3, label="injection steps (colour: fraction found)")
+                    linewidths=0.3, label="injection steps (colour: fraction found)", zorder=3)
     fig.colorbar(sc, ax=ax, label="fraction of the injections found")
-    seps = np.asarray(table.meta["separations_mas"], float)
-    lims = np.asarray(table.meta["limits"], float)
-    flags = np.asarray(table.meta.get("flags", ["="] * len(lims)))
-    ax.plot(seps, lims, "k-", lw=1)
     handles = [sc]
-    for flag, marker, text in (("=", "o", f"injections: {PD} = {pd:g} (interpolated)"),
-                               ("<", "v", "injections: upper bound (every step found)"),
-                               (">", "^", "injections: lower bound (no step found enough)")):
-        sel = flags == flag
+    br = injection_brackets(table)
+    s = br["separation"].to_value(u.mas)
+    lo, hi, val = (np.asarray(br[k], float)
+                   for k in ("limit_low", "limit_high", "limit_interpolated"))
+    span = np.ptp(s) if len(s) > 1 else 100.0
+    dx = 0.012 * max(span, 50.0)
+    both = np.isfinite(lo) & np.isfinite(hi)
+    if both.any():
+        ax.vlines(s[both] + dx, lo[both], hi[both], color="k", lw=2.5)
+        handles.append(Line2D([], [], color="k", lw=2.5,
+                              label=f"injections: the {PD} = {pd:g} limit lies on the bar"))
+    for sel, y, marker, text in ((~np.isfinite(lo) & np.isfinite(hi), hi, "v",
+                                  "injections: below (no step found too rarely)"),
+                                 (np.isfinite(lo) & ~np.isfinite(hi), lo, "^",
+                                  "injections: above (no step found often enough)")):
         if sel.any():
-            style = dict(color="k", marker=marker, ms=10, mfc="none", mew=1.5, ls="none")
-            ax.plot(seps[sel], lims[sel], **style)
+            style = dict(color="k", marker=marker, ms=10, ls="none")
+            ax.plot(s[sel] + dx, y[sel], **style)
             handles.append(Line2D([], [], label=text, **style))
+    if np.isfinite(val).any():
+        style = dict(color="k", marker="o", ms=7, mfc="w", mew=1.5, ls="none")
+        ax.plot(s[np.isfinite(val)] + dx, val[np.isfinite(val)], **style)
+        handles.append(Line2D([], [], label="interpolated (adjacent steps)", **style))
     col = None if analytic is None else analytic_column(analytic)
     if col is not None:
         handles += ax.plot(analytic.curves["separation"].to_value(u.mas),

@@ -14,6 +14,7 @@ from ..sampling import aliased_channels
 from ..workflow import default_pupil, kernel_model_for
 from ._options import extract_options
 from ._summary import contrast_text, pfa_text, position_text
+from .inject import bracket_text
 
 # model options the suggested next command repeats
 _MODEL_OPTIONS = ("pupil_scale", "step", "offset", "min_transmission", "grey",
@@ -169,10 +170,13 @@ def _injection(path):
           f"{hdr.get('NANGLES', '?')} position angle(s) per step, {n_rows} step(s) "
           f"({hdr.get('LADDER', 'given')} ladder)")
     for row in ([] if lim is None else lim):
-        flag = str(row["flag"]).strip() if "flag" in lim.colnames else "="
-        bound = "" if flag in ("=", "") else flag + " "
-        print(f"  {row['separation'].to_value(u.mas):.0f} mas: injections "
-              f"{bound}{row['limit_injection']:.2e}, analytic {row['limit_analytic']:.2e}")
+        if "limit_low" in lim.colnames:
+            text = bracket_text(row)
+        else:           # written before the brackets: the interpolated value and its flag
+            flag = str(row["flag"]).strip() if "flag" in lim.colnames else "="
+            text = ("" if flag in ("=", "") else flag + " ") + f"{row['limit_injection']:.2e}"
+        print(f"  {row['separation'].to_value(u.mas):.0f} mas: injections {text}, analytic "
+              f"{row['limit_analytic']:.2e}")
 
 
 def _verify_small(path, hdul, limit=16 * 2 ** 20):
