@@ -96,7 +96,7 @@ def _prepare(kpd, shrinkage, allow_uncalibrated):
     if not kpd.meta.get("calibrated") and not adi:     # ADI: only what turns is searched
         if not allow_uncalibrated:
             raise KpifsError(f"{kpd.name}: not calibrated (no calibrator star subtracted): "
-                             f"give its calibrator (--calibrator CAL_KP.fits), or "
+                             f"give its calibrator (--calibrator CALIBRATOR_KP.fits), or "
                              f"--allow-uncalibrated to search the data as they are")
         warnings.warn(f"{kpd.name}: not calibrated: searched as it is (aberrations that a "
                       f"calibrator would remove look like companions)", KpifsWarning,
