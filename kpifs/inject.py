@@ -202,9 +202,11 @@ def limit_bracket(contrasts, n_detected, n_injected, pd=0.5, *, alpha=BRACKET_AL
     that low has a binomial probability below *alpha* at the limit) lies below
     the limit; one significantly above lies above it. The limit is bracketed
     by the highest step below and the lowest step above (NaN where the ladder
-    has none). Steps in between are inconclusive for their number of angles:
-    an interpolated value is given only when there is none, the two ends being
-    adjacent steps (log interpolation of the found fractions), else NaN.
+    has none). Steps in between are inconclusive for their number of angles.
+    An interpolated value (log interpolation of the found fractions) is given
+    only when the two ends are adjacent steps and at least one of them was
+    found neither never nor always (else the fractions say nothing of where
+    between them the limit lies), else NaN.
 
     Returns
     -------
@@ -236,7 +238,8 @@ def limit_bracket(contrasts, n_detected, n_injected, pd=0.5, *, alpha=BRACKET_AL
     low = float(c[i]) if i is not None else np.nan
     high = float(c[j]) if j is not None else np.nan
     value = np.nan
-    if i is not None and j is not None and j == i + 1:
+    # adjacent ends, not both saturated (never and always found say nothing of the slope)
+    if i is not None and j is not None and j == i + 1 and (k[i] > 0 or k[j] < n[j]):
         f = np.clip((pd - k[i] / n[i]) / (k[j] / n[j] - k[i] / n[i]), 0.0, 1.0)
         value = float(np.exp(np.log(c[i]) + f * (np.log(c[j]) - np.log(c[i]))))
     return low, high, value

@@ -54,3 +54,10 @@ def test_figure_draws_the_bracket_not_a_point():
     assert seg[:, 1].tolist() == pytest.approx([0.5 * a, 2 * a])
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
     assert not any("interpolated" in t for t in labels)
+
+
+def test_saturated_ends_are_not_interpolated():
+    """0 of 4 and 4 of 4 at adjacent steps a factor 8 apart: the limit is anywhere
+    between them."""
+    low, high, value = limit_bracket([1.5e-3, 1.2e-2], [0, 4], [4, 4])
+    assert (low, high) == (pytest.approx(1.5e-3), pytest.approx(1.2e-2)) and np.isnan(value)

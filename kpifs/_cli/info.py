@@ -303,7 +303,7 @@ def _cube(path, args):
                   "channels (--aliased exclude leaves them out)")
         files = cube.source[0] if len(cube.source) == 1 else f"{cube.source[0]} ..."
         print(f"  next: kpifs extract {files} {' '.join(_given(args, opts, pupil))} "
-              f"[--calibrator CAL] -o kp.fits")
+              f"[--calibrator CALIBRATOR_CUBE...] -o kp.fits")
 
 
 def _given(args, opts, pupil):
