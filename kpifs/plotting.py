@@ -11,6 +11,8 @@ import numpy as np
 from astropy import units as u
 
 from ._utils import atomic_write
+from .detect.stats import TESTS
+from .inject import injection_brackets
 
 __all__ = ["plot_detection_map", "plot_contrast_curves", "plot_candidate_spectrum",
            "plot_roc", "plot_injection_limits", "save_detection_plots", "save_roc_plots"]
@@ -139,7 +141,6 @@ def plot_contrast_curves(result, *, ax=None):
     ['B', 'NP', 'E', 'B-paper', 'S', 'band']
     """
     from matplotlib.patches import Patch
-    from .detect.stats import TESTS
     fig, ax = _axes(ax, figsize=(6.4, 4.8))
     sep = result.curves["separation"].to_value(u.mas)
     order = [result.test] + [t for t in TESTS if t != result.test]
@@ -195,7 +196,6 @@ def plot_injection_limits(table, *, analytic=None, ax=None):
     'contrast (companion / star)'
     """
     from matplotlib.lines import Line2D
-    from .inject import injection_brackets
     fig, ax = _axes(ax, figsize=(6.4, 4.8))
     sep = np.asarray(table["separation"].to_value(u.mas))
     c = np.asarray(table["contrast"], float)
