@@ -99,9 +99,11 @@ def main(argv=None):
             print(out)
             shutil.rmtree(Path(tmp) / "demo_output")
         for command in COMMANDS:
-            cpu, wall, _ = timed(command, tmp)
+            cpu, wall, out = timed(command, tmp)
             rows.append((command.split(" -o ")[0][:60], cpu, wall, ""))
             print(f"{cpu:7.1f} s CPU {wall:7.1f} s wall  {command}", flush=True)
+            if command.startswith(("kpifs detect", "kpifs inject")):
+                print(out, flush=True)
     print(f"load after {os.getloadavg()[0]:.1f}")
     print(f"{'command':62s} {'CPU s':>7s} {'wall s':>7s}")
     for name, cpu, wall, note in rows:
