@@ -1,6 +1,6 @@
 """
-From SPHERE-IFS cubes to a detection map
-========================================
+From SPHERE-IFS cubes (with their wavelength and angle files) to a detection map
+================================================================================
 
 One star observed with VLT/SPHERE-IFS, from the reduced cube and its
 wavelength and angle files to a detection map, a contrast curve, the
