@@ -10,8 +10,12 @@ the frames themselves, extracted, calibrated and searched exactly as real
 data, at several position angles per separation and contrast. The contrast
 steps start from the analytic limit at each separation (0.5, 1 and 2 times it)
 and extend by factors of 2 until they bracket the 50 % level. The points give
-the fraction found; the black line, where half are found; the dashed line, the
-analytic limit of the same data without injections.
+the fraction found at each step; the black bar, where the steps put the 50 %
+limit: from the highest step found significantly less than half the time to
+the lowest found significantly more (with 4 angles, 0 and 4 of 4 are; 1, 2
+or 3 of 4 are not, and a value is interpolated only between adjacent steps
+that are); the dashed line, the analytic limit of the same data without
+injections.
 """
 import warnings
 
@@ -22,8 +26,8 @@ import astropy.units as u
 from kpifs import KernelModel, extract_kernel_phases, make_pupil
 from kpifs.calibrate import calibrate
 from kpifs.detect import detect
-from kpifs.inject import injection_limits
-from kpifs.plotting import plot_injection_limits
+from kpifs.inject import injection_brackets, injection_limits
+from kpifs.plotting import analytic_column, plot_injection_limits
 from kpifs.simulate import simulate_scene
 
 obs = simulate_scene("paper", n_frames=30, seed=5, npup=64, contrasts=0.0,
@@ -38,13 +42,14 @@ with warnings.catch_warnings():
     analytic = detect(calibrate(tgt, [cal]), pfa=1e-3, n_draws=5000, seed=0)
     seps = [60, 120] * u.mas
     start = np.interp(seps.value, analytic.curves["separation"].to_value(u.mas),
-                      analytic.curves["B_median"])
+                      analytic.curves[analytic_column(analytic)])
     table = injection_limits(obs.target, [cal], km, window=cal.window, **args,
                              separations=seps, start=start, n_angles=4, seed=1)
 
 print(table)
 print("analytic limits:", [f"{v:.2e}" for v in start])
-print("empirical 50 % limits:", [f"{flag if flag != '=' else ''}{v:.2e}"
-                                 for v, flag in zip(table.meta["limits"], table.meta["flags"])])
+# where the steps put the 50 % limit (NaN: no conclusive step on that side; the
+# interpolated value only where the two ends are adjacent steps)
+print(injection_brackets(table))
 fig = plot_injection_limits(table, analytic=analytic)
 plt.show()

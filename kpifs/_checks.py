@@ -218,8 +218,8 @@ def preflight_detect(kp, calibrators, output, options):
     if not calibrated and not calibrators and not options.allow_uncalibrated \
             and fits.getheader(kp).get("BLKSRCH") != "angular-differential":   # issue 29
         raise KpifsError(f"{kp}: not calibrated (no calibrator star subtracted): give its "
-                         f"calibrator (--calibrator CAL_KP.fits), or --allow-uncalibrated to "
-                         f"search the data as they are")
+                         f"calibrator (--calibrator CALIBRATOR_KP.fits), or --allow-uncalibrated "
+                         f"to search the data as they are")
     for c in calibrators:
         peek = peek_kpfits(c)
         if peek is not None and peek[0]:

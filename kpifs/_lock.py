@@ -48,10 +48,12 @@ class FolderLock:
     --------
     >>> import tempfile
     >>> from kpifs._lock import FolderLock
-    >>> d = tempfile.mkdtemp()
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> d = tmp.name
     >>> with FolderLock(d) as lock:
     ...     lock.path.name
     '.kpifs-batch.lock'
+    >>> tmp.cleanup()
     """
 
     def __init__(self, folder):

@@ -176,11 +176,13 @@ def read_manifest(path):
     --------
     >>> import tempfile, pathlib
     >>> from kpifs.batch import read_manifest
-    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> d = pathlib.Path(tmp.name)
     >>> _ = (d / "m.csv").write_text("name,target,calibrator\\nstar1,a.fits,b.fits|c.fits\\n")
     >>> e = read_manifest(d / "m.csv")[0]
     >>> e.name, len(e.calibrators)
     ('star1', 2)
+    >>> tmp.cleanup()
     """
     path = Path(path)
     if not path.is_file():
@@ -261,11 +263,13 @@ def entries_from_glob(pattern, calibrator=None):
     --------
     >>> import tempfile, pathlib
     >>> from kpifs.batch import entries_from_glob
-    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> d = pathlib.Path(tmp.name)
     >>> for name in ("a.fits", "b.fits", "cal.fits"):
     ...     _ = (d / name).write_bytes(b"")
     >>> [e.name for e in entries_from_glob(str(d / "[ab].fits"), str(d / "cal.fits"))]
     ['a', 'b']
+    >>> tmp.cleanup()
     """
     files = sorted(glob.glob(pattern))
     if not files:
@@ -385,10 +389,12 @@ def process_entry(entry, extract_options, detect_options, outdir, *, overwrite=F
     >>> import tempfile
     >>> from kpifs.batch import BatchEntry, process_entry
     >>> from kpifs.workflow import DetectOptions, ExtractOptions
+    >>> tmp = tempfile.TemporaryDirectory()
     >>> row = process_entry(BatchEntry("x", ["missing.fits"], [["cal.fits"]]),
-    ...                     ExtractOptions(), DetectOptions(), tempfile.mkdtemp())
+    ...                     ExtractOptions(), DetectOptions(), tmp.name)
     >>> row["status"], "missing.fits: not found by process" in row["message"]
     ('failed', True)
+    >>> tmp.cleanup()
     """
     from threadpoolctl import threadpool_limits
     t0 = time.perf_counter()
@@ -528,10 +534,12 @@ def run_batch(entries, outdir, *, extract_options=None, detect_options=None, ove
     >>> import tempfile
     >>> from kpifs.batch import BatchEntry, run_batch
     >>> entries = [BatchEntry("x", ["missing.fits"], [["cal.fits"]])]
-    >>> table = run_batch(entries, tempfile.mkdtemp(), n_workers=1, processes=False,
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> table = run_batch(entries, tmp.name, n_workers=1, processes=False,
     ...                   progress=False)
     >>> [str(s) for s in table["status"]]
     ['failed']
+    >>> tmp.cleanup()
     """
     _cluster._dask()                               # refused now if Dask is missing
     here = os.getcwd()
@@ -562,6 +570,9 @@ def _run_locked(entries, outdir, xo, do, *, overwrite, scheduler, n_workers, pro
                 progress, lock, run):
     """`run_batch` once the output folder's lock is held."""
     summary = _Summary(entries, outdir, xo, do)
+    # every entry pending, on disk before any work: a record from the start, and the table
+    # writer's imports done before a Ctrl-C can land inside one of them
+    summary.write()
     stopped = None
     try:
         with _cluster.dask_client(scheduler, n_workers=n_workers,

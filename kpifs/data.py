@@ -478,6 +478,10 @@ class DetectionResult:
     energy: dict = field(default_factory=dict)
     meta: dict = field(default_factory=dict)
     header: fits.Header = field(default_factory=fits.Header)
+    #: The map the search stopped on: the statistic of the residual once the candidates
+    #: are subtracted, at the noise scale they were judged with (the SEARCH extension;
+    #: None in products written before it).
+    search_map: np.ndarray = None
 
     _io_format = "kpifs-detection"
     read, write = io_methods("DetectionResult")
@@ -513,7 +517,7 @@ def _read_detection(path):
                            contrast_err=images["CONTRAST_ERR"], limits=parts["limits"],
                            curves=tables["CURVES"], candidates=tables["CANDIDATES"],
                            threshold=hdr["THRESH"], wavelengths=wl, energy=energy, meta=meta,
-                           header=hdr)
+                           header=hdr, search_map=images.get("SEARCH"))
 
 
 register(DetectionResult, "kpifs-detection", reader=_read_detection, writer=write_detection,

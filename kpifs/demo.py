@@ -2,8 +2,9 @@
 
 simulate (CHARIS pipeline layout: target with a companion, calibrator) -> read
 with the CHARIS reader -> extract kernel phases (22 channels) -> calibrate ->
-detect (GLR binary test, calibrated grid search) -> detection FITS and figures,
-all through `kpifs.workflow.process_observation`, as ``kpifs batch`` and the
+detect (the default test, ``--test auto``: S on these 22 channels; calibrated grid
+search) -> detection FITS and figures, all through
+`kpifs.workflow.process_observation`, as ``kpifs batch`` and the
 ``extract``/``detect`` commands would.
 """
 import logging
@@ -66,11 +67,13 @@ def run_demo(outdir, *, frames=200, seed=1, overwrite=False, progress=True, draw
     --------
     >>> import tempfile, warnings
     >>> from kpifs.demo import run_demo
+    >>> tmp = tempfile.TemporaryDirectory()
     >>> with warnings.catch_warnings():
     ...     warnings.simplefilter("ignore")    # 20 frames: kpifs warns the null is optimistic
-    ...     res = run_demo(tempfile.mkdtemp(), frames=20, draws=1000, progress=False)
-    >>> res.test, len(res.wavelengths)
-    ('B', 22)
+    ...     res = run_demo(tmp.name, frames=20, draws=1000, progress=False)
+    >>> res.test, len(res.wavelengths)      # the default test on 22 channels
+    ('S', 22)
+    >>> tmp.cleanup()
     """
     outdir = check_output_dir(outdir)
     if (outdir / "detection.fits").exists() and not overwrite:
@@ -90,13 +93,13 @@ def _run(outdir, inputs, *, frames, seed, overwrite, progress, draws, keep_input
     obs = simulate_scene("charis", n_frames=frames, seed=seed, progress=progress, **DEMO_SCENE)
     files = write_observation(obs, inputs, layout="charis", overwrite=overwrite)
 
-    say(f"[2/4] reading, extracting, calibrating and searching (GLR test, {draws} "
+    say(f"[2/4] reading, extracting, calibrating and searching (the default test, {draws} "
         f"Monte-Carlo draws)")
     xo = ExtractOptions(step=DEMO_STEP, min_transmission=DEMO_MIN_TRANSMISSION)
     out = process_observation(files["target"], [files["calibrator"]], outdir,
                               extract_options=xo,
-                              detect_options=DetectOptions(test="B", pfa=1e-3, pd=0.5,
-                                                           draws=draws, seed=seed),
+                              detect_options=DetectOptions(pfa=1e-3, pd=0.5, draws=draws,
+                                                           seed=seed),
                               overwrite=overwrite, keep_stars=True, progress=progress)
     res = out["result"]
 
@@ -109,7 +112,9 @@ def _run(outdir, inputs, *, frames, seed, overwrite, progress, draws, keep_input
 
     frame = ("dRA {:.0f}, dDec {:.0f} mas on the sky (East positive)" if sky
              else "x {:.0f}, y {:.0f} mas on the detector")
-    say(f"[4/4] truth: companion at {frame.format(*shown)}, mean contrast "
+    say(f"[4/4] test: {res.test} (the default, --test auto: S on data with more channels "
+        f"than its spectral model's rank, else B), global P_FA {res.pfa:g}")
+    say(f"truth: companion at {frame.format(*shown)}, mean contrast "
         f"{obs.params.contrasts.mean():.1e}")
     for i, row in enumerate(res.candidates, 1):
         say(f"found {i}: {_position(row, sky)}, mean contrast "

@@ -30,7 +30,8 @@ from .detect.sky import sky_to_detector   # noqa: F401  (kpifs.inject.sky_to_det
 from .exceptions import KpifsError, KpifsWarning
 from .extract import extract_kernel_phases
 
-__all__ = ["shift_images", "inject_companion", "injection_limits"]
+__all__ = ["shift_images", "inject_companion", "injection_limits", "limit_bracket",
+           "injection_brackets", "BRACKET_ALPHA"]
 
 log = logging.getLogger(__name__)
 
@@ -190,6 +191,97 @@ def _limit(contrasts, fractions, pd):
     f = (pd - p[i - 1]) / (p[i] - p[i - 1])
     lc = np.log(c)
     return float(np.exp(lc[i - 1] + f * (lc[i] - lc[i - 1]))), "="
+
+
+#: One-sided binomial level of `limit_bracket`: a step's count is taken as below (above)
+#: the detection probability when a count that low (high) would be rarer than this if the
+#: step were at the limit. With 4 angles, 0 of 4 and 4 of 4 (1/16 each) are; 1 of 4 is not.
+BRACKET_ALPHA = 0.1
+
+
+def limit_bracket(contrasts, n_detected, n_injected, pd=0.5, *, alpha=BRACKET_ALPHA):
+    """Where the injection steps put the limit, and what they allow one to say of it.
+
+    A step whose count of found companions is significantly below *pd* (a count
+    that low has a binomial probability below *alpha* at the limit) lies below
+    the limit; one significantly above lies above it. The limit is bracketed
+    by the highest step below and the lowest step above (NaN where the ladder
+    has none). Steps in between are inconclusive for their number of angles.
+    An interpolated value (log interpolation of the found fractions) is given
+    only when the two ends are adjacent steps and at least one of them was
+    found neither never nor always (else the fractions say nothing of where
+    between them the limit lies), else NaN.
+
+    Returns
+    -------
+    low, high, value : float
+
+    Examples
+    --------
+    >>> from kpifs.inject import limit_bracket
+    >>> # 4 angles: 0, 2 and 4 of 4 found at 0.5, 1 and 2 times 1e-4
+    >>> limit_bracket([0.5e-4, 1e-4, 2e-4], [0, 2, 4], [4, 4, 4])   # no value: 1e-4 is inside
+    (5e-05, 0.0002, nan)
+    >>> # 20 angles: 4 and 16 of 20 found at adjacent steps
+    >>> [round(v, 7) for v in limit_bracket([1e-4, 2e-4], [4, 16], [20, 20])]
+    [0.0001, 0.0002, 0.0001414]
+    """
+    from scipy.stats import binom
+    c = np.asarray(contrasts, float)
+    k = np.asarray(n_detected, int)
+    n = np.asarray(n_injected, int)
+    order = np.argsort(c)
+    c, k, n = c[order], k[order], n[order]
+    below = binom.cdf(k, n, pd) < alpha                 # so few found: under the limit
+    above = binom.sf(k - 1, n, pd) < alpha              # so many found: over it
+    lo = np.flatnonzero(below)
+    hi = np.flatnonzero(above)
+    i = lo[-1] if len(lo) else None
+    j = hi[hi > i][0] if len(hi) and i is not None and np.any(hi > i) else \
+        (hi[0] if len(hi) and i is None else None)
+    low = float(c[i]) if i is not None else np.nan
+    high = float(c[j]) if j is not None else np.nan
+    value = np.nan
+    # adjacent ends, not both saturated (never and always found say nothing of the slope)
+    if i is not None and j is not None and j == i + 1 and (k[i] > 0 or k[j] < n[j]):
+        f = np.clip((pd - k[i] / n[i]) / (k[j] / n[j] - k[i] / n[i]), 0.0, 1.0)
+        value = float(np.exp(np.log(c[i]) + f * (np.log(c[j]) - np.log(c[i]))))
+    return low, high, value
+
+
+def injection_brackets(table):
+    """`limit_bracket` at each separation of an `injection_limits` *table*.
+
+    Returns
+    -------
+    `~astropy.table.QTable`
+        ``separation``, ``limit_low``, ``limit_high`` and ``limit_interpolated``
+        (NaN where the steps do not allow it), one row per separation.
+
+    Examples
+    --------
+    >>> import astropy.units as u
+    >>> from astropy.table import QTable
+    >>> from kpifs.inject import injection_brackets
+    >>> tab = QTable({"separation": [60, 60, 60] * u.mas, "contrast": [1e-4, 2e-4, 4e-4],
+    ...               "n_injected": [4, 4, 4], "n_detected": [0, 2, 4]})
+    >>> tab.meta["pd"] = 0.5
+    >>> row = injection_brackets(tab)[0]
+    >>> float(row["limit_low"]), float(row["limit_high"]), bool(row["limit_interpolated"] > 0)
+    (0.0001, 0.0004, False)
+    """
+    sep = u.Quantity(table["separation"], u.mas).value
+    pd = float(table.meta.get("pd", 0.5))
+    rows = []
+    for s in dict.fromkeys(sep.tolist()):
+        m = sep == s
+        rows.append((s, *limit_bracket(np.asarray(table["contrast"])[m],
+                                       np.asarray(table["n_detected"])[m],
+                                       np.asarray(table["n_injected"])[m], pd)))
+    out = QTable(rows=rows, names=("separation", "limit_low", "limit_high",
+                                   "limit_interpolated"))
+    out["separation"].unit = u.mas
+    return out
 
 
 def _next_contrast(contrasts, fractions, pd, max_steps):

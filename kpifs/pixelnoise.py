@@ -221,11 +221,13 @@ def attach_pixel_noise(kpd, cube):
     >>> from kpifs.simulate import simulate_scene
     >>> from kpifs.workflow import ExtractOptions, extract_observation
     >>> obs = simulate_scene("niriss", n_frames=3, npup=32, shape=(32, 32), seed=1)
-    >>> files = write_observation(obs, tempfile.mkdtemp(), layout="jwst")
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> files = write_observation(obs, tmp.name, layout="jwst")
     >>> opts = ExtractOptions(pupil="niriss_nrm")
     >>> kpd = extract_observation(files["target"], opts)    # calls attach_pixel_noise
     >>> kpd.meta["pixel_noise"], kpd.kp_err.shape == kpd.shape
     ('ERR', True)
+    >>> tmp.cleanup()
     """
     if getattr(cube, "variance", None) is None:
         return kpd

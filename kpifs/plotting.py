@@ -11,6 +11,8 @@ import numpy as np
 from astropy import units as u
 
 from ._utils import atomic_write
+from .detect.stats import TESTS
+from .inject import injection_brackets
 
 __all__ = ["plot_detection_map", "plot_contrast_curves", "plot_candidate_spectrum",
            "plot_roc", "plot_injection_limits", "save_detection_plots", "save_roc_plots"]
@@ -38,6 +40,7 @@ def _axes(ax, figsize=(5.5, 4.5)):
 TEST_LABELS = {"NP": r"NP: matched filter, known spectrum (reference)",
                "B": r"B: GLR, $\Sigma_i \max(z_i, 0)^2$",
                "B-paper": r"B-paper: the paper's $\Sigma_i \max(z_i, 0)$",
+               "S": r"S: spectral model, GLR over a low-rank spectrum",
                "E": r"E: energy, $\|y\|^2$"}
 
 PFA = r"$P_\mathrm{FA}$"
@@ -56,11 +59,18 @@ def _candidate_xy(row, sky):
 
 
 def plot_detection_map(result, *, ax=None, truth=None):
-    """The map statistic in units of the threshold, candidates circled and numbered.
+    """The map the search decided on, in units of its threshold, candidates marked.
 
+    Candidates are found one at a time: the strongest peak above the threshold
+    is fitted and subtracted, and the map of what remains is searched again.
+    The map drawn is that residual map once every candidate is subtracted
+    (`~kpifs.data.DetectionResult.search_map`), at the noise scale the
+    candidates were judged with: nothing left in it crosses the threshold
+    contour. Each subtracted candidate is circled at its fitted position,
+    numbered, with its own statistic in units of the threshold. Products
+    written before the residual map was kept show the data's own map instead.
     The colour scale is asinh (linear up to the threshold, logarithmic far
-    above it), so that a peak just above the threshold shows next to a bright
-    companion; the threshold is the contour.
+    above it).
 
     Examples
     --------
@@ -68,20 +78,23 @@ def plot_detection_map(result, *, ax=None, truth=None):
     >>> from kpifs.plotting import plot_detection_map
     >>> fig = plot_detection_map(_example_result(), truth=(60, -40))
     >>> len(fig.axes), fig.axes[1].get_ylabel()
-    (2, 'B statistic / threshold (asinh scale)')
+    (2, 'B statistic of the residual / threshold (asinh scale)')
     """
     from matplotlib.colors import AsinhNorm
     from matplotlib.lines import Line2D
     fig, ax = _axes(ax, figsize=(6.4, 5.0))
     g = result.grid
     ext = [g.x[0], g.x[-1], g.y[0], g.y[-1]]
-    test = result.meta.get("test", result.test)
-    ratio = np.asarray(result.statistic, float) / result.threshold
+    test = "B" if result.test == "E" else result.test
+    residual = getattr(result, "search_map", None) is not None
+    shown = result.search_map if residual else result.statistic
+    ratio = np.asarray(shown, float) / result.threshold
     top = max(float(np.nanmax(ratio)) if np.isfinite(ratio).any() else 1.0, 1.5)
     im = ax.imshow(ratio, origin="lower", extent=ext, cmap="magma",
                    norm=AsinhNorm(linear_width=1.0, vmin=0, vmax=top))
     ticks = [t for t in (0, 0.5, 1, 2, 5, 10, 20, 50, 100, 200, 500, 1000) if t <= top]
-    fig.colorbar(im, ax=ax, label=f"{test} statistic / threshold (asinh scale)", ticks=ticks,
+    what = "statistic of the residual" if residual else "statistic"
+    fig.colorbar(im, ax=ax, label=f"{test} {what} / threshold (asinh scale)", ticks=ticks,
                  format="%g")
     ax.contour(g.X, g.Y, np.nan_to_num(ratio), levels=[1.0], colors="cyan", linewidths=0.8)
     handles = [Line2D([], [], color="cyan", lw=0.8,
@@ -90,11 +103,14 @@ def plot_detection_map(result, *, ax=None, truth=None):
     for i, row in enumerate(result.candidates, 1):
         x, y = _candidate_xy(row, sky)
         ax.plot(x, y, "o", mfc="none", mec="cyan", ms=14)
-        ax.annotate(str(i), (x, y), xytext=(9, 9), textcoords="offset points", color="cyan",
-                    fontsize=9, fontweight="bold")
+        ax.annotate(f"{i}: {float(row['statistic']) / result.threshold:.3g}x", (x, y),
+                    xytext=(9, 9), textcoords="offset points", color="cyan", fontsize=9,
+                    fontweight="bold")
     if len(result.candidates):
+        what = "subtracted, " if residual else ""
         handles.append(Line2D([], [], ls="none", marker="o", mfc="none", mec="cyan", ms=10,
-                              label="candidates (numbered), fitted position"))
+                              label=f"candidates ({what}fitted position): "
+                                    f"n: statistic / threshold"))
     if truth is not None:
         handles += ax.plot(*truth, "+", color="lime", ms=12, label="simulated companion")
     ax.legend(handles=handles, loc="upper right", fontsize=7, framealpha=0.8)
@@ -104,30 +120,37 @@ def plot_detection_map(result, *, ax=None, truth=None):
     else:
         ax.set_xlabel("offset along detector x (mas)")
         ax.set_ylabel("offset along detector y (mas)")
-    ax.set_title(f"{_test_label(test)}\n{len(result.candidates)} candidate(s) at global "
-                 f"{PFA} = {result.pfa:g}", fontsize=10)
+    after = ", the map once they are subtracted" if residual and len(result.candidates) else ""
+    ax.set_title(f"search with {_test_label(result.test)}\n{len(result.candidates)} "
+                 f"candidate(s) at global {PFA} = {result.pfa:g}{after}", fontsize=9)
     return fig
 
 
 def plot_contrast_curves(result, *, ax=None):
     """Median (line) and min-max (band) limiting contrast versus separation, per test.
 
+    Every test whose limits the result holds is drawn; the test the search
+    used is the thick line, named first in the legend.
+
     Examples
     --------
     >>> from kpifs.detect.pipeline import _example_result
     >>> from kpifs.plotting import plot_contrast_curves
     >>> fig = plot_contrast_curves(_example_result())
-    >>> fig.axes[0].get_xlabel()
-    'separation (mas)'
+    >>> [t.get_text().split(":")[0] for t in fig.axes[0].get_legend().get_texts()]
+    ['B', 'NP', 'E', 'B-paper', 'S', 'band']
     """
     from matplotlib.patches import Patch
     fig, ax = _axes(ax, figsize=(6.4, 4.8))
     sep = result.curves["separation"].to_value(u.mas)
-    for name in ("NP", "B", "B-paper", "E"):
+    order = [result.test] + [t for t in TESTS if t != result.test]
+    for name in order:
         if f"{name}_median" not in result.curves.colnames:
             continue
+        own = name == result.test
         med = np.asarray(result.curves[f"{name}_median"])
-        line, = ax.semilogy(sep, med, label=_test_label(name))
+        label = _test_label(name) + (" (this search's test)" if own else "")
+        line, = ax.semilogy(sep, med, label=label, lw=2.4 if own else 1.0, zorder=3 if own else 2)
         ax.fill_between(sep, result.curves[f"{name}_min"], result.curves[f"{name}_max"],
                         color=line.get_color(), alpha=0.15)
     handles = ax.get_legend_handles_labels()[0]
@@ -135,8 +158,8 @@ def plot_contrast_curves(result, *, ax=None):
                          label="band: min to max over position angles (line: median)"))
     ax.set_xlabel("separation (mas)")
     ax.set_ylabel("limiting contrast (companion / star)")
-    ax.set_title(f"detection limits: global {PFA} = {result.pfa:g}, {PD} = {result.pd:g}",
-                 fontsize=10)
+    ax.set_title(f"detection limits of the {result.test} search: global {PFA} = "
+                 f"{result.pfa:g}, {PD} = {result.pd:g}", fontsize=10)
     ax.legend(handles=handles, fontsize=7)
     return fig
 
@@ -151,12 +174,15 @@ def analytic_column(result):
 
 
 def plot_injection_limits(table, *, analytic=None, ax=None):
-    """Empirical 50 % limit from injections (points: found / not found) beside the analytic one.
+    """What injections say of the limit (points: the steps, coloured by the fraction found;
+    bars: the bracket of `~kpifs.inject.limit_bracket`) beside the analytic limit.
 
     *table* is `~kpifs.inject.injection_limits`'s; *analytic* a
     `~kpifs.DetectionResult` of the same data without injections (its own test's median
-    curve). A limit the ladder did not bracket (``table.meta['flags']``) is
-    drawn as an arrow: down for an upper bound, up for a lower one.
+    curve). Each separation's bar runs from the highest step found significantly
+    less than P_D of the time to the lowest found significantly more; an arrow
+    where the ladder has no such step (a bound). A point on the bar marks the
+    interpolated limit, drawn only where the bracket's ends are adjacent steps.
 
     Examples
     --------
@@ -176,21 +202,32 @@ def plot_injection_limits(table, *, analytic=None, ax=None):
     p = np.asarray(table["pd"], float)
     pd = table.meta.get("pd", 0.5)
     sc = ax.scatter(sep, c, c=p, cmap="RdYlGn", vmin=0, vmax=1, s=30, edgecolors="k",
-                    linewidths=0.3, label="injection steps (colour: fraction found)")
+                    linewidths=0.3, label="injection steps (colour: fraction found)", zorder=3)
     fig.colorbar(sc, ax=ax, label="fraction of the injections found")
-    seps = np.asarray(table.meta["separations_mas"], float)
-    lims = np.asarray(table.meta["limits"], float)
-    flags = np.asarray(table.meta.get("flags", ["="] * len(lims)))
-    ax.plot(seps, lims, "k-", lw=1)
     handles = [sc]
-    for flag, marker, text in (("=", "o", f"injections: {PD} = {pd:g} (interpolated)"),
-                               ("<", "v", "injections: upper bound (every step found)"),
-                               (">", "^", "injections: lower bound (no step found enough)")):
-        sel = flags == flag
+    br = injection_brackets(table)
+    s = br["separation"].to_value(u.mas)
+    lo, hi, val = (np.asarray(br[k], float)
+                   for k in ("limit_low", "limit_high", "limit_interpolated"))
+    span = np.ptp(s) if len(s) > 1 else 100.0
+    dx = 0.012 * max(span, 50.0)
+    both = np.isfinite(lo) & np.isfinite(hi)
+    if both.any():
+        ax.vlines(s[both] + dx, lo[both], hi[both], color="k", lw=2.5)
+        handles.append(Line2D([], [], color="k", lw=2.5,
+                              label=f"injections: the {PD} = {pd:g} limit lies on the bar"))
+    for sel, y, marker, text in ((~np.isfinite(lo) & np.isfinite(hi), hi, "v",
+                                  "injections: below (no step found too rarely)"),
+                                 (np.isfinite(lo) & ~np.isfinite(hi), lo, "^",
+                                  "injections: above (no step found often enough)")):
         if sel.any():
-            style = dict(color="k", marker=marker, ms=10, mfc="none", mew=1.5, ls="none")
-            ax.plot(seps[sel], lims[sel], **style)
+            style = dict(color="k", marker=marker, ms=10, ls="none")
+            ax.plot(s[sel] + dx, y[sel], **style)
             handles.append(Line2D([], [], label=text, **style))
+    if np.isfinite(val).any():
+        style = dict(color="k", marker="o", ms=7, mfc="w", mew=1.5, ls="none")
+        ax.plot(s[np.isfinite(val)] + dx, val[np.isfinite(val)], **style)
+        handles.append(Line2D([], [], label="interpolated (adjacent steps)", **style))
     col = None if analytic is None else analytic_column(analytic)
     if col is not None:
         handles += ax.plot(analytic.curves["separation"].to_value(u.mas),
@@ -228,7 +265,7 @@ def plot_candidate_spectrum(result, index=0, *, ax=None, truth=None):
         x, y = _candidate_xy(row, sky)
         where = (f"dRA {x:.1f}, dDec {y:.1f} mas" if sky
                  else f"detector x {x:.1f}, y {y:.1f} mas")
-        title = f"candidate {index + 1} at {where}"
+        title = f"candidate {index + 1} of the {result.test} search, at {where}"
     if truth is not None:
         ax.plot(wl, truth, "k--", label="simulated companion's spectrum")
     ax.set_xlabel("wavelength (µm)")
@@ -279,8 +316,10 @@ def save_detection_plots(result, outdir, *, truth=None, truth_spectrum=None):
     >>> import tempfile
     >>> from kpifs.detect.pipeline import _example_result
     >>> from kpifs.plotting import save_detection_plots
-    >>> [p.name for p in save_detection_plots(_example_result(), tempfile.mkdtemp())]
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> [p.name for p in save_detection_plots(_example_result(), tmp.name)]
     ['detection_map.png', 'contrast_curves.png', 'candidate_spectrum.png']
+    >>> tmp.cleanup()
     """
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
@@ -315,8 +354,10 @@ def save_roc_plots(curves, outdir):
     >>> import tempfile, numpy as np
     >>> from kpifs.plotting import save_roc_plots
     >>> c = (np.logspace(-3, 0, 5), np.linspace(0.5, 1, 5))
-    >>> [p.name for p in save_roc_plots({"all": {"NP": c, "NP theory": c}}, tempfile.mkdtemp())]
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> [p.name for p in save_roc_plots({"all": {"NP": c, "NP theory": c}}, tmp.name)]
     ['roc.png', 'roc_np_channels.png']
+    >>> tmp.cleanup()
     """
     import matplotlib.pyplot as plt
     outdir = Path(outdir)

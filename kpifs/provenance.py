@@ -107,10 +107,12 @@ def inputs_digest(files):
     --------
     >>> import tempfile, pathlib
     >>> from kpifs.workflow import inputs_digest
-    >>> p = pathlib.Path(tempfile.mkdtemp()) / "a.fits"
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> p = pathlib.Path(tmp.name) / "a.fits"
     >>> _ = p.write_bytes(b"x")
     >>> inputs_digest([p]) == inputs_digest([str(p)]), len(inputs_digest([p]))
     (True, 20)
+    >>> tmp.cleanup()
     """
     return combined_digest([[os.path.abspath(f), file_digest(f)] for f in files])
 

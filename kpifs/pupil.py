@@ -179,11 +179,13 @@ def read_pupil_fits(path, *, pupil_scale=None):
     >>> import tempfile, numpy as np
     >>> from astropy.io import fits
     >>> from kpifs.pupil import read_pupil_fits
-    >>> path = tempfile.mkdtemp() + "/pupil.fits"
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = tmp.name + "/pupil.fits"
     >>> fits.writeto(path, np.ones((8, 8)), fits.Header({"PUPSCALE": 0.5}))
     >>> image, scale = read_pupil_fits(path)
     >>> image.shape, scale
     ((8, 8), 0.5)
+    >>> tmp.cleanup()
     """
     try:
         with fits.open(path) as hdul:

@@ -275,10 +275,12 @@ def extract_observation(files, options=None, *, model=None, progress=False):
     >>> from kpifs.io import write_observation
     >>> from kpifs.simulate import simulate_scene
     >>> from kpifs.workflow import ExtractOptions, extract_observation
+    >>> tmp = tempfile.TemporaryDirectory()
     >>> files = write_observation(simulate_scene("paper", n_frames=2, npup=32),
-    ...                           tempfile.mkdtemp())
+    ...                           tmp.name)
     >>> extract_observation(files["target"], ExtractOptions(step="0.8m")).shape
     (2, 3, 65)
+    >>> tmp.cleanup()
     """
     options = options or ExtractOptions()
     files = [str(files)] if isinstance(files, (str, Path)) else [str(f) for f in files]
@@ -593,13 +595,15 @@ def process_observation(target, calibrators, outdir, *, extract_options=None,
     >>> from kpifs.io import write_observation
     >>> from kpifs.simulate import simulate_scene
     >>> from kpifs.workflow import DetectOptions, ExtractOptions, process_observation
-    >>> d = tempfile.mkdtemp()
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> d = tmp.name
     >>> files = write_observation(simulate_scene("paper", n_frames=100, npup=32), d)
     >>> out = process_observation(files["target"], [files["calibrator"]], d,
     ...                           extract_options=ExtractOptions(step="1.2m"),
     ...                           detect_options=DetectOptions(draws=1000, pfa=0.01))
     >>> sorted(p.name for p in out["paths"].values())
     ['calibrated_kp.fits', 'detection.fits']
+    >>> tmp.cleanup()
     """
     xo = extract_options or ExtractOptions()
     do = (detect_options or DetectOptions()).validate()

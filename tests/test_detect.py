@@ -432,10 +432,14 @@ def test_null_threshold_read_through_the_fitted_tail():
     assert small[0].threshold(1e-3) == pytest.approx(u0 + beta * np.log(100), rel=1e-12)
     assert small[0].threshold(0.05) == np.quantile(small[0].draws, 0.95, method="higher")
     thr = np.array([n.threshold(1e-3) for n in small])
-    # the true false-alarm rate at each threshold (from the reference draws) is near 1e-3
+    # the true false-alarm rate at each threshold (from the reference draws) is near 1e-3,
+    # the tail a little conservative. Measured over 38 kernel bases (the draws are made in
+    # the kernel basis, which the SVD turns machine by machine): mean threshold / truth
+    # -2.0 to +4.1 % (mean +1.6 %, standard deviation 1.7 %), rates 0.40e-3 to 1.56e-3.
+    # The bounds are about 4 standard deviations out (false failure below 1e-4).
     rate = np.array([np.mean(ref.draws > t) for t in thr])
-    assert 0.5e-3 < rate.min() and rate.max() < 2e-3
-    assert abs(np.mean(thr) / truth - 1) < 0.02
+    assert 0.2e-3 < rate.min() and rate.max() < 4e-3
+    assert abs(np.mean(thr) / truth - 1) < 0.08
 
 
 @pytest.mark.parametrize("value", ["abc", "0", "-2", "1.5"])

@@ -12,6 +12,8 @@ from kpifs.detect.blocks import BlockModel
 from kpifs.detect.sky import sky_to_detector
 from kpifs.rotation import rotation_blocks, time_blocks
 
+from basis_free import kernel_noise
+
 
 @pytest.fixture(scope="module")
 def km():
@@ -22,7 +24,7 @@ def _sequence(km, wl, detpa, sky, contrast, sigma, seed):
     rng = np.random.default_rng(seed)
     kp = np.stack([km.binary_kernel_phases(list(sky_to_detector(*sky, t)) * u.mas, contrast, wl)
                    for t in detpa])
-    return kp + sigma * rng.normal(size=kp.shape)
+    return kp + sigma * kernel_noise(km, rng, kp.shape)
 
 
 def _observation(km, detpa, contrast, seed, sky=(69.0, -98.0), static=0.0):
@@ -30,7 +32,7 @@ def _observation(km, detpa, contrast, seed, sky=(69.0, -98.0), static=0.0):
     0.01 rad of white noise a frame; *static*: rms of a kernel-phase offset fixed on the
     detector that the target has and the calibrator has not."""
     wl = [1.55, 1.65, 1.75] * u.um
-    off = static * np.random.default_rng(seed + 100).normal(size=(len(wl), km.n_kp))
+    off = static * kernel_noise(km, np.random.default_rng(seed + 100), (len(wl), km.n_kp))
     tgt = _sequence(km, wl, detpa, sky, contrast, 0.01, seed) + off
     cal = _sequence(km, wl, detpa, sky, 0.0, 0.01, seed + 1)
     return [KernelPhaseData(k, wl, 10 * u.mas, km, detpa=detpa) for k in (tgt, cal)]
@@ -142,10 +144,13 @@ def _split(pair):
 def test_angular_differential_without_calibrator_false_alarms_and_recovery(km):
     """A scaled-down ``docs/figures/measure_rotation.py`` (false-alarms, injection): no
     calibrator, a static kernel-phase offset three times the frames' noise fixed on the
-    detector, 24 frames over 60 deg. At most one of six companion-free sequences gives a
-    candidate at P_FA 1e-2 (the mean of the frames, searched as if calibrated, gives one in
-    every sequence); companions injected at the stated limit are found about half the time
-    (6 of 8 here) and at twice the limit every time."""
+    detector, 24 frames over 60 deg. The angular-differential search gives a candidate at
+    P_FA 1e-2 in few companion-free sequences (2 of seeds 0-19, noise drawn on the uv
+    points: the same realisation on every machine; at a true rate of 0.1, 5 or more of 6
+    happen 5e-5 of the time), the mean of the frames, searched as if calibrated, in more
+    (3 of seeds 0-5 at P_FA 1.8e-5 to 7e-4, 5 of 0-11: the noise scale absorbs much of the
+    offset); companions injected at the stated limit are found about half the time and at
+    twice the limit every time."""
     detpa = np.linspace(100.0, 160.0, 24)
     wl = [1.55, 1.65, 1.75] * u.um
     grid = DetectionGrid.from_separation(150 * u.mas, 8 * u.mas, min_sep=60 * u.mas,
@@ -155,7 +160,7 @@ def test_angular_differential_without_calibrator_false_alarms_and_recovery(km):
     kw = dict(grid=grid, pfa=1e-2, n_draws=1000, seed=0, max_candidates=1, test="S")
 
     def target(seed, sky=(0.0, 120.0), contrast=0.0):
-        off = 0.03 * np.random.default_rng(seed + 100).normal(size=(len(wl), km.n_kp))
+        off = 0.03 * kernel_noise(km, np.random.default_rng(seed + 100), (len(wl), km.n_kp))
         kp = _sequence(km, wl, detpa, sky, contrast, 0.01, seed) + off
         return KernelPhaseData(kp, wl, 10 * u.mas, km, detpa=detpa)
 
@@ -165,15 +170,15 @@ def test_angular_differential_without_calibrator_false_alarms_and_recovery(km):
         alarms += len(res.candidates) > 0
         if seed == 0:
             free = res
-        if seed < 2:
-            t = target(seed)
-            cov = np.stack([np.cov(k.T) for k in t.kp.transpose(1, 0, 2)]) / 24
-            mean = KernelPhaseData(t.kp.mean(axis=0)[None], wl, 10 * u.mas, km, covariance=cov,
-                                   detpa=[130.0], meta={"calibrated": True})
-            plain += len(detect(mean, **kw).candidates) > 0
-    assert alarms <= 1 and plain == 2
-    # injections at 120 mas, 8 position angles; at P_D 0.5, 2 to 6 of 8 are found 93 % of
-    # the time (binomial)
+        t = target(seed)
+        cov = np.stack([np.cov(k.T) for k in t.kp.transpose(1, 0, 2)]) / 24
+        mean = KernelPhaseData(t.kp.mean(axis=0)[None], wl, 10 * u.mas, km, covariance=cov,
+                               detpa=[130.0], meta={"calibrated": True})
+        plain += len(detect(mean, **kw).candidates) > 0
+    assert alarms <= 4 and plain >= 2
+    # injections at 120 mas, 8 position angles, each in its own noise (drawn on the uv
+    # points: the same on every machine): 3 of 8 found at the limit, 8 of 8 at twice it; the
+    # bounds leave room for injections near the threshold to change with the null's draws
     pas = np.deg2rad(20 + 45 * np.arange(8))
     sky = [(120 * np.sin(a), 120 * np.cos(a)) for a in pas]
     g = free.grid
@@ -188,7 +193,7 @@ def test_angular_differential_without_calibrator_false_alarms_and_recovery(km):
             hits += bool(len(c)) and np.hypot(c["fit_dra"][0].value - pos[0],
                                               c["fit_ddec"][0].value - pos[1]) < 20
         found[f] = hits
-    assert 2 <= found[1.0] <= 6 and found[2.0] == 8
+    assert 1 <= found[1.0] <= 7 and found[2.0] == 8
 
 
 @pytest.mark.filterwarnings("ignore:.*of rotation keep")
@@ -219,7 +224,9 @@ def test_block_signatures_follow_the_frames_within_each_block(km):
     # 24 frames over 72 deg in blocks of 4: a companion at 120-150 mas moves by ~half a
     # fringe within a block. The search's signatures (two poses per block, at its angle
     # -/+ its frames' spread) match the fit's exact model (each frame's own angle, averaged
-    # within the block) within 2 %; one pose at the block's angle overstates them by 17-28 %
+    # within the block) within 2 %; one pose at the block's angle overstates them, by 16-34 %
+    # over four noise realisations (the frames' noise modes kept in the whitening depend on
+    # them): 10 % at least, never the 1 / 0.69 of 300 mas
     from kpifs.detect.blocks import BlockStack
     detpa = np.linspace(100.0, 172.0, 24)
     wl = [1.55, 1.75] * u.um
@@ -240,7 +247,7 @@ def test_block_signatures_follow_the_frames_within_each_block(km):
         ratio.append(model.norm2[:, iy, ix] / exact)
         over.append(single.norm2[:, iy, ix] / exact)
     np.testing.assert_allclose(ratio, 1.0, atol=0.02)
-    assert 1.15 < np.min(over) and np.max(over) < 1.3
+    assert 1.1 < np.min(over) and np.max(over) < 1 / 0.69
 
 
 @pytest.mark.slow

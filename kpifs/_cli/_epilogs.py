@@ -14,25 +14,33 @@ recommends, with the reason: another model than the default only when its
 chi2 is lower by more than twice the noise of the difference.
 
 examples:
-  kpifs model-check cal.fits --wavelengths 2.145um --pixscale 25mas --pupil pharo
-  kpifs model-check cal1.fits --calibrator cal2.fits --pupil subaru -o check.ecsv
-  kpifs model-check cal.fits --rotations -3,-2,-1,0,1,2,3 --scales 0.99,1,1.01
+  kpifs model-check calibrator.fits --wavelengths 2.145um --pixscale 25mas --pupil pharo
+  kpifs model-check calibrator1.fits --calibrator calibrator2.fits --pupil subaru \\
+      -o check.ecsv
+  kpifs model-check calibrator.fits --rotations -3,-2,-1,0,1,2,3 --scales 0.99,1,1.01
 """
 EPILOG_EXTRACT = """examples:
   kpifs extract cube.fits --wavelengths 1.52um,1.60um,1.68um --pixscale 10.42mas \\
       --pupil subaru -o kp.fits
   kpifs extract sim/target.fits --pupil model.fits -o kp.fits --overwrite
-  kpifs extract target/CRSA*_cube.fits --calibrator calib/CRSA*_cube.fits -o cal_kp.fits
-  kpifs extract science_cube.fits --instrument sphere --wavelengths wavelength.fits \\
-      --calibrator ref_cube.fits -o cal_kp.fits
+  kpifs extract target/CRSA*_cube.fits --calibrator calibrator/CRSA*_cube.fits \\
+      -o calibrated_kp.fits
+  kpifs extract target/science_cube.fits --instrument sphere \\
+      --wavelengths target/wavelength.fits --calibrator calibrator/science_cube.fits \\
+      -o calibrated_kp.fits
+  kpifs extract calibrator/CRSA*_cube.fits -o calibrator_kp.fits
   kpifs extract cube.fits --pa 12.5,13.0,13.6 -o kp.fits
 """
 EPILOG_DETECT = """examples:
-  kpifs detect cal_kp.fits -o detection.fits --plots figures
-  kpifs detect target_kp.fits --calibrator calib_kp.fits --test B-paper --pfa 1e-3 \\
+  kpifs detect calibrated_kp.fits -o detection.fits --plots figures
+  kpifs detect target_kp.fits --calibrator calibrator_kp.fits --test B-paper --pfa 1e-3 \\
       --max-sep 200mas --grid-step 5mas -o detection.fits
-  kpifs detect cal_kp.fits --test NP --spectrum 1.3,1.0,0.7 -o detection.fits
+  kpifs detect calibrated_kp.fits --test NP --spectrum 1.3,1.0,0.7 -o detection.fits
 detect reads kernel phases (KPFITS): make them from cubes with 'kpifs extract' first.
+calibrated_kp.fits: a target's kernel phases with a calibrator's subtracted ('kpifs
+extract TARGET --calibrator CALIBRATOR'); calibrator_kp.fits: a calibrator star's own.
+the default test (--test auto) is S on data with more channels than its spectral
+model's rank (3), else B; the printout says which test ran.
 """
 EPILOG_BATCH = """examples:
   kpifs batch archive.csv -o reprocessed
@@ -49,14 +57,16 @@ EPILOG_INJECT = """examples:
   kpifs inject cube.fits --position 150,-80mas --contrast 5e-3 -o injected.fits
   kpifs inject target/CRSA*_cube.fits --position 120,40mas --sky --contrast 2e-3,1.5e-3 \\
       -o injected.fits
-  kpifs inject tgt.fits --calibrator cal.fits --curve --separations 60,120mas \\
+  kpifs inject target.fits --calibrator calibrator.fits --curve --separations 60,120mas \\
       -o curve.fits --plots figures
-  kpifs inject tgt.fits --calibrator cal.fits --curve --separations 100,200mas \\
-      --contrasts 1e-3,2e-3,5e-3,1e-2 --angles 6 -o curve.fits
+  kpifs inject target.fits --calibrator calibrator.fits --curve \\
+      --separations 100,200mas --contrasts 1e-3,2e-3,5e-3,1e-2 --angles 6 -o curve.fits
 an injected companion is each frame's own image, shifted and scaled (per channel);
---curve reruns the whole reduction for every injection and writes the contrast at
-which half are found at --pfa beside the analytic limit; a limit the contrast
-steps do not bracket is reported as a bound ('<' or '>').
+--curve reruns the whole reduction for every injection and writes where the steps put
+the contrast found half the time at --pfa, beside the analytic limit: between the
+highest step found significantly less often and the lowest found significantly more
+(with 4 angles: 0 and 4 of 4 found), a value interpolated only between adjacent such
+steps, a bound where the steps reach no such step on one side.
 """
 EPILOG_INFO = """examples:
   kpifs info target/CRSA00000000_cube.fits

@@ -361,8 +361,8 @@ def _detect(command):
     p.add_argument("kp", metavar="KP.fits", nargs="+",
                    help="kernel-phase data (KPFITS, from kpifs extract) or closure phases "
                         "(OIFITS; several OIFITS files of one target are searched together)")
-    p.add_argument("--calibrator", nargs="+", metavar="CAL_KP.fits",
-                   help="kernel phases of calibrator(s), if KP.fits is not calibrated "
+    p.add_argument("--calibrator", nargs="+", metavar="CALIBRATOR_KP.fits",
+                   help="kernel phases of calibrator star(s), if KP.fits is not calibrated "
                         "(default: none)")
     _search_options(p)
     # --step was the search grid here; everywhere else it is the pupil grid

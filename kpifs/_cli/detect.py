@@ -14,6 +14,7 @@ from ..detect.sky import detector_to_sky, mean_angle
 from ..plotting import save_detection_plots
 from ..workflow import detect_observation
 from ._options import detect_options
+from ._summary import print_summary, products_line
 
 
 def _grid_step(args):
@@ -65,47 +66,15 @@ def run(args):
                              progress=not args.quiet)
     res.write(args.output, inputs=paths + list(args.calibrator or []),
               overwrite=args.overwrite)
-    print(f"{res.test} search, global P_FA {args.pfa:g}: {len(res.candidates)} candidate(s) "
-          f"-> {args.output}")
-    e = res.energy
-    if e.get("dof"):
-        print(f"  energy T_E = {e['statistic']:.1f} for {e['dof']} degrees of freedom "
-              f"({e['statistic'] / e['dof']:.2f} per dof), P_FA {e['pfa']:.2e}")
-    nul = res.meta.get("null") or {}
-    if "threshold_empirical" in nul and "threshold_gaussian" in nul:
-        print(f"  threshold {res.threshold:.2f}, the larger of the Gaussian null's "
-              f"{nul['threshold_gaussian']:.2f} and the empirical one's "
-              f"{nul['threshold_empirical']:.2f} ({nul['n_blocks']} time blocks)")
-    e = res.energy
-    if e.get("raw") is not None and e.get("dof"):
-        print(f"  error model: whitened energy {e['raw'] / e['dof']:.2f} x its {e['dof']} dof "
-              f"from the frames; noise scale {e.get('noise_scale', 1.0):.2f} applied to every "
-              f"test (residual chi2 {res.meta.get('chi2_red', float('nan')):.2f}, map "
-              f"{e.get('map_noise', float('nan')):.2f}), more in annuli whose own noise is "
-              f"higher{_s_scale(res)}; energy test P_FA {e['pfa']:.1e}")
+    print_summary(res, kpd, chosen=args.test)
     _aliased_line(res)
     if res.meta.get("field"):
         print("  " + field_sentence(res.meta["field"]))
     st = res.meta.get("static")
     if st:
-        print(f"  static aberrations (no calibrator): a kernel-phase residual imaged through the "
+        print(f"static aberrations (no calibrator): a kernel-phase residual imaged through the "
               f"{st['pupil']} pupil, fitted at {st['share']:.2f} x the frames' variance, is in "
               f"the covariance of every test")
-    for row in res.candidates:
-        x = row["fit_x"] if "fit_x" in row.colnames else row["x"]
-        y = row["fit_y"] if "fit_y" in row.colnames else row["y"]
-        how = " (extrapolated tail of the null)" if row["pfa_global_tail"] else ""
-        sky = ""
-        if "pa_sky" in row.colnames:
-            pre = "fit_" if "fit_dra" in row.colnames else ""
-            sky = (f", dRA {row[pre + 'dra'].to_value(u.mas):.1f} dDec "
-                   f"{row[pre + 'ddec'].to_value(u.mas):.1f} mas, PA "
-                   f"{row[pre + 'pa_sky'].to_value(u.deg):.1f} deg East of North")
-        print(f"  detector ({x.to_value(u.mas):.1f}, {y.to_value(u.mas):.1f}) mas, separation "
-              f"{row['separation'].to_value(u.mas):.0f} mas{sky}, global P_FA "
-              f"{row['pfa_global']:.1e}{how}"
-              + (f" [flagged: {row['flags']}]" if "flags" in row.colnames and row["flags"]
-                 else ""))
     if args.plots:
         truth = None
         if "KPSIMX" in kpd.header and "KPSIMY" in kpd.header:
@@ -117,8 +86,8 @@ def run(args):
         except (OSError, ValueError, RuntimeError) as exc:   # the products are written
             print(f"kpifs detect: warning: {args.output} is written, but the figures "
                   f"could not be ({type(exc).__name__}: {exc})", file=sys.stderr)
-        else:
-            print(f"  figures in {args.plots}/")
+            args.plots = None
+    products_line(args.output, args.plots)
     return 0
 
 
@@ -129,15 +98,9 @@ def _aliased_line(res):
     hit = [(n, w) for n, w, f in zip(numbers, res.wavelengths.to_value(u.um),
                                      res.meta.get("aliased") or []) if f > 0]
     if gone:
-        print(f"  channel(s) {', '.join(map(str, gone))} left out (pixels too coarse: aliased "
+        print(f"channel(s) {', '.join(map(str, gone))} left out (pixels too coarse: aliased "
               f"uv points)")
     if hit:
-        print(f"  channel(s) {', '.join(f'{n} ({w:.3f} um)' for n, w in hit)}: pixels too "
+        print(f"channel(s) {', '.join(f'{n} ({w:.3f} um)' for n, w in hit)}: pixels too "
               f"coarse for some uv points; their contrasts are biased (flagged), "
               f"--aliased exclude leaves them out")
-
-
-def _s_scale(res):
-    """The spectral-model test's own scale, when it differs from the common one."""
-    s, c = res.meta.get("noise_scale_S"), res.meta.get("noise_scale_common")
-    return "" if s is None or c is None or abs(s - c) < 5e-3 else f", {s:.2f} for S"

@@ -16,6 +16,8 @@ from ..kernel import KernelModel, nyquist_usable
 from ..sampling import aliased_channels
 from ..workflow import default_pupil, kernel_model_for
 from ._options import extract_options
+from ._summary import contrast_text, pfa_text, position_text
+from .inject import bracket_text
 
 # model options the suggested next command repeats
 _MODEL_OPTIONS = ("pupil_scale", "step", "offset", "min_transmission", "grey",
@@ -75,19 +77,36 @@ def _detection(path):
               f"{nul.get('n_blocks')} time blocks, {nul.get('empirical_draws')} draws)")
     sky = res.grid.frame == "sky"
     where = "on the sky (dRA, dDec; East left)" if sky else "on the detector (x, y)"
-    print(f"  map {res.statistic.shape[1]} x {res.statistic.shape[0]} {where}; energy "
-          f"detector: T_E = {res.energy['statistic']:.1f} for {res.energy['dof']} degrees of "
-          f"freedom, P_FA {res.energy['pfa']:.2e}")
+    print(f"  map {res.statistic.shape[1]} x {res.statistic.shape[0]} {where}"
+          + ("; SEARCH: the residual map the search stopped on" if res.search_map is not None
+             else ""))
+    _noise_lines(res)
     if res.meta.get("field"):
         print("  " + field_sentence(res.meta["field"]))
     print(f"  {len(res.candidates)} candidate(s)")
-    cx, cy = ("dra", "ddec") if sky and "dra" in res.candidates.colnames else ("x", "y")
-    for row in res.candidates:
-        pa = (f", PA {row['pa_sky'].to_value(u.deg):.1f} deg East of North"
-              if "pa_sky" in row.colnames else "")
-        print(f"    ({row[cx].to_value(u.mas):.1f}, {row[cy].to_value(u.mas):.1f}) mas"
-              f"{' (dRA, dDec)' if cx == 'dra' else ''}{pa}, global P_FA "
-              f"{row['pfa_global']:.1e}")
+    floors = [res.meta.get("n_draws"), nul.get("empirical_draws")]
+    for i, row in enumerate(res.candidates, 1):
+        known = sky or "dra" in row.colnames    # sky offsets only from known angles
+        print(f"    {i}: {position_text(row, sky_known=known)}")
+        print(f"       {contrast_text(row)}; global P_FA "
+              f"{pfa_text(row['pfa_global'], row['pfa_global_tail'], floors)}")
+
+
+def _noise_lines(res):
+    """The error model against the data: energy, residual chi-square, the map's noise and
+    the scales the tests were judged with."""
+    e = res.energy
+    if e.get("dof"):
+        raw = e.get("raw")
+        raw = "" if raw is None else f"whitened energy {raw / e['dof']:.3f} per dof; "
+        print(f"  energy ({e['dof']} dof): {raw}energy test T_E = {e['statistic']:.1f} at the "
+              f"noise scale, P_FA {e['pfa']:.2e}")
+    parts = [f"{name} {float(v):.3f}" for name, v in (
+        ("residual chi2_red", res.meta.get("chi2_red")), ("map noise", e.get("map_noise")),
+        ("subspace map noise", e.get("subspace_noise")),
+        ("noise scale of the test", res.meta.get("noise_scale"))) if v is not None]
+    if parts:
+        print(f"  noise: {', '.join(parts)}")
 
 
 def _kpfits(path):
@@ -167,10 +186,13 @@ def _injection(path):
           f"{hdr.get('NANGLES', '?')} position angle(s) per step, {n_rows} step(s) "
           f"({hdr.get('LADDER', 'given')} ladder)")
     for row in ([] if lim is None else lim):
-        flag = str(row["flag"]).strip() if "flag" in lim.colnames else "="
-        bound = "" if flag in ("=", "") else flag + " "
-        print(f"  {row['separation'].to_value(u.mas):.0f} mas: injections "
-              f"{bound}{row['limit_injection']:.2e}, analytic {row['limit_analytic']:.2e}")
+        if "limit_low" in lim.colnames:
+            text = bracket_text(row)
+        else:           # written before the brackets: the interpolated value and its flag
+            flag = str(row["flag"]).strip() if "flag" in lim.colnames else "="
+            text = ("" if flag in ("=", "") else flag + " ") + f"{row['limit_injection']:.2e}"
+        print(f"  {row['separation'].to_value(u.mas):.0f} mas: injections {text}, analytic "
+              f"{row['limit_analytic']:.2e}")
 
 
 def _verify_small(path, hdul, limit=16 * 2 ** 20):
@@ -297,7 +319,7 @@ def _cube(path, args):
                   "channels (--aliased exclude leaves them out)")
         files = cube.source[0] if len(cube.source) == 1 else f"{cube.source[0]} ..."
         print(f"  next: kpifs extract {files} {' '.join(_given(args, opts, pupil))} "
-              f"[--calibrator CAL] -o kp.fits")
+              f"[--calibrator CALIBRATOR_CUBE...] -o kp.fits")
 
 
 def _given(args, opts, pupil):

@@ -11,7 +11,7 @@ from .._checks import check_inputs, check_memory, check_seed
 from .._meta import VERSION
 from .._utils import check_output_dir, check_output_path, to_quantity, write_hdulist
 from ..exceptions import KpifsError, KpifsWarning
-from ..inject import inject_companion, injection_limits
+from ..inject import inject_companion, injection_brackets, injection_limits
 from ..io import parse_wavelengths, read_cube
 from ..io._kpfits_common import ascii_text
 from ..io.angles import frame_detpa, parse_angles
@@ -161,11 +161,6 @@ def _write(read_from, data, out, outputs, instrument, wl, ps, cards, name, args)
                       f"(--wavelengths, --pa) to read it", KpifsWarning, stacklevel=2)
 
 
-#: How each limit is known, in words (``LIMITS.flag``).
-_FLAG_WORDS = {"=": "bracketed", "<": "found at every step: an upper bound",
-               ">": "not found often enough at any step: a lower bound"}
-
-
 def _curve(args, options, data, wl, ps, instrument, name, header):
     if not args.calibrator:
         raise KpifsError("inject --curve: give the calibrator's cubes (--calibrator)")
@@ -202,11 +197,12 @@ def _curve(args, options, data, wl, ps, instrument, name, header):
                                precision=options.precision))
     write_hdulist(_curve_hdulist(tab, seps, ana, args, name), args.output,
                   overwrite=args.overwrite)
-    print(f"injection curve of {name} (P_FA {args.pfa:g}, P_D 0.5) -> {args.output}")
-    for s, a, flag, b in zip(seps.value, tab.meta["limits"], tab.meta["flags"], ana):
-        value = f"{'' if flag == '=' else flag + ' '}{a:.2e}"
-        note = "" if flag == "=" else f" ({_FLAG_WORDS[flag]})"
-        print(f"  {s:.0f} mas: injections {value}{note}, analytic {b:.2e}")
+    print(f"injection curve of {name} (P_FA {args.pfa:g}, P_D 0.5, {args.angles} position "
+          f"angle(s) per step) -> {args.output}")
+    brackets = injection_brackets(tab)
+    for s, b, row in zip(seps.value, ana, brackets):
+        print(f"  {s:.0f} mas: injections {bracket_text(row)}; analytic {b:.2e}{_inside(row, b)}")
+        print(f"    found {_steps_text(tab, s)}")
     if args.plots:
         Path(args.plots).mkdir(parents=True, exist_ok=True)
         _save(plot_injection_limits(tab, analytic=analytic), f"{args.plots}/injection_limits.png")
@@ -214,9 +210,54 @@ def _curve(args, options, data, wl, ps, instrument, name, header):
     return 0
 
 
+def bracket_text(row):
+    """The limit the steps allow one to state: a value within its bracket, the bracket,
+    or a bound.
+
+    Examples
+    --------
+    >>> from kpifs._cli.inject import bracket_text
+    >>> bracket_text({"limit_low": 1e-4, "limit_high": 4e-4, "limit_interpolated": float("nan")})
+    'between 1.0e-04 and 4.0e-04'
+    >>> bracket_text({"limit_low": 1e-4, "limit_high": 2e-4, "limit_interpolated": 1.4e-4})
+    '1.4e-04 (interpolated between 1.0e-04 and 2.0e-04)'
+    >>> bracket_text({"limit_low": float("nan"), "limit_high": 2e-4,
+    ...               "limit_interpolated": float("nan")})
+    'below 2.0e-04 (no step found significantly less than half the time)'
+    """
+    lo, hi, val = (float(row[k]) for k in ("limit_low", "limit_high", "limit_interpolated"))
+    if np.isfinite(val):
+        return f"{val:.1e} (interpolated between {lo:.1e} and {hi:.1e})"
+    if np.isfinite(lo) and np.isfinite(hi):
+        return f"between {lo:.1e} and {hi:.1e}"
+    if np.isfinite(hi):
+        return f"below {hi:.1e} (no step found significantly less than half the time)"
+    if np.isfinite(lo):
+        return f"above {lo:.1e} (no step found significantly more than half the time)"
+    return "not bracketed (no step is conclusive: more angles, or --contrasts further apart)"
+
+
+def _inside(row, analytic):
+    lo, hi = float(row["limit_low"]), float(row["limit_high"])
+    if not np.isfinite(analytic):
+        return ""
+    if (np.isfinite(lo) and analytic < lo) or (np.isfinite(hi) and analytic > hi):
+        return " (outside the injections' bracket)"
+    return " (within it)" if np.isfinite(lo) and np.isfinite(hi) else ""
+
+
+def _steps_text(tab, sep):
+    m = np.isclose(tab["separation"].to_value(u.mas), sep)
+    return ", ".join(f"{int(k)}/{int(n)} at {c:.1e}" for c, k, n in zip(
+        np.asarray(tab["contrast"])[m], np.asarray(tab["n_detected"])[m],
+        np.asarray(tab["n_injected"])[m]))
+
+
 def _curve_hdulist(tab, seps, ana, args, name):
     """The curve's FITS: the primary header, the injections and the limits (with flags)."""
-    lim = QTable({"separation": seps, "limit_injection": tab.meta["limits"],
+    br = injection_brackets(tab)
+    lim = QTable({"separation": seps, "limit_low": br["limit_low"],
+                  "limit_high": br["limit_high"], "limit_injection": br["limit_interpolated"],
                   "flag": tab.meta["flags"], "limit_analytic": ana})
     hdr = fits.Header()
     hdr["CONTENT"] = ("KPIFS-INJECTION", "kpifs injection-recovery contrast curve")
@@ -229,6 +270,10 @@ def _curve_hdulist(tab, seps, ana, args, name):
     hdr["NDRAWS"] = (tab.meta["n_draws"], "null draws of each injection's search")
     hdr.add_history(f"kpifs {VERSION}: injections into {ascii_text(name)}")
     hdr["COMMENT"] = tab.meta["method"]
+    hdr["COMMENT"] = ("LIMITS: the limit lies between limit_low and limit_high (the highest "
+                      "step found significantly less than P_D of the time, the lowest found "
+                      "significantly more; NaN: none); limit_injection is interpolated only "
+                      "when they are adjacent steps, else NaN")
     hdr["COMMENT"] = ("LIMITS.flag: '=' bracketed by the ladder, '<' an upper bound (the "
                       "lowest step found), '>' a lower bound (the highest step not found)")
     # the table's own meta holds lists (the limits: in LIMITS) and long names: plain cards

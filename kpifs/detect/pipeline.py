@@ -97,7 +97,7 @@ def _prepare(kpd, shrinkage, allow_uncalibrated):
     if not kpd.meta.get("calibrated") and not adi:     # ADI: only what turns is searched
         if not allow_uncalibrated:
             raise KpifsError(f"{kpd.name}: not calibrated (no calibrator star subtracted): "
-                             f"give its calibrator (--calibrator CAL_KP.fits), or "
+                             f"give its calibrator (--calibrator CALIBRATOR_KP.fits), or "
                              f"--allow-uncalibrated to search the data as they are")
         warnings.warn(f"{kpd.name}: not calibrated: searched as it is (aberrations that a "
                       f"calibrator would remove look like companions)", KpifsWarning,
@@ -337,7 +337,8 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     if frame == "sky":
         sky_search_columns(cands, poses)
     else:
-        add_sky_columns(cands, kpd.detpa)
+        # sky offsets only from angles the data know (not the 0 assumed without any)
+        add_sky_columns(cands, kpd.detpa if data_angles(kpd) is not None else None)
     fit_w, fit_rows = (w, null.noise_rows) if characterise is None else characterise[:2]
     if frame == "detector" and fit and refit_on_sky(cands, kp, fit_w, kpd, noise_rows=fit_rows) \
             and "chi2_red" in cands.colnames:
@@ -355,6 +356,9 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     # per annulus, the map's own noise where it exceeds the scale (`annulus_noise`)
     smap = np.fmax(scale, np.nan_to_num(ring(last["res"], None), nan=0.0))
     t = t / smap ** _POWER[form]
+    # what decided: the map of the residual the search stopped on (the candidates
+    # subtracted), at the same noise scale (`DetectionResult.search_map`)
+    search_map = model.maps(whiten(last["res"], w), form, spectrum)[0] / smap ** _POWER[form]
     cerr = cerr * np.sqrt(last["scale"])
     valid = grid.valid
     pglob = np.where(valid, null.pfa(t), np.nan)
@@ -374,7 +378,8 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     te = None
     if not limits:
         return _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, {}, cands, threshold,
-                       energy, {"frame": frame, "chi2_red": kappa, "noise_scale": scale,
+                       energy, {"search_map": search_map, "frame": frame, "chi2_red": kappa,
+                                "noise_scale": scale,
                                 "n_draws": n_draws, "seed": seed, "test": test, "pfa": pfa,
                                 "pd": pd, "null": null_info, "static": static_info,
                                 "blocks": None if stack is None else stack.info})
@@ -419,7 +424,8 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     limits = {k: np.where(valid, v * np.sqrt(np.fmax(scales[k], gmap if k == "S" else zmap)),
                           np.nan) for k, v in limits.items()}
     curves = radial_curves(limits, grid)
-    meta = {"test": test, "pfa": pfa, "pd": pd, "n_draws": n_draws, "seed": seed,
+    meta = {"search_map": search_map, "test": test, "pfa": pfa, "pd": pd, "n_draws": n_draws,
+            "seed": seed,
             "chi2_red": kappa, "noise_scale": scale, "noise_scale_common": common,
             "noise_scale_S": scales["S"], "error_model": kpd.meta.get("error_model"),
             "energy_spread": spread, "map_noise_low": map_low,
@@ -457,12 +463,14 @@ def _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands, th
     meta["field"] = search_field(kpd, grid)
     if curves is None:
         curves = radial_curves(limits, grid)
+    search = meta.pop("search_map", None)
     return DetectionResult(grid=grid, test=test, pfa=pfa, pd=pd, statistic=t, pfa_local=ploc,
                            pfa_global=pglob, contrast=np.where(valid, c, np.nan),
                            contrast_err=np.where(valid, cerr, np.nan), limits=limits,
                            curves=curves, candidates=cands, threshold=threshold,
                            wavelengths=kpd.wavelengths, energy=energy, meta=meta,
-                           header=kpd.header.copy())
+                           header=kpd.header.copy(),
+                           search_map=None if search is None else np.where(valid, search, np.nan))
 
 
 #: Draws of the energy detector's correlated null (its threshold read from them).

@@ -7,11 +7,13 @@ import warnings
 
 import numpy as np
 from astropy import units as u
+from scipy.optimize import nnls
 from astropy.table import vstack
 
 from ..covariance import whiten
 from ..exceptions import KpifsWarning
 from .fit import refine_candidates
+from .quality import resolution_mas
 from .sky import rotated_binary_kernel_phases
 
 __all__ = []
@@ -156,25 +158,27 @@ def _near(model, stat, points, radius):
 JOINT_REFIT = 4
 
 
-def _others(kp, w, models, idx, refit=None):
+def _others(kp, w, models, idx, refit=None, judged=None):
     """The models *idx* as the data have them together: each refitted (*refit*: index,
     data -> model) on the data less the others, when there are at most `JOINT_REFIT`,
-    then scaled, channel by channel, to fit *kp* together (least squares in the whitened
-    space): without the share of the signal that an earlier fit took."""
+    then scaled, channel by channel, to fit *kp* together with the *judged* candidate's
+    model (non-negative least squares in the whitened space): without the share of the
+    signal that an earlier fit took, nor the judged candidate's own signal."""
     out = np.zeros_like(kp)
     if not idx:
         return out
+    models = dict(models) if isinstance(models, dict) else dict(enumerate(models))
     if refit is not None and len(idx) <= JOINT_REFIT:
-        models = dict(models) if isinstance(models, dict) else dict(enumerate(models))
         for j in idx:
             models[j] = refit(j, kp - sum((models[i] for i in idx if i != j),
                                           np.zeros_like(kp)))
+    terms = list(idx) + ([] if judged is None else [judged])
     for i in range(kp.shape[0]):
-        basis = np.stack([w[i] @ models[j][i] for j in idx], axis=1)        # (p, n)
+        basis = np.stack([w[i] @ models[j][i] for j in terms], axis=1)      # (p, n)
         if not np.any(basis):
             continue
-        coef = np.linalg.lstsq(basis, w[i] @ kp[i], rcond=None)[0]
-        out[i] = np.stack([models[j][i] for j in idx], axis=1) @ coef
+        coef = nnls(basis, w[i] @ kp[i])[0]          # a companion's flux is never negative
+        out[i] = np.stack([models[j][i] for j in idx], axis=1) @ coef[:len(idx)]
     return out
 
 
@@ -195,9 +199,21 @@ def _joint_check(rows, models, scales, kp, ctx, *, threshold, spectrum, scaler, 
     form = null.form
     n_par = 2 + kp.shape[0]
 
-    def refit(j, data):          # on a copy: the candidate's own row is kept as found
-        return _fit_row(rows[j].copy(), data, ctx, from_fit=True)
     radius = float(np.max(np.abs(model.grid.step))) * (1 + 1e-9)
+    walk = max(radius, resolution_mas(ctx["kpd"].kernel_model, ctx["kpd"].wavelengths))
+
+    def refit(j, data):
+        # on a copy: the candidate's own row is kept as found. A refit that walks more than
+        # a resolution element (and a grid step) away has found another source (typically
+        # the one being judged, once it is left out of the model): the candidate keeps its
+        # model as found.
+        row = rows[j].copy()
+        fitted = _fit_row(row, data, ctx, from_fit=True)
+        if not ctx["fit"]:
+            return fitted
+        r0, r1 = rows[j][0], row[0]
+        moved = np.hypot(*((r1[c] - r0[c]).to_value(u.mas) for c in ("fit_x", "fit_y")))
+        return fitted if moved <= walk else models[j]
     keep = list(range(len(rows)))
     dropped = []
     while len(keep) > 1:
@@ -208,7 +224,7 @@ def _joint_check(rows, models, scales, kp, ctx, *, threshold, spectrum, scaler, 
             pts = [(r["x"].to_value(u.mas), r["y"].to_value(u.mas))]
             if ctx["fit"]:
                 pts.append((r["fit_x"].to_value(u.mas), r["fit_y"].to_value(u.mas)))
-            rest = kp - _others(kp, w, models, [j for j in keep if j != k], refit)
+            rest = kp - _others(kp, w, models, [j for j in keep if j != k], refit, judged=k)
             t = model.local_statistic(whiten(rest, w), form, spectrum)
             s = max(scale, ring(rest - models[k], pts[0]))
             stats[k] = np.nan_to_num(_near(model, t, pts, radius), nan=0.0) / s ** _POWER[form]

@@ -140,10 +140,12 @@ def read_spectra(path, wavelengths):
     >>> import tempfile, os, numpy as np, astropy.units as u
     >>> from astropy.table import QTable
     >>> from kpifs.detect.spectral import read_spectra
-    >>> path = os.path.join(tempfile.mkdtemp(), "s.ecsv")
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = os.path.join(tmp.name, "s.ecsv")
     >>> QTable({"wavelength": [1.0, 2.5] * u.um, "flat": [1.0, 1.0]}).write(path)
     >>> read_spectra(path, [1.2, 1.6] * u.um).ravel().tolist()
     [1.0, 1.0]
+    >>> tmp.cleanup()
     """
     lam = np.atleast_1d(to_quantity(wavelengths, u.um, name="wavelengths").value)
     p = Path(path)

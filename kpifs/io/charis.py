@@ -141,7 +141,8 @@ def read_charis(paths, *, wavelengths=None, pixscale=None, keep_unknown_angles=F
     >>> from kpifs.simulate import simulate_scene
     >>> from kpifs.io.layouts import write_observation
     >>> from kpifs.io.charis import read_charis
-    >>> d = tempfile.mkdtemp()
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> d = tmp.name
     >>> files = write_observation(simulate_scene("charis", n_frames=2, npup=32, shape=(64, 64)),
     ...                           d, layout="charis")
     >>> cube = read_charis(files["target"])
@@ -150,6 +151,7 @@ def read_charis(paths, *, wavelengths=None, pixscale=None, keep_unknown_angles=F
     >>> cube.detpa                                  # PARANG 0 in the simulated files
     <Quantity [113., 113.] deg>
     >>> cube.close()
+    >>> tmp.cleanup()
     """
     if isinstance(paths, (str, bytes)) or not hasattr(paths, "__iter__"):
         paths = [paths]

@@ -180,11 +180,13 @@ def open_fits(path, *, verify=False):
     >>> import tempfile, numpy as np
     >>> from astropy.io import fits
     >>> from kpifs.io.cube import open_fits
-    >>> path = tempfile.mkdtemp() + "/a.fits"
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = tmp.name + "/a.fits"
     >>> fits.writeto(path, np.zeros((4, 4)), checksum=True)
     >>> with open_fits(path, verify=True) as hdul:
     ...     print(hdul[0].data.shape)
     (4, 4)
+    >>> tmp.cleanup()
     """
     path = Path(path)
     if path.is_dir():
@@ -323,11 +325,13 @@ def read_generic(path, *, wavelengths=None, pixscale=None):
     >>> import tempfile, numpy as np, astropy.units as u
     >>> from astropy.io import fits
     >>> from kpifs.io import read_generic
-    >>> path = tempfile.mkdtemp() + "/cube.fits"
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = tmp.name + "/cube.fits"
     >>> fits.writeto(path, np.ones((3, 16, 16), np.float32))
     >>> with read_generic(path, wavelengths=[1.5, 1.6, 1.7] * u.um, pixscale=10 * u.mas) as c:
     ...     print(c.shape)
     (1, 3, 16, 16)
+    >>> tmp.cleanup()
     """
     hdul = open_fits(path)
     try:

@@ -240,10 +240,12 @@ def read_gpi(paths, *, wavelengths=None, pixscale=None, keep_unknown_angles=Fals
     >>> from kpifs.io.gpi import read_gpi
     >>> from kpifs.simulate import simulate_scene
     >>> obs = simulate_scene("gpi", n_frames=2, npup=32, shape=(128, 128))
-    >>> files = write_observation(obs, tempfile.mkdtemp(), layout="gpi")
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> files = write_observation(obs, tmp.name, layout="gpi")
     >>> with read_gpi(files["target"]) as cube:
     ...     print(cube.shape, f"{cube.wavelengths[0]:.4f}", cube.detpa_source)
     (2, 37, 67, 67) 1.4946 um AVPARANG + IFSROTAT - 90
+    >>> tmp.cleanup()
     """
     if isinstance(paths, (str, bytes)) or not hasattr(paths, "__iter__"):
         paths = [paths]

@@ -487,10 +487,12 @@ def read_jwst(paths, *, wavelengths=None, pixscale=None, dq_bits=DO_NOT_USE):
     >>> from kpifs.io.jwst import read_jwst
     >>> from kpifs.simulate import simulate_scene
     >>> obs = simulate_scene("niriss", n_frames=2, npup=32, shape=(32, 32))
-    >>> files = write_observation(obs, tempfile.mkdtemp(), layout="jwst")
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> files = write_observation(obs, tmp.name, layout="jwst")
     >>> with read_jwst(files["target"]) as cube:
     ...     print(cube.shape, cube.wavelengths, cube.pixscale, cube.detpa[0])
     (2, 1, 32, 32) [4.8196] um 65.55 mas 249.44 deg
+    >>> tmp.cleanup()
     """
     if isinstance(paths, (str, bytes)) or not hasattr(paths, "__iter__"):
         paths = [paths]

@@ -320,9 +320,11 @@ def write_kpfits(kpd, path, *, overwrite=False, inputs=(), history=()):
     >>> from kpifs.io import write_kpfits
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     >>> kpd = KernelPhaseData(np.zeros((2, 1, km.n_kp)), [1.6] * u.um, 10 * u.mas, km)
-    >>> path = write_kpfits(kpd, tempfile.mkdtemp() + "/kp.fits")
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = write_kpfits(kpd, tmp.name + "/kp.fits")
     >>> path.name
     'kp.fits'
+    >>> tmp.cleanup()
     """
     return write_hdulist(kpd_to_hdulist(kpd, inputs=inputs, history=history), path,
                          overwrite=overwrite, inputs=inputs)

@@ -181,10 +181,12 @@ def read_model_file(path):
     >>> import tempfile, astropy.units as u
     >>> from kpifs import KernelModel, make_pupil
     >>> from kpifs.io.kpfits import read_model_file
-    >>> path = tempfile.mkdtemp() + "/model.fits"
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = tmp.name + "/model.fits"
     >>> _ = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m)).write(path)
     >>> read_model_file(path)["kernel"].shape
     (37, 89)
+    >>> tmp.cleanup()
     """
     try:
         with open_fits(path, verify=True) as hdul:
@@ -203,10 +205,12 @@ def has_kernel_model(path):
     >>> import tempfile, astropy.units as u
     >>> from kpifs import KernelModel, make_pupil
     >>> from kpifs.io.kpfits import has_kernel_model
-    >>> path = tempfile.mkdtemp() + "/model.fits"
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = tmp.name + "/model.fits"
     >>> _ = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m)).write(path)
     >>> has_kernel_model(path)
     True
+    >>> tmp.cleanup()
     """
     try:
         with fits.open(path) as hdul:

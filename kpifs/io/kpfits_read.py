@@ -348,11 +348,13 @@ def read_kpfits_parts(path, *, detpa=None):
     >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
     >>> from kpifs.io.kpfits import read_kpfits_parts
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
-    >>> path = tempfile.mkdtemp() + "/kp.fits"
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = tmp.name + "/kp.fits"
     >>> _ = KernelPhaseData(np.zeros((2, 1, km.n_kp)), [1.6] * u.um, 10 * u.mas, km).write(path)
     >>> parts = read_kpfits_parts(path)
     >>> parts["kp"].shape, parts["meta"]["layout"]
     ((2, 1, 37), 'kpifs')
+    >>> tmp.cleanup()
     """
     path = str(path)
     try:

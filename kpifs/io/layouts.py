@@ -58,10 +58,12 @@ def write_plain_cube(path, cube, wavelengths, pixscale, *, cards=None, overwrite
     --------
     >>> import tempfile, numpy as np, astropy.units as u
     >>> from kpifs.io.layouts import write_plain_cube
-    >>> paths = write_plain_cube(tempfile.mkdtemp() + "/c.fits", np.zeros((1, 2, 8, 8)),
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> paths = write_plain_cube(tmp.name + "/c.fits", np.zeros((1, 2, 8, 8)),
     ...                          [1.5, 1.6] * u.um, 10 * u.mas)
     >>> paths[0].name
     'c.fits'
+    >>> tmp.cleanup()
     """
     wl = u.Quantity(wavelengths, u.um)
     hdr = _base_header(cards or {}, instrument="generic", pixscale=pixscale, exptime=exptime,
@@ -86,10 +88,12 @@ def write_charis_exposures(outdir, cube, ivar, wavelengths, pixscale, *, prefix=
     >>> import tempfile, numpy as np, astropy.units as u
     >>> from kpifs.io.layouts import write_charis_exposures
     >>> wl = 1.15956 * np.exp(np.arange(3) * 0.03) * u.um
-    >>> paths = write_charis_exposures(tempfile.mkdtemp(), np.ones((2, 3, 8, 8)),
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> paths = write_charis_exposures(tmp.name, np.ones((2, 3, 8, 8)),
     ...                                np.ones((2, 3, 8, 8)), wl, 16.2 * u.mas)
     >>> [p.name for p in paths]
     ['CRSA00000000_cube.fits', 'CRSA00000001_cube.fits']
+    >>> tmp.cleanup()
     """
     wl_nm = u.Quantity(wavelengths, u.um).to_value(u.nm)
     n = len(wl_nm)
@@ -137,10 +141,12 @@ def write_sphere_cube(outdir, cube, wavelengths, pixscale, *, prefix="", cards=N
     --------
     >>> import tempfile, numpy as np, astropy.units as u
     >>> from kpifs.io.layouts import write_sphere_cube
-    >>> paths = write_sphere_cube(tempfile.mkdtemp(), np.ones((2, 3, 8, 8)),
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> paths = write_sphere_cube(tmp.name, np.ones((2, 3, 8, 8)),
     ...                           [1.0, 1.1, 1.2] * u.um, 7.46 * u.mas)
     >>> [p.name for p in paths]
     ['science_cube.fits', 'wavelength.fits', 'parallactic_angles.fits']
+    >>> tmp.cleanup()
     """
     outdir = Path(outdir)
     cube = np.asarray(cube)
@@ -170,9 +176,11 @@ def write_observation(obs, outdir, *, layout="plain", overwrite=False):
     >>> import tempfile
     >>> from kpifs.io import write_observation
     >>> from kpifs.simulate import simulate_scene
-    >>> files = write_observation(simulate_scene("paper", n_frames=1, npup=32), tempfile.mkdtemp())
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> files = write_observation(simulate_scene("paper", n_frames=1, npup=32), tmp.name)
     >>> [p.name for p in files["target"]]
     ['target.fits']
+    >>> tmp.cleanup()
     """
     if layout not in LAYOUTS:
         raise KpifsError(f"unknown layout {layout!r}: use one of {LAYOUTS}")

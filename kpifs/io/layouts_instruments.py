@@ -62,10 +62,12 @@ def write_jwst_calints(path, cube, variance, wavelength, pixscale, *, instrument
     >>> import tempfile, numpy as np, astropy.units as u
     >>> from astropy.io import fits
     >>> from kpifs.io.layouts_instruments import write_jwst_calints
-    >>> p = write_jwst_calints(tempfile.mkdtemp() + "/a_calints.fits", np.ones((2, 8, 8)),
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> p = write_jwst_calints(tmp.name + "/a_calints.fits", np.ones((2, 8, 8)),
     ...                        np.ones((2, 8, 8)), 4.8196 * u.um, 65.55 * u.mas)
     >>> fits.getheader(p, "DQ")["BZERO"], fits.getval(p, "FILTER")
     (2147483648, 'F480M')
+    >>> tmp.cleanup()
     """
     check_output_path(path, overwrite=overwrite)
     inst = instrument.upper()
@@ -159,10 +161,12 @@ def write_gpi_exposures(outdir, cube, variance, wavelengths, pixscale, *, detpa=
     >>> from astropy.io import fits
     >>> from kpifs.io.layouts_instruments import write_gpi_exposures
     >>> wl = (1.4904 + (np.arange(37) + 0.5) * 0.3112 / 37) * u.um
-    >>> paths = write_gpi_exposures(tempfile.mkdtemp(), np.ones((1, 37, 32, 32)),
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> paths = write_gpi_exposures(tmp.name, np.ones((1, 37, 32, 32)),
     ...                             np.ones((1, 37, 32, 32)), wl, 14.161 * u.mas)
     >>> paths[0].name, fits.getval(paths[0], "IFSFILT")
     ('S20260101S0001_spdc.fits', 'IFSFILT_H_G1213')
+    >>> tmp.cleanup()
     """
     wl = u.Quantity(wavelengths, u.um).value
     band = next((b for b, (lo, hi) in GPI_BANDS.items() if lo < wl[0] < wl[-1] < hi), "H")

@@ -221,15 +221,17 @@ def read_oifits(paths, *, insname=None, correlations="baselines", binning="auto"
     >>> km = KernelModel.from_pupil(make_pupil("niriss_nrm"))
     >>> rng = np.random.default_rng(0)
     >>> files = []
+    >>> tmp = tempfile.TemporaryDirectory()
     >>> for i in range(2):
     ...     kpd = KernelPhaseData(rng.normal(0, 0.01, (1, 1, 15)), [4.8] * u.um,
     ...                           65.55 * u.mas, km, covariance=np.eye(15)[None] * 1e-4,
     ...                           detpa=[10.0 * i])
     ...     kpd.meta["calibrated"] = True
-    ...     files.append(kpd.write(f"{tempfile.mkdtemp()}/e{i}.oifits"))
+    ...     files.append(kpd.write(f"{tmp.name}/e{i}.oifits"))
     >>> parts = read_oifits(files)
     >>> parts["kp"].shape, parts["meta"]["n_reads"]
     ((1, 1, 30), 2)
+    >>> tmp.cleanup()
     """
     if isinstance(paths, (str, bytes)) or not hasattr(paths, "__iter__"):
         paths = [paths]

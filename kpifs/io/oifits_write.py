@@ -335,9 +335,11 @@ def write_oifits(kpd, path, *, overwrite=False, inputs=(), history=(), target=No
     >>> km = KernelModel.from_pupil(make_pupil("niriss_nrm"))
     >>> kpd = KernelPhaseData(np.zeros((1, 1, km.n_kp)), [4.8] * u.um, 65.6 * u.mas, km,
     ...                       covariance=np.eye(km.n_kp)[None] * 1e-4, detpa=[0.0])
-    >>> path = kpd.write(tempfile.mkdtemp() + "/x.oifits")
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = kpd.write(tmp.name + "/x.oifits")
     >>> KernelPhaseData.read(path).n_kp
     15
+    >>> tmp.cleanup()
     """
     return write_hdulist(oifits_hdulist(kpd, target=target, insname=insname, arrname=arrname,
                                         history=history), path, overwrite=overwrite,

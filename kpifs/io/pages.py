@@ -34,13 +34,15 @@ def release_pages(data):
     >>> import tempfile, numpy as np
     >>> from astropy.io import fits
     >>> from kpifs.io.pages import release_pages
-    >>> path = tempfile.mkdtemp() + "/c.fits"
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = tmp.name + "/c.fits"
     >>> fits.writeto(path, np.ones((4, 64, 64), np.float32))
     >>> with fits.open(path, memmap=True) as hdul:
     ...     first = float(hdul[0].data.sum()); release_pages(hdul[0].data)
     ...     again = float(hdul[0].data.sum())
     >>> first, again
     (16384.0, 16384.0)
+    >>> tmp.cleanup()
     """
     parts = getattr(data, "parts", None)
     if parts is not None and not hasattr(data, "base"):      # a FrameStack

@@ -130,6 +130,9 @@ def detection_hdulist(result, *, header=None, inputs=()):
             _image(result.pfa_global, "PFA", wcs_hdr, comment="global false-alarm probability"),
             _image(result.pfa_local, "PFA_LOCAL", wcs_hdr,
                    comment="false-alarm probability at a known position"),
+            *([] if result.search_map is None else [
+                _image(result.search_map, "SEARCH", wcs_hdr,
+                       comment="residual map the search stopped on")]),
             _image(result.contrast, "CONTRAST", wcs3, comment=f"{q} channels"),
             _image(result.contrast_err, "CONTRAST_ERR", wcs3, comment="1-sigma"),
             _image(result.limit, "LIMIT", wcs_hdr,
@@ -193,8 +196,10 @@ def write_detection(result, path, *, header=None, inputs=(), overwrite=False):
     >>> import tempfile
     >>> from kpifs.detect.pipeline import _example_result
     >>> from kpifs.io.products import write_detection
-    >>> write_detection(_example_result(), tempfile.mkdtemp() + "/det.fits").name
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> write_detection(_example_result(), tmp.name + "/det.fits").name
     'det.fits'
+    >>> tmp.cleanup()
     """
     return write_hdulist(detection_hdulist(result, header=header, inputs=inputs), path,
                          overwrite=overwrite, inputs=inputs)
@@ -221,10 +226,12 @@ def read_detection_parts(path):
     >>> import tempfile
     >>> from kpifs.detect.pipeline import _example_result
     >>> from kpifs.io.products import read_detection_parts, write_detection
-    >>> path = write_detection(_example_result(), tempfile.mkdtemp() + "/det.fits")
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = write_detection(_example_result(), tmp.name + "/det.fits")
     >>> parts = read_detection_parts(path)
     >>> parts["header"]["TEST"], parts["images"]["DETECTION"].ndim, sorted(parts["limits"])
     ('B', 2, ['B', 'B-paper', 'E', 'NP', 'S'])
+    >>> tmp.cleanup()
     """
     path = str(path)
     from astropy.table import QTable     # not at import: the command line's start
@@ -261,10 +268,12 @@ def detection_header_meta(hdr, path):
     >>> from astropy.io import fits
     >>> from kpifs.detect.pipeline import _example_result
     >>> from kpifs.io.products import detection_header_meta, write_detection
-    >>> path = write_detection(_example_result(), tempfile.mkdtemp() + "/det.fits")
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = write_detection(_example_result(), tmp.name + "/det.fits")
     >>> wl, energy, meta = detection_header_meta(fits.getheader(path), path)
     >>> len(wl), meta["test"], meta["channels"]
     (2, 'B', [1, 2])
+    >>> tmp.cleanup()
     """
     nwave = sum(1 for k in hdr if k.startswith("WAVE") and k[4:].isdigit())
     wl = [hdr[f"WAVE{i}"] for i in range(1, nwave + 1)] * u.um

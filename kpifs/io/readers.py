@@ -32,9 +32,11 @@ def detect_instrument(path):
     >>> from kpifs.io import detect_instrument, write_observation
     >>> from kpifs.simulate import simulate_scene
     >>> obs = simulate_scene("charis", n_frames=1, npup=32, shape=(32, 32))
-    >>> files = write_observation(obs, tempfile.mkdtemp(), layout="charis")
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> files = write_observation(obs, tmp.name, layout="charis")
     >>> detect_instrument(files["target"][0])
     'charis'
+    >>> tmp.cleanup()
     """
     hdul = open_fits(path)
     try:
@@ -88,11 +90,13 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
     >>> import tempfile, astropy.units as u
     >>> from kpifs.io import read_cube, write_observation
     >>> from kpifs.simulate import simulate_scene
-    >>> d = tempfile.mkdtemp()
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> d = tmp.name
     >>> files = write_observation(simulate_scene("paper", n_frames=2, npup=32), d)
     >>> with read_cube(files["target"]) as cube:
     ...     print(cube.instrument, cube.shape)
     generic (2, 3, 40, 40)
+    >>> tmp.cleanup()
     """
     if isinstance(paths, (str, Path)):
         paths = [paths]

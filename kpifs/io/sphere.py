@@ -6,16 +6,16 @@ SPHERE Data Center products (``HIERARCH ESO PRO REC1 ID = 'sph_ifs_science_dr'``
 have the same layout but wavelengths in um and angles of the opposite sign.
 The cube is kept memory-mapped and viewed as ``(nframe, nwave, ny, nx)``.
 
-Sky orientation (uncertain; check on a known binary): the detector position
-angle of a frame is taken as ``DETPA = angle + SPHERE_DETPA_OFFSET`` with the
-frame angle from the angle file. vlt-sphere's ``compute_angles`` (after Maire
-et al. 2016) gives the on-sky angle of its IFS cubes as ``PARANG +
-SPHERE_PUPIL_OFFSET + SPHERE_IFS_OFFSET + SPHERE_TRUE_NORTH`` = PARANG + 33.76
-deg in pupil-tracking mode, which is what the offset assumes: an angle file of
-parallactic angles. Whether a given angle file holds parallactic or
-derotation angles, and their sign in Data Center products (inverted here, as
-before), is not established; when the file already holds detector position
-angles, give it to ``--pa`` instead (no offset is added to ``--pa``).
+Sky orientation: the detector position angle of a frame is ``DETPA = angle +
+SPHERE_DETPA_OFFSET`` (33.76 deg) with the frame's parallactic angle from the angle
+file: the pupil offset in pupil-tracking mode, the IFS offset and the true-North
+correction of Maire et al. (2016, SPIE 9908, 990834), combined as vlt-sphere's
+``toolbox.compute_angles`` combines them into its derotation angle (``DEROT ANGLE =
+PARANG + 135.99 - 100.48 - 1.75`` for ``INS4 DROT2 MODE = ELEV``), which is the
+DETPA. Assumed: the angle file holds parallactic angles (check them against the raw
+frames' ``HIERARCH ESO TEL PARANG START``/``END``). A file of derotation angles
+(vlt-sphere's ``DEROT ANGLE``) goes to ``--pa``, to which no offset is added; Data
+Center products carry the opposite sign, inverted here (docs: "Reading cubes").
 """
 import logging
 from pathlib import Path
@@ -43,7 +43,7 @@ SPHERE_PUPIL_OFFSET = 135.99
 SPHERE_IFS_OFFSET = -100.48
 #: True-north correction (deg, -1.75 +- 0.08).
 SPHERE_TRUE_NORTH = -1.75
-#: Detector position angle minus the angle file's value (deg). Uncertain: see the
+#: Detector position angle minus the angle file's parallactic angle (deg): see the
 #: module docstring.
 SPHERE_DETPA_OFFSET = SPHERE_PUPIL_OFFSET + SPHERE_IFS_OFFSET + SPHERE_TRUE_NORTH
 
@@ -132,10 +132,12 @@ def read_sphere(path, *, wavelengths=None, pixscale=None, angles=None):
     >>> from kpifs.io import read_sphere, write_observation
     >>> from kpifs.simulate import simulate_scene
     >>> obs = simulate_scene("sphere", n_frames=2, npup=32, shape=(32, 32))
-    >>> files = write_observation(obs, tempfile.mkdtemp(), layout="sphere")
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> files = write_observation(obs, tmp.name, layout="sphere")
     >>> with read_sphere(files["target"][0]) as cube:   # wavelength.fits is found beside it
     ...     print(cube.shape, f"{cube.wavelengths[0]:.3f}")
     (2, 39, 32, 32) 0.957 um
+    >>> tmp.cleanup()
     """
     hdul = open_fits(path)
     try:

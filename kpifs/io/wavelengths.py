@@ -95,10 +95,12 @@ def read_wavelength_file(path, *, unit=None):
     --------
     >>> import tempfile, numpy as np
     >>> from kpifs.io import read_wavelength_file
-    >>> path = tempfile.mkdtemp() + "/wl.txt"
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = tmp.name + "/wl.txt"
     >>> np.savetxt(path, [1159.56, 1199.70])          # nm, recognised from the values
     >>> read_wavelength_file(path)
     <Quantity [1.15956, 1.1997 ] um>
+    >>> tmp.cleanup()
     """
     path = Path(path)
     if path.is_dir():
