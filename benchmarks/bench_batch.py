@@ -13,7 +13,7 @@ import astropy.units as u
 
 from kpifs.batch import BatchEntry, run_batch
 from kpifs.io.layouts import write_observation
-from kpifs.simulate import simulate_scene
+from kpifs.simulation.simulate import simulate_scene
 from kpifs.workflow import DetectOptions, ExtractOptions
 
 

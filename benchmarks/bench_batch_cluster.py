@@ -34,7 +34,7 @@ from astropy.table import Table
 
 from kpifs.batch import BatchEntry, process_entry
 from kpifs.io.layouts import write_observation
-from kpifs.simulate import simulate_scene
+from kpifs.simulation.simulate import simulate_scene
 from kpifs.workflow import DetectOptions, ExtractOptions
 
 OPTIONS = ["--step", "1.2m", "--draws", "1000", "--pfa", "0.01", "-q"]

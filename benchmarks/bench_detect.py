@@ -16,7 +16,7 @@ import astropy.units as u
 from kpifs import KernelModel, make_pupil
 from kpifs.data import DetectionGrid
 from kpifs.detect import DetectionModel, NullCalibration
-from kpifs.kernel import MAS
+from kpifs.model.kernel import MAS
 
 
 def main(argv=None):

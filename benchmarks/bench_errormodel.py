@@ -20,7 +20,7 @@ import numpy as np
 import astropy.units as u
 
 from kpifs import ExtractionWindow, KernelModel, KernelPhaseData, make_pupil
-from kpifs.calibrate import calibrate
+from kpifs.calibration.calibrate import calibrate
 from kpifs.detect import detect
 from kpifs.detect import null as null_module
 

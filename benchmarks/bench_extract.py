@@ -24,9 +24,9 @@ import numpy as np
 import astropy.units as u
 
 from kpifs import KernelModel, extract_kernel_phases, make_pupil
-from kpifs import fourier
-from kpifs.kernel import MAS
-from kpifs.simulate import simulate_psf
+from kpifs.model import fourier
+from kpifs.model.kernel import MAS
+from kpifs.simulation.simulate import simulate_psf
 
 
 def median_time(fn, repeat):

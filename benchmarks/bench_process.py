@@ -44,7 +44,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def _psfs(nwave, size, seed):
     import astropy.units as u
-    from kpifs.simulate import simulate_psf
+    from kpifs.simulation.simulate import simulate_psf
     rng = np.random.default_rng(seed)
     wl = np.geomspace(1.15956, 2.36934, nwave) * u.um
     pix = 16.2 * u.mas
@@ -87,7 +87,7 @@ def reference(cube_path, out_path):
     import astropy.units as u
     from astropy.io import fits
     from kpifs import KernelModel, make_pupil
-    from kpifs.kernel import MAS
+    from kpifs.model.kernel import MAS
     with fits.open(cube_path, memmap=True) as hdul:
         hdr = hdul[0].header
         wl = np.array([hdr[f"KPWL{i + 1}"] for i in range(hdul[0].data.shape[1])]) * 1e-6

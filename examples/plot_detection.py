@@ -11,10 +11,10 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from kpifs import KernelModel, extract_kernel_phases, make_pupil
-from kpifs.calibrate import calibrate
+from kpifs.calibration.calibrate import calibrate
 from kpifs.detect import detect
 from kpifs.plotting import plot_candidate_spectrum, plot_contrast_curves, plot_detection_map
-from kpifs.simulate import simulate_scene
+from kpifs.simulation.simulate import simulate_scene
 
 contrasts = np.array([1.3, 1.0, 0.7]) * 6.3e-4
 obs = simulate_scene("paper", n_frames=300, seed=2, npup=64, exptime=1 * u.s,

@@ -24,11 +24,11 @@ import numpy as np
 import astropy.units as u
 
 from kpifs import KernelModel, extract_kernel_phases, make_pupil
-from kpifs.calibrate import calibrate
+from kpifs.calibration.calibrate import calibrate
 from kpifs.detect import detect
 from kpifs.inject import injection_brackets, injection_limits
 from kpifs.plotting import analytic_column, plot_injection_limits
-from kpifs.simulate import simulate_scene
+from kpifs.simulation.simulate import simulate_scene
 
 obs = simulate_scene("paper", n_frames=30, seed=5, npup=64, contrasts=0.0,
                      wavefront_rms=30 * u.nm, drift_rms=30 * u.nm, drift_time=8.0,

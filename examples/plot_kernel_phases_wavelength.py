@@ -11,7 +11,7 @@ import astropy.units as u
 import matplotlib.pyplot as plt
 
 from kpifs import KernelModel, extract_kernel_phases, make_pupil
-from kpifs.simulate import simulate_psf
+from kpifs.simulation.simulate import simulate_psf
 
 wl = [1.52, 1.60, 1.68] * u.um
 km = KernelModel.from_pupil(make_pupil("subaru"))

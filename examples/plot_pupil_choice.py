@@ -24,7 +24,7 @@ import numpy as np
 import astropy.units as u
 
 from kpifs import ExtractionWindow, KernelModel, extract_kernel_phases, make_pupil
-from kpifs.calibrate import calibrate
+from kpifs.calibration.calibrate import calibrate
 from kpifs.detect import detect
 from kpifs.io import read_cube
 from kpifs.plotting import plot_detection_map

@@ -9,7 +9,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from kpifs import KernelModel, make_pupil
-from kpifs.pupil import pupil_image
+from kpifs.model.pupil import pupil_image
 
 pupil = make_pupil("subaru")
 km = KernelModel.from_pupil(pupil)

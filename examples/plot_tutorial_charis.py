@@ -37,7 +37,7 @@ from kpifs.io import read_cube, write_observation
 from kpifs.modelcheck import check_pupil_model
 from kpifs.plotting import (plot_candidate_spectrum, plot_contrast_curves, plot_detection_map,
                             plot_injection_limits)
-from kpifs.simulate import simulate_scene
+from kpifs.simulation.simulate import simulate_scene
 
 
 def kpifs(command):

@@ -40,7 +40,7 @@ from kpifs.io.sphere import SPHERE_DETPA_OFFSET
 from kpifs.modelcheck import check_pupil_model
 from kpifs.plotting import (plot_candidate_spectrum, plot_contrast_curves, plot_detection_map,
                             plot_injection_limits)
-from kpifs.simulate import simulate_scene
+from kpifs.simulation.simulate import simulate_scene
 
 
 def kpifs(command):

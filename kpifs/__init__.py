@@ -13,13 +13,13 @@ from ._meta import VERSION as __version__
 _PUBLIC = {
     "KpifsError": "exceptions",
     "KpifsWarning": "exceptions",
-    "PupilModel": "pupil",
-    "make_pupil": "pupil",
-    "KernelModel": "kernel",
-    "ExtractionWindow": "window",
+    "PupilModel": "model.pupil",
+    "make_pupil": "model.pupil",
+    "KernelModel": "model.kernel",
+    "ExtractionWindow": "model.window",
     "KernelPhaseData": "data",
     "DetectionResult": "data",
-    "extract_kernel_phases": "extract",
+    "extract_kernel_phases": "extraction.extract",
 }
 
 __all__ = ["__version__", *_PUBLIC]

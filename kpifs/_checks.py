@@ -66,7 +66,7 @@ def check_same_setup(target, calibrator):
     their headers), naming both. *target* and *calibrator* are
     `~kpifs.data.KernelPhaseData` (their ``header`` is their cube's) or headers.
 
-    Called where a target and its calibrator meet (`kpifs.calibrate.check_compatible`):
+    Called where a target and its calibrator meet (`kpifs.calibration.calibrate.check_compatible`):
     every command and the Python API go through it.
 
     Examples
@@ -250,7 +250,8 @@ def drop_dead_channels(bad, kp, centres, wavelengths, phases, amplitudes, *, sou
 def match_dead_channels(target, calibrators):
     """When a star's extraction dropped dead channels (``meta['dropped_channels']``), the
     other stars' same channels are left out too (with a warning), so that calibration
-    compares like with like; anything else is left to `~kpifs.calibrate.check_compatible`."""
+    compares like with like; anything else is left to
+    `~kpifs.calibration.calibrate.check_compatible`."""
     stars = [target] + list(calibrators)
     if not any(k.meta.get("dropped_channels") for k in stars):
         return target, list(calibrators)

@@ -292,3 +292,17 @@ def version_cards(header, what):
     header["KPIFSVER"] = (VERSION, "kpifs version")
     header.add_history(f"kpifs {VERSION}: {what}")
     return header
+
+
+def canonical_name(name):
+    """The canonical spelling of a built-in pupil or mask name: lower case, ``_`` for ``-``.
+
+    Both spellings are accepted everywhere (``'niriss-nrm'`` is ``'niriss_nrm'``).
+
+    Examples
+    --------
+    >>> from kpifs.model.pupil import canonical_name
+    >>> canonical_name("SPHERE-SAM7")
+    'sphere_sam7'
+    """
+    return str(name).strip().lower().replace("-", "_")

@@ -18,14 +18,11 @@ import logging
 import warnings
 
 import numpy as np
-from astropy import units as u
 
-from ._utils import to_quantity
 from .exceptions import KpifsError, KpifsWarning
-from .prepare import cut_out
 
-__all__ = ["empirical_covariance", "ledoit_wolf", "hartlap_factor", "propagated_covariance",
-           "whitening_matrix", "whiten", "calibrated_covariance", "kernel_jacobian",
+__all__ = ["empirical_covariance", "ledoit_wolf", "hartlap_factor",
+           "whitening_matrix", "whiten", "calibrated_covariance",
            "filled_covariance", "unfilled_covariance", "COVFILL_FACTOR"]
 
 log = logging.getLogger(__name__)
@@ -265,7 +262,7 @@ def filled_covariance(cov, *, data=None, rtol=1e-6, factor=COVFILL_FACTOR):
     """A positive-definite covariance that weighs data as `whitening_matrix` does.
 
     An error model of few frames keeps only its best-measured modes
-    (`kpifs.errormodel`): its covariance is singular, and `whitening_matrix`
+    (`kpifs.calibration.errormodel`): its covariance is singular, and `whitening_matrix`
     leaves the other directions out (those below *rtol* of the largest
     variance). A tool that inverts the covariance needs it definite: each
     left-out direction is given the variance ``fill``, *factor* times the larger
@@ -375,93 +372,3 @@ def whiten(kp, w):
         return (flat @ w.T).reshape(kp.shape)
     raise KpifsError(f"whitening operator of shape {w.shape} does not fit kernel phases "
                      f"({nw} channels x {nk})")
-
-
-def propagated_covariance(images, variance, kernel_model, *, wavelengths, pixscale, centres,
-                          window):
-    """Photon and read noise propagated through the linear extraction, for one frame.
-
-    To first order ``dphi_b = Im(dV_b / V_b)`` with ``dV = M (w dI)``; with
-    independent pixel noise of variance ``var`` this gives
-    ``cov(phi) = J diag(var) J^T`` and ``cov(k) = K cov(phi) K^T``.
-
-    Parameters
-    ----------
-    images, variance : ndarray, shape (nwave, ny, nx)
-        A (mean) frame and its per-pixel variance.
-    kernel_model : `~kpifs.kernel.KernelModel`
-        The model used for the extraction (after any Nyquist cut).
-    wavelengths, pixscale
-        As for `~kpifs.extract_kernel_phases`.
-    centres : array-like, shape (nwave, 2) or (2,)
-        Star centres ``(x, y)``.
-    window : `~kpifs.window.ExtractionWindow`
-        The extraction's window (``kpd.window``).
-
-    Returns
-    -------
-    ndarray, shape (nwave, nkp, nkp)
-
-    Examples
-    --------
-    >>> import astropy.units as u
-    >>> from kpifs import ExtractionWindow, KernelModel, make_pupil
-    >>> from kpifs.covariance import propagated_covariance
-    >>> from kpifs.simulate import simulate_psf
-    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
-    >>> img = 1e6 * simulate_psf("subaru", [1.6] * u.um, pixscale=10.42 * u.mas,
-    ...                          shape=(32, 32), npup=48)
-    >>> cov = propagated_covariance(img, img + 100, km, wavelengths=[1.6] * u.um,
-    ...                             pixscale=10.42 * u.mas, centres=(16, 16),
-    ...                             window=ExtractionWindow(32, 12.8))
-    >>> cov.shape
-    (1, 37, 37)
-    """
-    wl = np.atleast_1d(to_quantity(wavelengths, u.m, name="wavelengths"))
-    ps = to_quantity(pixscale, u.mas, name="pixel scale")
-    images = np.asarray(images, float)
-    variance = np.asarray(variance, float)
-    if images.shape != variance.shape or images.ndim != 3 or images.shape[0] != len(wl):
-        raise KpifsError(f"images {images.shape} and variance {variance.shape} must both be "
-                         f"(nwave={len(wl)}, ny, nx)")
-    centres = np.broadcast_to(np.asarray(centres, float), (len(wl), 2))
-    km = kernel_model
-    ws = window.size
-    out = np.empty((len(wl), km.n_kp, km.n_kp))
-    for i in range(len(wl)):
-        img = np.nan_to_num(images[i:i + 1])
-        var = np.nan_to_num(variance[i:i + 1], nan=0.0, posinf=0.0)
-        cut, delta = cut_out(img, centres[i:i + 1], ws)
-        vcut, _ = cut_out(var, centres[i:i + 1], ws)
-        jk = kernel_jacobian(cut[0], window.weights(delta)[0],
-                             km.dft_matrix(wl[i], ps, (ws, ws)), km)
-        out[i] = (jk * vcut[0].ravel()[None, :]) @ jk.T
-    return out
-
-
-def kernel_jacobian(cut, weights, mat, kernel_model):
-    """``d k / d I``: the kernel phases' derivatives with respect to a cut-out's pixels.
-
-    ``dphi_b = Im(dV_b / V_b) = (Re V dIm V - Im V dRe V) / |V|^2`` with ``dV = M (w dI)``,
-    then ``dk = K dphi``. *mat* is the model's stacked real/imaginary DFT matrix
-    (`~kpifs.kernel.KernelModel.dft_matrix`), *weights* the window over the cut-out.
-    Returns ``(nkp, npix)``.
-
-    Examples
-    --------
-    >>> import numpy as np, astropy.units as u
-    >>> from kpifs import KernelModel, make_pupil
-    >>> from kpifs.covariance import kernel_jacobian
-    >>> km = KernelModel.from_pupil(make_pupil("niriss_nrm"))
-    >>> psf = np.zeros((16, 16)); psf[8, 8] = 1.0               # a point source at the origin
-    >>> mat = km.dft_matrix(4.8 * u.um, 65.55 * u.mas, (16, 16))
-    >>> kernel_jacobian(psf + 1e-3, np.ones((16, 16)), mat, km).shape
-    (15, 256)
-    """
-    km = kernel_model
-    w = np.asarray(weights, float).ravel()
-    ri = mat @ (np.asarray(cut, float).ravel() * w)
-    re, im = ri[:km.n_uv], ri[km.n_uv:]
-    jac = (re[:, None] * mat[km.n_uv:] - im[:, None] * mat[:km.n_uv]) * w[None, :]
-    jac /= (re ** 2 + im ** 2)[:, None]
-    return km.kernel @ jac

@@ -28,9 +28,9 @@ from .io.oifits_write import write_oifits
 from .io.products import (detection_header_meta, is_detection, read_detection_parts,
                           write_detection)
 from .io.wavelengths import check_wavelengths
-from .kernel import KernelModel
-from .pupil import PupilModel
-from .window import ExtractionWindow
+from .model.kernel import KernelModel
+from .model.pupil import PupilModel
+from .model.window import ExtractionWindow
 
 __all__ = ["KernelPhaseData", "DetectionGrid", "DetectionResult"]
 
@@ -45,9 +45,9 @@ class KernelPhaseData:
     wavelengths : `~astropy.units.Quantity`, shape (nwave,)
     pixscale : `~astropy.units.Quantity`
         Pixel scale of the images the phases come from.
-    kernel_model : `~kpifs.kernel.KernelModel`
+    kernel_model : `~kpifs.model.kernel.KernelModel`
         The model whose kernel produced *kp*.
-    window : `~kpifs.window.ExtractionWindow`, optional
+    window : `~kpifs.model.window.ExtractionWindow`, optional
         The extraction window (its attenuation matters for contrasts).
     phases, amplitudes : ndarray, shape (nframe, nwave, nuv), optional
         Raw Fourier phases (rad) and normalised amplitudes, for diagnostics.
@@ -68,16 +68,16 @@ class KernelPhaseData:
         The same across channels (spectral cross-talk included).
     covariance_rows : ndarray, shape (nrow, nwave, nkp), optional
         Rows ``R`` with ``R^T R`` the covariance across all channels (see
-        `~kpifs.calibrate.calibrate`): a compact, always-available form of the
+        `~kpifs.calibration.calibrate.calibrate`): a compact, always-available form of the
         cross-channel covariance used to draw realistic noise.
     fit_covariance_rows : ndarray, shape (nrow, nwave, nkp), optional
         Rows of the error model that characterises candidates (more modes
-        than the search's, see `~kpifs.calibrate.calibrate`'s *fit_modes*);
+        than the search's, see `~kpifs.calibration.calibrate.calibrate`'s *fit_modes*);
         stored as KP-FITROWS.
     block_rows : ndarray, shape (nblock, nwave, nkp), optional
         Centred time-block means of the stars behind calibrated data, scaled
         so that random sign combinations are noise of the calibrated mean
-        (`~kpifs.calibrate.block_rows`): the empirical null of detection;
+        (`~kpifs.calibration.calibrate.block_rows`): the empirical null of detection;
         stored as KP-BLKROWS.
     header : `~astropy.io.fits.Header`, optional
         Header of the input cube (kept in products).
@@ -184,7 +184,8 @@ class KernelPhaseData:
         self.detpa = detpa
         self.bandwidth = bandwidth
         self.meta = dict(meta or {})
-        self.rotation = None        # time blocks of a rotating sequence (kpifs.rotation)
+        # time blocks of a rotating sequence (kpifs.rotation)
+        self.rotation = None
 
     @property
     def shape(self):
@@ -205,7 +206,7 @@ class KernelPhaseData:
     @property
     def channel_n_kp(self):
         """Kernel phases each channel measures, shape (nwave,): the first ones of the
-        kernel (`~kpifs.sampling.nested_kernel`; all of them unless channels sample
+        kernel (`~kpifs.model.sampling.nested_kernel`; all of them unless channels sample
         different uv points)."""
         n = self.meta.get("channel_n_kp")
         return np.full(self.n_wave, self.n_kp) if n is None else np.asarray(n, int)

@@ -19,7 +19,7 @@ from .detect.sky import detector_to_sky, mean_angle
 from .exceptions import KpifsError
 from .io.layouts import write_observation
 from .plotting import save_detection_plots
-from .simulate import simulate_scene
+from .simulation.simulate import simulate_scene
 from .workflow import DetectOptions, ExtractOptions, process_observation
 
 __all__ = ["run_demo", "DEMO_SCENE", "DEMO_STEP", "DEMO_MIN_TRANSMISSION"]

@@ -24,11 +24,11 @@ from astropy.table import QTable
 
 from ._utils import progress as progress_bar
 from ._utils import one_blas_thread, to_quantity
-from .calibrate import calibrate
+from .calibration.calibrate import calibrate
 from .detect import detect
 from .detect.sky import sky_to_detector   # noqa: F401  (kpifs.inject.sky_to_detector)
 from .exceptions import KpifsError, KpifsWarning
-from .extract import extract_kernel_phases
+from .extraction.extract import extract_kernel_phases
 
 __all__ = ["shift_images", "inject_companion", "injection_limits", "limit_bracket",
            "injection_brackets", "BRACKET_ALPHA"]
@@ -416,7 +416,7 @@ def injection_limits(target, calibrators, model, *, wavelengths, pixscale, windo
     >>> import numpy as np, astropy.units as u
     >>> from kpifs import KernelModel, extract_kernel_phases, make_pupil
     >>> from kpifs.inject import injection_limits
-    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.simulation.simulate import simulate_scene
     >>> obs = simulate_scene("paper", n_frames=12, seed=4, npup=32, contrasts=0.0)
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=0.8 * u.m))
     >>> args = dict(wavelengths=obs.wavelengths, pixscale=obs.params.pixscale)

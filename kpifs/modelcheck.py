@@ -42,10 +42,10 @@ from ._lazy import lazy_module
 from ._utils import one_blas_thread, to_quantity
 from ._utils import progress as progress_bar
 from .exceptions import KpifsError
-from .extract import extract_kernel_phases
-from .kernel import KernelModel
-from .pupil import BINARY_MIN_TRANSMISSION, make_pupil, model_defaults
-from .simulate import simulate_psf
+from .extraction.extract import extract_kernel_phases
+from .model.kernel import KernelModel
+from .model.pupil import BINARY_MIN_TRANSMISSION, make_pupil, model_defaults
+from .simulation.simulate import simulate_psf
 
 optimize = lazy_module("scipy.optimize")
 
@@ -115,7 +115,7 @@ class ModelCheck:
         Fitted pixel-scale factor: the data's pixel scale is ``scale`` times
         the one given.
     recommended : dict
-        Options of the recommended model (`~kpifs.pupil.make_pupil` keywords,
+        Options of the recommended model (`~kpifs.model.pupil.make_pupil` keywords,
         plus ``pixscale``).
     reason : str
         Why.
@@ -275,9 +275,9 @@ def check_pupil_model(target, calibrator=None, *, wavelengths, pixscale, pupil="
     pixscale : `~astropy.units.Quantity`
         The pixel scale as known (the fitted factor multiplies it).
     pupil : str
-        Telescope name or pupil image (see `~kpifs.pupil.make_pupil`); its
-        defaults (`~kpifs.pupil.MODEL_DEFAULTS`) are the starting model.
-    window : `~kpifs.window.ExtractionWindow`, optional
+        Telescope name or pupil image (see `~kpifs.model.pupil.make_pupil`); its
+        defaults (`~kpifs.model.pupil.MODEL_DEFAULTS`) are the starting model.
+    window : `~kpifs.model.window.ExtractionWindow`, optional
     rotations : `~astropy.units.Quantity`
         Coarse grid of model turns (deg).
     scales : array-like
@@ -304,7 +304,7 @@ def check_pupil_model(target, calibrator=None, *, wavelengths, pixscale, pupil="
     --------
     >>> import astropy.units as u
     >>> from kpifs.modelcheck import check_pupil_model
-    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.simulation.simulate import simulate_scene
     >>> obs = simulate_scene("paper", n_frames=12, contrasts=0.0, npup=64, seed=2,
     ...                      pupil_rotation=2 * u.deg)
     >>> chk = check_pupil_model(obs.target, obs.calibrator, wavelengths=obs.wavelengths,

@@ -37,7 +37,7 @@ from astropy import units as u
 from astropy.io import fits
 
 from .exceptions import KpifsError
-MAS = np.pi / 180 / 3600 / 1000      # one mas in radians (as kpifs.kernel.MAS)
+MAS = np.pi / 180 / 3600 / 1000      # one mas in radians (as kpifs.model.kernel.MAS)
 
 __all__ = ["RotationBlocks", "time_blocks", "rotation_blocks", "block_width",
            "rotation_needed", "parallactic_angles", "sequence_angles", "noise_whitening",
@@ -220,7 +220,7 @@ def rotation_blocks(target, calibrators=(), *, width=None, min_frames=MIN_BLOCK_
 
 
 #: Modes of the frames' noise that whiten the blocks, as a fraction of its degrees of
-#: freedom (the error model's default, `kpifs.errormodel`).
+#: freedom (the error model's default, `kpifs.calibration.errormodel`).
 NOISE_MODES = 0.5
 
 #: Folds of the cross-validated variances of `noise_whitening`.

@@ -27,24 +27,25 @@ import numpy as np
 from astropy import units as u
 
 from . import _checks
-from . import filters as _filters
+from .extraction import filters as _filters
 from ._defaults import DETECT as _DETECT, EXTRACT as _EXTRACT
-from ._lazy import lazy_module
 from ._utils import check_output_dir, check_output_path, to_quantity
-from .adi import angular_differential
-from .calibrate import calibrate, check_calibration
+from .calibration.adi import angular_differential
+from .calibration.calibrate import calibrate, check_calibration
 from .covariance import empirical_covariance
 from .data import KernelPhaseData
+from .detect import null as _null, pipeline as _pipeline, sky as _sky
+from .detect import spectral as _spectral, stats as _stats
 from .exceptions import KpifsError, KpifsWarning
-from .extract import extract_kernel_phases
+from .extraction.extract import extract_kernel_phases
 from .io.angles import frame_detpa, parse_angles
 from .io.readers import check_pupil_header, header_pupil, read_cube
 from .io.wavelengths import parse_wavelengths
-from .kernel import load_kernel_model
-from .pixelnoise import attach_pixel_noise
+from .model.kernel import load_kernel_model
+from .calibration.pixelnoise import attach_pixel_noise
 from .provenance import (combined_digest, inputs_digest, observation_digest, options_record,
                          products_digest)
-from .window import ExtractionWindow
+from .model.window import ExtractionWindow
 
 __all__ = ["ExtractOptions", "DetectOptions", "DEFAULT_PUPIL", "kernel_model_for",
            "default_pupil",
@@ -53,13 +54,6 @@ __all__ = ["ExtractOptions", "DetectOptions", "DEFAULT_PUPIL", "kernel_model_for
            "reduce_observation", "detect_observation",
            "process_observation", "options_record", "inputs_digest",
            "products_digest", "observation_digest"]
-
-# kpifs.detect brings astropy.table (0.1 s): loaded when a search runs, not for extract
-_null = lazy_module("kpifs.detect.null")
-_pipeline = lazy_module("kpifs.detect.pipeline")
-_sky = lazy_module("kpifs.detect.sky")
-_spectral = lazy_module("kpifs.detect.spectral")
-_stats = lazy_module("kpifs.detect.stats")
 
 log = logging.getLogger(__name__)
 
@@ -118,12 +112,14 @@ class ExtractOptions:
     shrinkage: str = _EXTRACT["shrinkage"]
     joint_covariance: bool = _EXTRACT["joint_covariance"]
     covariance: bool = _EXTRACT["covariance"]
-    pixel_noise: str = _EXTRACT["pixel_noise"]      # `~kpifs.calibrate.calibrate`: beyond modes
+    # `~kpifs.calibration.calibrate.calibrate`: beyond modes
+    pixel_noise: str = _EXTRACT["pixel_noise"]
     filter_kernels: str = _EXTRACT["filter_kernels"]   # `extract_filters`
     angular_differential: bool = _EXTRACT["angular_differential"]   # `reduce_observation`
 
     def window_for(self, image_shape):
-        """The `~kpifs.window.ExtractionWindow` these options give for images of a shape."""
+        """The `~kpifs.model.window.ExtractionWindow` these options give for images of a
+        shape."""
         return ExtractionWindow.default(image_shape, size=self.window_size,
                                         radius=self.window_radius, order=self.window_order)
 
@@ -259,7 +255,7 @@ def extract_observation(files, options=None, *, model=None, progress=False):
     files : str or list of str
         Cube files; several are more frames of the same star.
     options : `ExtractOptions`, optional
-    model : `~kpifs.kernel.KernelModel`, optional
+    model : `~kpifs.model.kernel.KernelModel`, optional
         Use this model (e.g. the target's, for its calibrators) instead of
         the one *options* describe.
     progress : bool
@@ -273,7 +269,7 @@ def extract_observation(files, options=None, *, model=None, progress=False):
     --------
     >>> import tempfile
     >>> from kpifs.io import write_observation
-    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.simulation.simulate import simulate_scene
     >>> from kpifs.workflow import ExtractOptions, extract_observation
     >>> tmp = tempfile.TemporaryDirectory()
     >>> files = write_observation(simulate_scene("paper", n_frames=2, npup=32),
@@ -387,7 +383,7 @@ def calibrate_observation(target, calibrators=(), options=None):
 def extract_filters(targets, calibrators, options=None, *, progress=False):
     """Target and calibrator files in several JWST filters as one calibrated product.
 
-    Each filter is extracted with its own kernel (`kpifs.filters`) and a
+    Each filter is extracted with its own kernel (`kpifs.extraction.filters`) and a
     window of one angular radius, calibrated by the same filter's calibrator
     frames, and the filters are stacked as the channels of one product.
 
@@ -408,7 +404,7 @@ def extract_filters(targets, calibrators, options=None, *, progress=False):
     --------
     >>> import tempfile, warnings, astropy.units as u
     >>> from kpifs.io import write_observation
-    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.simulation.simulate import simulate_scene
     >>> from kpifs.workflow import ExtractOptions, extract_filters
     >>> d, files = tempfile.mkdtemp(), {"t": [], "c": []}
     >>> for wl, ps in ((1.5106, 31.0), (4.8213, 63.0)):
@@ -456,7 +452,7 @@ def reduce_observation(target, calibrators=(), options=None, *, progress=False):
       (`calibrate_observation`), or alone (with the frames' covariance when
       ``options.covariance`` asks for it);
     - ``options.angular_differential``: the product of a rotating sequence
-      searched by what turns with the sky (`kpifs.adi.angular_differential`),
+      searched by what turns with the sky (`kpifs.calibration.adi.angular_differential`),
       with or without calibrators.
 
     Parameters
@@ -478,7 +474,7 @@ def reduce_observation(target, calibrators=(), options=None, *, progress=False):
     --------
     >>> import tempfile
     >>> from kpifs.io import write_observation
-    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.simulation.simulate import simulate_scene
     >>> from kpifs.workflow import ExtractOptions, reduce_observation
     >>> files = write_observation(simulate_scene("paper", n_frames=40, npup=32),
     ...                           tempfile.mkdtemp())
@@ -593,7 +589,7 @@ def process_observation(target, calibrators, outdir, *, extract_options=None,
     --------
     >>> import tempfile
     >>> from kpifs.io import write_observation
-    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.simulation.simulate import simulate_scene
     >>> from kpifs.workflow import DetectOptions, ExtractOptions, process_observation
     >>> tmp = tempfile.TemporaryDirectory()
     >>> d = tmp.name

@@ -8,9 +8,9 @@ import pytest
 from astropy import units as u
 
 from kpifs import KernelModel, KernelPhaseData, make_pupil
-from kpifs.aberrations import fit_static_amplitude, static_residual_rows
+from kpifs.simulation.aberrations import fit_static_amplitude, static_residual_rows
 from kpifs.detect import detect
-from kpifs.simulate import simulate_scene
+from kpifs.simulation.simulate import simulate_scene
 from kpifs.workflow import ExtractOptions, extract_observation
 
 sys.path.insert(0, str(Path(__file__).parent))

@@ -10,7 +10,7 @@ from astropy.io import fits
 from kpifs import KernelPhaseData
 from kpifs.cli import main
 from kpifs.io.layouts import write_observation
-from kpifs.simulate import simulate_scene
+from kpifs.simulation.simulate import simulate_scene
 
 from kpfits_layouts import parts_of, write_jwstkpi, write_pykernel
 

@@ -12,7 +12,7 @@ pytest.importorskip("dask.distributed")
 from kpifs.batch import read_manifest, run_batch  # noqa: E402
 from kpifs.cli import main  # noqa: E402
 from kpifs.io.layouts import write_observation  # noqa: E402
-from kpifs.simulate import simulate_scene  # noqa: E402
+from kpifs.simulation.simulate import simulate_scene  # noqa: E402
 from kpifs.workflow import DetectOptions, ExtractOptions  # noqa: E402
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning",

@@ -17,7 +17,7 @@ from astropy.table import Table
 pytest.importorskip("dask.distributed")
 
 from kpifs.io.layouts import write_observation  # noqa: E402
-from kpifs.simulate import simulate_scene  # noqa: E402
+from kpifs.simulation.simulate import simulate_scene  # noqa: E402
 
 pytestmark = [pytest.mark.slow,
               pytest.mark.filterwarnings("ignore::DeprecationWarning",

@@ -7,9 +7,9 @@ import pytest
 import astropy.units as u
 
 from kpifs import KernelModel, extract_kernel_phases, make_pupil
-from kpifs.calibrate import calibrate
+from kpifs.calibration.calibrate import calibrate
 from kpifs.detect import detect
-from kpifs.simulate import simulate_scene
+from kpifs.simulation.simulate import simulate_scene
 
 
 def _search(offset, contrast, *, n_frames, seed, **kw):

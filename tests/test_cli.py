@@ -10,7 +10,7 @@ from astropy.io import fits
 from kpifs import __version__
 from kpifs.cli import main
 from kpifs.io.layouts import write_observation
-from kpifs.simulate import simulate_scene
+from kpifs.simulation.simulate import simulate_scene
 
 
 def _sha(path):
@@ -245,17 +245,16 @@ def test_every_public_object_has_a_runnable_example():
     """Docstring examples are run by pytest-doctestplus; this checks none is missing."""
     import importlib
     import inspect
-    mods = ["kpifs", "kpifs.pupil", "kpifs.kernel", "kpifs.window", "kpifs.data",
-            "kpifs.prepare", "kpifs.extract", "kpifs.fourier", "kpifs.simulate", "kpifs.io",
-            "kpifs.io.wavelengths",
-            "kpifs.io.angles", "kpifs.io.charis", "kpifs.io.sphere",
-            "kpifs.io.layouts", "kpifs.io.products", "kpifs.io.kpfits", "kpifs.calibrate",
-            "kpifs.covariance", "kpifs.errormodel", "kpifs.inject", "kpifs.detect",
-            "kpifs.detect.stats",
-            "kpifs.detect.limits",
-            "kpifs.detect.fit", "kpifs.detect.null", "kpifs.detect.maps", "kpifs.detect.roc",
-            "kpifs.plotting", "kpifs.workflow", "kpifs.provenance", "kpifs.batch", "kpifs.demo",
-            "kpifs.cli"]
+    mods = ["kpifs", "kpifs.model.pupil", "kpifs.model.kernel", "kpifs.model.window",
+            "kpifs.data", "kpifs.extraction.prepare", "kpifs.extraction.extract",
+            "kpifs.model.fourier", "kpifs.simulation.simulate", "kpifs.io",
+            "kpifs.io.wavelengths", "kpifs.io.angles", "kpifs.io.charis", "kpifs.io.sphere",
+            "kpifs.io.layouts", "kpifs.io.products", "kpifs.io.kpfits",
+            "kpifs.calibration.calibrate", "kpifs.covariance",
+            "kpifs.calibration.errormodel", "kpifs.inject", "kpifs.detect",
+            "kpifs.detect.stats", "kpifs.detect.limits", "kpifs.detect.fit", "kpifs.detect.null",
+            "kpifs.detect.maps", "kpifs.detect.roc", "kpifs.plotting", "kpifs.workflow",
+            "kpifs.provenance", "kpifs.batch", "kpifs.demo", "kpifs.cli"]
     missing = []
     for m in mods:
         mod = importlib.import_module(m)

@@ -5,10 +5,11 @@ import pytest
 import astropy.units as u
 
 from kpifs import KernelPhaseData, KpifsError, KpifsWarning, extract_kernel_phases
-from kpifs.calibrate import calibrate
+from kpifs.calibration.calibrate import calibrate
+from kpifs.calibration.pixelnoise import propagated_covariance
 from kpifs.covariance import (empirical_covariance, hartlap_factor, ledoit_wolf,
-                              propagated_covariance, whiten, whitening_matrix)
-from kpifs.simulate import simulate_psf
+                              whiten, whitening_matrix)
+from kpifs.simulation.simulate import simulate_psf
 
 PIX = 10.42 * u.mas
 WL = [1.52, 1.60, 1.68] * u.um

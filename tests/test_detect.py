@@ -5,7 +5,7 @@ from astropy.io import fits
 from scipy import stats
 
 from kpifs import KernelModel, KernelPhaseData, KpifsError, make_pupil
-from kpifs.calibrate import calibrate
+from kpifs.calibration.calibrate import calibrate
 from kpifs.data import DetectionGrid
 from kpifs.detect import DetectionModel, NullCalibration, detect
 from kpifs.detect.limits import (chi2_ratio_sigma, energy_lambda, limit_binary, limit_energy,
@@ -156,7 +156,7 @@ def test_map_finds_injected_signal(small_model):
 
 def test_maps_equal_per_position_reference(small_model):
     """The two-product map equals s_i^T y_i computed position by position."""
-    from kpifs.kernel import MAS
+    from kpifs.model.kernel import MAS
     km = small_model.kernel_model
     y = np.random.default_rng(1).standard_normal((3, km.n_kp))
     fast = small_model.dot_maps(y)
@@ -172,9 +172,9 @@ def test_maps_equal_per_position_reference(small_model):
 
 # --- the whole chain -----------------------------------------------------------------
 def _files_to_kp(tmp_path, seed, contrasts, n_frames):
-    from kpifs.extract import extract_kernel_phases
+    from kpifs.extraction.extract import extract_kernel_phases
     from kpifs.io import read_cube, write_observation
-    from kpifs.simulate import simulate_scene
+    from kpifs.simulation.simulate import simulate_scene
     obs = simulate_scene("paper", n_frames=n_frames, seed=seed, npup=96, exptime=1 * u.s,
                          contrasts=contrasts)
     files = write_observation(obs, tmp_path / f"sim{seed}")

@@ -7,13 +7,13 @@ import astropy.units as u
 from astropy.io import fits
 
 from kpifs import KernelModel, KernelPhaseData, KpifsError, make_pupil
-from kpifs.calibrate import MAX_DETPA_SPAN, calibrate, mean_detpa
+from kpifs.calibration.calibrate import MAX_DETPA_SPAN, calibrate, mean_detpa
 from kpifs.cli import main
 from kpifs.io import parse_angles, read_cube, write_observation
 from kpifs.io.charis import CHARIS_DETPA_OFFSET
 from kpifs.io.layouts import write_charis_exposures
 from kpifs.io.sphere import SPHERE_DETPA_OFFSET
-from kpifs.simulate import simulate_scene
+from kpifs.simulation.simulate import simulate_scene
 from kpifs.workflow import ExtractOptions, extract_observation
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*Nyquist limit", "ignore:.*Ledoit-Wolf",

@@ -6,7 +6,7 @@ import pytest
 import astropy.units as u
 
 from kpifs import KernelModel, KernelPhaseData, make_pupil
-from kpifs.calibrate import block_rows, calibrate
+from kpifs.calibration.calibrate import block_rows, calibrate
 from kpifs.covariance import whiten, whitening_matrix
 from kpifs.data import DetectionGrid, DetectionResult
 from kpifs.detect import DetectionModel, NullCalibration, detect

@@ -1,14 +1,14 @@
-"""The error model of calibrated kernel phases (kpifs.errormodel, issue 14)."""
+"""The error model of calibrated kernel phases (kpifs.calibration.errormodel, issue 14)."""
 import numpy as np
 import pytest
 import astropy.units as u
 
 from kpifs import ExtractionWindow, KernelModel, KernelPhaseData, KpifsError
 from kpifs import make_pupil
-from kpifs.calibrate import calibrate
+from kpifs.calibration.calibrate import calibrate
 from kpifs.covariance import whiten, whitening_matrix
 from kpifs.detect import detect
-from kpifs.errormodel import fit_error_model
+from kpifs.calibration.errormodel import fit_error_model
 
 M_AB = 8                 # aberration modes seen by the kernel phases
 
@@ -157,7 +157,7 @@ def test_simulated_images_with_drift_and_static_difference(model):
     gave 2 of 6 before the search measured the map's own noise: their whitened energy
     is 5 times its dof, and that scale now keeps them from inventing companions."""
     from kpifs import extract_kernel_phases
-    from kpifs.simulate import simulate_scene
+    from kpifs.simulation.simulate import simulate_scene
     grey = KernelModel.from_pupil(make_pupil("subaru", step=0.8 * u.m))
     kw = dict(n_frames=40, npup=48, contrasts=0.0, wavefront_rms=30 * u.nm,
               drift_rms=40 * u.nm, drift_time=8.0, static_diff_rms=15 * u.nm, exptime=1 * u.s)
@@ -222,7 +222,7 @@ def test_channels_on_threads_give_the_same_model(monkeypatch):
 
 # --- pixel noise beyond the modes (issue 27: JWST ERR in the error model) ---------------
 def test_complement_rows_are_the_pixel_noise_the_modes_leave_out():
-    from kpifs.pixelnoise import complement_rows
+    from kpifs.calibration.pixelnoise import complement_rows
     rng = np.random.default_rng(3)
     p = 12
     rows = np.zeros((3, 1, p))
@@ -281,7 +281,7 @@ def test_a_wrapped_frame_is_left_out():
     leaves it out with a warning naming it; kept, it inflated every mode's held-out
     variance (here x30 and more), and the whitened energy fell far below its dof."""
     from kpifs import KpifsWarning
-    from kpifs.outliers import outlier_frames
+    from kpifs.calibration.outliers import outlier_frames
     km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     rng = np.random.default_rng(7)
     mix = rng.standard_normal((M_AB, 2 * km.n_kp))

@@ -5,10 +5,10 @@ from astropy.io import fits
 
 from kpifs import (ExtractionWindow, KernelModel, KpifsError, KpifsWarning, extract_kernel_phases,
                    make_pupil)
-from kpifs.window import DEFAULT_WINDOW_RADIUS
-from kpifs.kernel import MAS
-from kpifs.pupil import pupil_image
-from kpifs.simulate import phase_screens, simulate_psf
+from kpifs.model.window import DEFAULT_WINDOW_RADIUS
+from kpifs.model.kernel import MAS
+from kpifs.model.pupil import pupil_image
+from kpifs.simulation.simulate import phase_screens, simulate_psf
 
 PIX = 10.42 * u.mas
 OFFSET = [80, 60] * u.mas   # 100 mas, off both axes
@@ -226,7 +226,7 @@ def test_memory_mapped_pages_released_by_byte_budget(subaru_model, paper_wavelen
                                                      monkeypatch):
     """Pages of a memory-mapped cube are given back every RELEASE_BYTES read, not per batch;
     the kernel phases do not depend on it."""
-    from kpifs import extract as ex
+    from kpifs.extraction import extract as ex
     cube = simulate_psf("subaru", paper_wavelengths, pixscale=PIX, shape=(32, 32))
     frames = (1e5 * cube[None] * np.linspace(0.9, 1.1, 6)[:, None, None, None]).astype(">f4")
     path = tmp_path / "c.fits"

@@ -7,7 +7,7 @@ import astropy.units as u
 from kpifs import ExtractionWindow, KernelModel, extract_kernel_phases, make_pupil
 from kpifs.detect.fit import fit_binary
 from kpifs.detect.gain import window_gain
-from kpifs.simulate import simulate_psf
+from kpifs.simulation.simulate import simulate_psf
 
 WL = [1.16, 1.6, 2.3] * u.um
 PIX = 16.2 * u.mas

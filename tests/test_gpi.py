@@ -12,7 +12,7 @@ from kpifs.exceptions import KpifsError, KpifsWarning
 from kpifs.io import read_cube, write_observation
 from kpifs.io.gpi import GPI_BANDS, gpi_wavelengths, read_gpi
 from kpifs.io.layouts_instruments import write_gpi_exposures
-from kpifs.simulate import simulate_scene
+from kpifs.simulation.simulate import simulate_scene
 
 H_WL = (1.4904 + (np.arange(37) + 0.5) * 0.3112 / 37) * u.um
 
@@ -142,7 +142,7 @@ def test_rotating_sequence_detected_on_the_sky(tmp_path):
     companion in 2 seeds of 5, this one in 5 of 5 with no false candidate in 10
     companion-free sequences at the 0.8 m model (2 and 7 in two sequences at 0.38 m):
     see the GPI page of the docs."""
-    from kpifs.calibrate import calibrate
+    from kpifs.calibration.calibrate import calibrate
     from kpifs.workflow import DetectOptions, ExtractOptions, detect_observation, \
         extract_observation
     obs = simulate_scene("gpi", seed=1, npup=64, shape=(128, 128))
@@ -172,7 +172,7 @@ def test_companion_free_sequences_honest(tmp_path):
     """The default GPI model (0.8 m, 60 kernel phases per channel) with the frames'
     Ledoit-Wolf covariance: no candidate at P_FA 1e-3 in companion-free 8-exposure
     sequences (2 seeds here; 0 in 10 measured, against 2 and 7 in two seeds at 0.38 m)."""
-    from kpifs.calibrate import calibrate
+    from kpifs.calibration.calibrate import calibrate
     from kpifs.detect import detect
     from kpifs.workflow import extract_observation
     n = 0

@@ -142,7 +142,7 @@ def test_adaptive_ladder_brackets_the_limit(tmp_path):
     50 % level; with too few steps allowed the limit is reported as a bound."""
     from kpifs import KernelModel, extract_kernel_phases, make_pupil
     from kpifs.inject import injection_limits
-    from kpifs.simulate import simulate_scene
+    from kpifs.simulation.simulate import simulate_scene
     obs = simulate_scene("paper", n_frames=24, seed=3, npup=32, contrasts=0.0, shape=(40, 40))
     km = KernelModel.from_pupil(make_pupil("subaru", step=0.8 * u.m))
     args = dict(wavelengths=obs.wavelengths, pixscale=obs.params.pixscale)

@@ -7,7 +7,7 @@ from kpifs import KpifsError, extract_kernel_phases
 from kpifs import ExtractionWindow
 from kpifs.io import read_charis, read_cube, read_sphere, read_wavelength_file, write_observation
 from kpifs.io.cube import FrameStack
-from kpifs.simulate import simulate_scene
+from kpifs.simulation.simulate import simulate_scene
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ from kpifs.exceptions import KpifsError, KpifsWarning
 from kpifs.io import read_cube, write_observation
 from kpifs.io.jwst import jwst_detpa, jwst_mode, read_jwst
 from kpifs.io.layouts import write_plain_cube
-from kpifs.simulate import simulate_scene
+from kpifs.simulation.simulate import simulate_scene
 
 
 def _one_error(capsys):
@@ -189,7 +189,7 @@ def test_jwst_pupil_geometry():
     step = 0.05
     g = (np.arange(-70, 71) * step)
     x, y = np.meshgrid(g, g)
-    from kpifs.pupil import MASKS, TELESCOPES
+    from kpifs.model.pupil import MASKS, TELESCOPES
     area = TELESCOPES["jwst"].transmission(x, y).sum() * step ** 2
     hexes = 18 * np.sqrt(3) / 2 * 1.32 ** 2
     struts = 0.11 * 3.3 + 2 * 0.12 * 3.0                    # along the segments they cross

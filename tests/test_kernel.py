@@ -6,9 +6,9 @@ import astropy.units as u
 from astropy.io import fits
 
 from kpifs import KernelModel, KpifsError, KpifsWarning, make_pupil
-from kpifs.kernel import load_kernel_model, nyquist_usable
-from kpifs.pupil import pupil_image
-from kpifs.simulate import simulate_psf
+from kpifs.model.kernel import load_kernel_model, nyquist_usable
+from kpifs.model.pupil import pupil_image
+from kpifs.simulation.simulate import simulate_psf
 
 
 def test_kernel_annihilates_phase_transfer(subaru_model):

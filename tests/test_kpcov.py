@@ -9,7 +9,7 @@ import astropy.units as u
 from astropy.io import fits
 
 from kpifs import KernelModel, KernelPhaseData, make_pupil
-from kpifs.calibrate import calibrate
+from kpifs.calibration.calibrate import calibrate
 from kpifs.covariance import rows_covariance
 from kpifs.detect import detect
 
@@ -87,7 +87,7 @@ def test_alpha_oph_kp_cov_inverts_to_detects_chi2(real_data, tmp_path):
     keeps 99 modes; inverting KP-COV gave chi2/n = 1.4e14 before."""
     from kpifs import extract_kernel_phases
     from kpifs.io import read_cube
-    from kpifs.window import ExtractionWindow
+    from kpifs.model.window import ExtractionWindow
     km = KernelModel.from_pupil(make_pupil("pharo", step=0.16 * u.m))
     kps = []
     for name in ("pharo_tgt_cube_alphaOph.fits", "pharo_ca2_cube_epsHer.fits"):

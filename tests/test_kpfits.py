@@ -8,11 +8,11 @@ import astropy.units as u
 from astropy.io import fits
 
 from kpifs import KernelPhaseData, KpifsError
-from kpifs.calibrate import calibrate
+from kpifs.calibration.calibrate import calibrate
 from kpifs.covariance import filled_covariance
 from kpifs.detect import detect
 from kpifs.io import kpfits, write_observation
-from kpifs.simulate import simulate_scene
+from kpifs.simulation.simulate import simulate_scene
 from kpifs.workflow import ExtractOptions, extract_observation
 
 from kpfits_layouts import (fouriever_like_kernel_model, fouriever_like_open, parts_of,

@@ -6,7 +6,7 @@ import astropy.units as u
 
 from kpifs import KpifsError
 from kpifs.modelcheck import check_pupil_model
-from kpifs.simulate import simulate_scene
+from kpifs.simulation.simulate import simulate_scene
 
 pytestmark = pytest.mark.slow
 

@@ -397,7 +397,7 @@ def test_sphere_sam_ifs_sequence(tmp_path, capsys):
     and the 39-channel search goes deeper than the best single channels."""
     from kpifs.data import DetectionGrid
     from kpifs.io import write_observation
-    from kpifs.simulate import simulate_scene
+    from kpifs.simulation.simulate import simulate_scene
     obs = simulate_scene("sphere-sam", n_frames=12, npup=48, seed=1)
     files = write_observation(obs, tmp_path / "sim")
     out = tmp_path / "cal.oifits"

@@ -113,7 +113,7 @@ def test_every_written_oifits_read_by_the_oifits_package(tmp_path):
 def test_extract_writes_a_passing_oifits(tmp_path, oifits_check):
     """`kpifs extract --pupil sphere_sam7 -o x.oifits` (the command line's writer)."""
     from kpifs.io import write_observation
-    from kpifs.simulate import simulate_scene
+    from kpifs.simulation.simulate import simulate_scene
     files = write_observation(simulate_scene("sphere-sam", n_frames=4, npup=48, seed=2),
                               tmp_path / "sim")
     out = tmp_path / "cal.oifits"

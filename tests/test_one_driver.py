@@ -13,7 +13,7 @@ from kpifs._cli._parser import build_parser
 from kpifs._defaults import DETECT, EXTRACT
 from kpifs.cli import main
 from kpifs.io.layouts import write_observation
-from kpifs.simulate import simulate_scene
+from kpifs.simulation.simulate import simulate_scene
 from kpifs.workflow import DetectOptions, ExtractOptions
 
 #: Options that name a command's inputs and outputs, not how they are reduced: a batch

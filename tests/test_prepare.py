@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from kpifs import KpifsError, KpifsWarning
-from kpifs.prepare import cut_out, fill_bad_pixels, find_centres
-from kpifs.window import ExtractionWindow
+from kpifs.extraction.prepare import cut_out, fill_bad_pixels, find_centres
+from kpifs.model.window import ExtractionWindow
 
 
 def gaussian_images(centres, shape=(32, 32), sigma=1.6):

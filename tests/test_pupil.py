@@ -4,7 +4,7 @@ import astropy.units as u
 from astropy.io import fits
 
 from kpifs import KernelModel, KpifsError, make_pupil
-from kpifs.pupil import MODEL_DEFAULTS, TELESCOPES, model_defaults, pupil_image
+from kpifs.model.pupil import MODEL_DEFAULTS, TELESCOPES, model_defaults, pupil_image
 
 
 def test_subaru_default_model_size():
@@ -137,7 +137,7 @@ def test_bad_pupil_input(kwargs, match):
     ("gpi_nrm", "gpi-nrm", 10, 36)])
 def test_one_model_per_mask_in_either_spelling(canonical, other, n_holes, n_kp):
     """Issues 27 and 28 named the masks twice: one `MaskGeometry` each, both spellings."""
-    from kpifs.pupil import MASKS, MaskGeometry
+    from kpifs.model.pupil import MASKS, MaskGeometry
     assert MASKS[other] is MASKS[canonical] and isinstance(MASKS[canonical], MaskGeometry)
     a, b = make_pupil(canonical), make_pupil(other, step=0 * u.m, offset=(1, 1) * u.m)
     assert a.name == b.name == canonical
@@ -158,7 +158,7 @@ def test_one_model_per_mask_in_either_spelling(canonical, other, n_holes, n_kp):
 def test_mask_geometry_published_numbers():
     """NIRISS: the as-built g7s6 holes (V2 reversed), hexagons of 0.82 m; GPI: the g10s40
     centres times 647.62 (FORMATS.md), 45 baselines from 0.95 to 6.68 m."""
-    from kpifs.pupil import MASKS
+    from kpifs.model.pupil import MASKS
     nrm = MASKS["niriss_nrm"]
     assert nrm.shape == "hex" and nrm.hole_diameter == 0.82
     assert (2.28631, 0.0) in nrm.holes and (-2.28631, 0.0) not in nrm.holes   # C2 open

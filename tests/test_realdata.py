@@ -4,10 +4,10 @@ import pytest
 import astropy.units as u
 
 from kpifs import KernelModel, KernelPhaseData, extract_kernel_phases, make_pupil
-from kpifs.calibrate import calibrate
+from kpifs.calibration.calibrate import calibrate
 from kpifs.covariance import whiten, whitening_matrix
 from kpifs.io import read_cube
-from kpifs.kernel import nyquist_usable
+from kpifs.model.kernel import nyquist_usable
 
 pytestmark = [pytest.mark.realdata,
               pytest.mark.filterwarnings("ignore:.*Ledoit-Wolf shrinkage")]
@@ -42,7 +42,7 @@ def test_sphere_wavelength_tables(real_data):
 
 def test_charis_wavelength_tables_match_header_grid(real_data):
     """The pipeline's lowres table is the LAM_MIN * exp(i DLOGLAM) grid of the simulator."""
-    from kpifs.simulate import PRESETS
+    from kpifs.simulation.simulate import PRESETS
     table = np.loadtxt(real_data / "charis_wavelengths" / "lowres_wvlh.txt")
     grid = PRESETS["charis"]["wavelengths"].to_value(u.nm)
     np.testing.assert_allclose(grid, table, rtol=2e-3)

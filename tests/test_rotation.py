@@ -4,8 +4,8 @@ import pytest
 from astropy import units as u
 
 from kpifs import KernelModel, KernelPhaseData, make_pupil
-from kpifs.adi import angular_differential
-from kpifs.calibrate import calibrate
+from kpifs.calibration.adi import angular_differential
+from kpifs.calibration.calibrate import calibrate
 from kpifs.data import DetectionGrid
 from kpifs.detect import detect
 from kpifs.detect.blocks import BlockModel
@@ -201,7 +201,7 @@ def test_angular_differential_search_starts_where_half_the_signal_is_kept(km):
     # 40 deg of rotation: near the star a companion hardly moves between blocks and the
     # search there would answer to the residual's structure; the default grid starts where
     # the rotation keeps half a companion's squared signal (here ~70 mas, not ~24)
-    from kpifs.adi import inner_separation
+    from kpifs.calibration.adi import inner_separation
     detpa = np.linspace(100.0, 140.0, 16)
     wl = [1.55, 1.65, 1.75] * u.um
     kp = _sequence(km, wl, detpa, (0.0, 120.0), 0.0, 0.01, 3)
@@ -216,7 +216,7 @@ def test_angular_differential_search_starts_where_half_the_signal_is_kept(km):
     assert 50 < inner < 100
     assert "inner_separation" not in full.meta["blocks"]         # a grid given is kept
     assert float(full.grid.min_sep) == 10
-    assert inner_separation.__module__ == "kpifs.adi"
+    assert inner_separation.__module__ == "kpifs.calibration.adi"
 
 
 @pytest.mark.filterwarnings("ignore:.*of rotation keep")

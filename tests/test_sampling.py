@@ -7,11 +7,11 @@ from astropy import units as u
 
 from kpifs import KernelModel, KernelPhaseData, make_pupil
 from kpifs.exceptions import KpifsError
-from kpifs.kernel import nyquist_usable
+from kpifs.model.kernel import nyquist_usable
 from kpifs.detect import detect
-from kpifs.extract import extract_kernel_phases
-from kpifs.sampling import aliased_channels, aliased_uv, pupil_extent
-from kpifs.simulate import PRESETS, simulate_psf
+from kpifs.extraction.extract import extract_kernel_phases
+from kpifs.model.sampling import aliased_channels, aliased_uv, pupil_extent
+from kpifs.simulation.simulate import PRESETS, simulate_psf
 
 MAS = np.pi / 180 / 3600e3
 
@@ -135,7 +135,7 @@ def test_detect_aliased_keep_and_exclude(tmp_path):
 def test_nested_kernel_first_rows_are_each_channels_own():
     """Three sampling limits: each channel's kernel is the first rows, spans exactly the
     kernel of its own uv points, and touches no other uv point."""
-    from kpifs.sampling import channel_uv_mask, nested_kernel
+    from kpifs.model.sampling import channel_uv_mask, nested_kernel
     km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     usable = nyquist_usable(km.uv, [1.0, 1.3, 2.4] * u.um, 20 * u.mas)
     model, counts = nested_kernel(km, usable)
@@ -154,7 +154,7 @@ def test_nested_kernel_first_rows_are_each_channels_own():
 
 
 def test_nested_kernel_refuses_sets_that_are_not_nested():
-    from kpifs.sampling import nested_kernel
+    from kpifs.model.sampling import nested_kernel
     km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     a = np.zeros(km.n_uv, bool)
     b = a.copy()
@@ -168,7 +168,7 @@ def test_unmeasured_rows_are_not_data(tmp_path):
     other rows hold never changes the search (the whitening leaves them out), the
     degrees of freedom are the measured rows', and the counts survive a round trip."""
     from kpifs.detect import detect
-    from kpifs.sampling import nested_kernel
+    from kpifs.model.sampling import nested_kernel
     km0 = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     usable = nyquist_usable(km0.uv, [1.2, 2.2] * u.um, 20 * u.mas)
     km, counts = nested_kernel(km0, usable)
@@ -208,9 +208,9 @@ def test_nyquist_own_each_channel_its_uv_points():
     (103 at 1.16 um, 125 at the others; 'drop' gives every channel 103), and the companion
     is found at its place with either (within 2 mas). Not deeper here: median B limits at
     100-200 mas 1.8e-3 against 1.3e-3 with 'drop' (20 frames: the error model's modes)."""
-    from kpifs.calibrate import calibrate
-    from kpifs.extract import extract_kernel_phases
-    from kpifs.simulate import simulate_scene
+    from kpifs.calibration.calibrate import calibrate
+    from kpifs.extraction.extract import extract_kernel_phases
+    from kpifs.simulation.simulate import simulate_scene
     wl = [1.16, 1.3, 1.7, 2.2] * u.um
     obs = simulate_scene("charis", wavelengths=wl, contrasts=[4e-3] * 4, n_frames=20,
                          shape=(64, 64), n_dead=0, field=None, seed=3)

@@ -5,7 +5,7 @@ from astropy.io import fits
 
 from kpifs import KpifsError
 from kpifs.io.layouts import write_observation
-from kpifs.simulate import SceneParameters, simulate_psf, simulate_scene
+from kpifs.simulation.simulate import SceneParameters, simulate_psf, simulate_scene
 
 
 def test_paper_preset_truth_and_photometry():
@@ -92,7 +92,7 @@ def test_bad_preset():
 
 def test_charis_field_matches_real_lenslet_flat(real_data):
     from astropy.io import fits
-    from kpifs.simulate import charis_field
+    from kpifs.simulation.simulate import charis_field
     flat = fits.getdata(real_data / "charis_lensletflat_Broadband.fits") > 0
     model = charis_field(flat.shape)
     overlap = (flat & model).sum() / (flat | model).sum()

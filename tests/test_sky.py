@@ -182,7 +182,7 @@ def test_detect_refits_a_rotating_sequence_on_the_sky(tmp_path, via_file):
     """Calibration passes the frames' angles on (in memory, or through the calibrated
     KPFITS's DETPA-FR); detect refits the companion with the rotating model: PA within
     1 deg, separation within 1 % (40 deg of rotation)."""
-    from kpifs.calibrate import calibrate
+    from kpifs.calibration.calibrate import calibrate
     from kpifs.data import DetectionGrid
     from kpifs.detect import detect
     n = KernelModel.from_pupil(make_pupil("subaru", step=1.0 * u.m, grey=False)).n_kp + 30
@@ -212,7 +212,7 @@ def test_detect_refits_a_rotating_sequence_on_the_sky(tmp_path, via_file):
 def test_analytic_jacobian_matches_finite_differences(km, rotating):
     """fit_binary's analytic Jacobian: same optimum and same (Jacobian-based) errors as
     scipy's 3-point finite differences, with the extraction window and with rotation."""
-    from kpifs.window import ExtractionWindow
+    from kpifs.model.window import ExtractionWindow
     wl = [1.55, 1.7] * u.um
     rng = np.random.default_rng(5)
     kw = {}
@@ -243,7 +243,7 @@ def test_analytic_jacobian_matches_finite_differences(km, rotating):
 def rotating_search(tmp_path_factory):
     """A companion fixed on the sky (sep 120 mas, PA 145 deg) in a sequence turning by 60
     deg, calibrated, searched on the sky (auto) and on the detector."""
-    from kpifs.calibrate import calibrate
+    from kpifs.calibration.calibrate import calibrate
     from kpifs.detect import detect
     n = KernelModel.from_pupil(make_pupil("subaru", step=1.0 * u.m, grey=False)).n_kp + 30
     detpa = np.linspace(80.0, 140.0, n)

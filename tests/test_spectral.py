@@ -11,7 +11,8 @@ from kpifs.detect import DetectionModel, NullCalibration, detect
 from kpifs.detect._laws import chi2_isf
 from kpifs.detect.channels import (channel_shrinkage, combined_scale, map_noise, noise_scale,
                                    whiten_weights)
-from kpifs.detect.limits import limit_binary, limit_np, spectrum_shape
+from kpifs.detect.limits import limit_binary, limit_np
+from kpifs.detect.spectral import spectrum_shape
 from kpifs.detect.spectral import (blackbody_contrasts, limit_subspace, smooth_basis,
                                    spectral_basis, subspace_spectrum, subspace_weights,
                                    template_basis)

@@ -1,5 +1,5 @@
 """Issue 35, item 1: a bright companion in single-channel data with no calibrator is not
-explained away by the static-aberration term (`kpifs.aberrations`).
+explained away by the static-aberration term (`kpifs.simulation.aberrations`).
 
 The stand-in is the V410 Tau-like case: a 6-frame single-channel NIRC2 KPFITS in
 PyKernel/pynrm's layout (`kpfits_layouts.write_pykernel`), no calibrator, 105 kernel
@@ -16,11 +16,11 @@ import pytest
 from astropy import units as u
 
 from kpifs import ExtractionWindow, KernelModel, KernelPhaseData, make_pupil
-from kpifs.aberrations import (_envelope, fit_static_amplitude, leading_static_rows,
-                               static_residual_rows)
+from kpifs.simulation.aberrations import (_envelope, fit_static_amplitude,
+                                          leading_static_rows, static_residual_rows)
 from kpifs.detect import detect
-from kpifs.extract import extract_kernel_phases
-from kpifs.simulate import simulate_scene
+from kpifs.extraction.extract import extract_kernel_phases
+from kpifs.simulation.simulate import simulate_scene
 
 sys.path.insert(0, str(Path(__file__).parent))
 from kpfits_layouts import parts_of, write_pykernel  # noqa: E402

@@ -11,10 +11,10 @@ import astropy.units as u
 from astropy.io import fits
 
 from kpifs import KernelPhaseData
-from kpifs.calibrate import calibrate
+from kpifs.calibration.calibrate import calibrate
 from kpifs.detect import detect
 from kpifs.io import write_observation
-from kpifs.simulate import simulate_scene
+from kpifs.simulation.simulate import simulate_scene
 from kpifs.workflow import ExtractOptions, extract_observation
 
 from kpfits_layouts import fouriever_like_open, parts_of, write_jwstkpi, write_pykernel

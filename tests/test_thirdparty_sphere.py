@@ -9,10 +9,10 @@ import pytest
 import astropy.units as u
 
 from kpifs import KernelModel, extract_kernel_phases, make_pupil
-from kpifs.calibrate import calibrate
+from kpifs.calibration.calibrate import calibrate
 from kpifs.detect import detect
 from kpifs.io import read_cube
-from kpifs.window import ExtractionWindow
+from kpifs.model.window import ExtractionWindow
 
 pytestmark = [pytest.mark.realdata, pytest.mark.slow,
               pytest.mark.filterwarnings("ignore:.*Ledoit-Wolf shrinkage")]

@@ -82,7 +82,7 @@ def case_sphere(d):
 
 def case_jwst_pair(d):
     import astropy.units as u
-    from kpifs.simulate import simulate_scene
+    from kpifs.simulation.simulate import simulate_scene
     from kpifs.io.layouts import write_observation
     target, cal = [], []
     for wl, ps, seed, con in ((1.5106, 31.0, 1, 0.076), (4.8213, 63.0, 2, 0.19)):
@@ -120,7 +120,7 @@ def case_adk(d):
 
 def case_single_channel(d):
     import astropy.units as u
-    from kpifs.simulate import simulate_scene
+    from kpifs.simulation.simulate import simulate_scene
     from kpifs.io.layouts import write_observation
     obs = simulate_scene("paper", wavelengths=[1.6] * u.um, contrasts=[0.02], n_frames=12,
                          seed=16)

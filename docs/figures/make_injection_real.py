@@ -240,11 +240,11 @@ def main(argv=None):
 
     import kpifs
     from kpifs import KernelModel, extract_kernel_phases, make_pupil
-    from kpifs.calibrate import calibrate
+    from kpifs.calibration.calibrate import calibrate
     from kpifs.detect import detect
     from kpifs.inject import injection_limits
     from kpifs.io import read_cube
-    from kpifs.window import ExtractionWindow
+    from kpifs.model.window import ExtractionWindow
 
     seps = SEPARATIONS[1:5:2] if args.quick else SEPARATIONS
     n_angles, n_draws = (2, 2000) if args.quick else (N_ANGLES, N_DRAWS)

@@ -23,7 +23,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 from kpifs import KernelModel, make_pupil  # noqa: E402
 from kpifs.detect.sky import sky_to_detector  # noqa: E402
-from kpifs.kernel import MAS  # noqa: E402
+from kpifs.model.kernel import MAS  # noqa: E402
 
 OUT = Path(__file__).resolve().parents[1] / "user" / "rotation_kept.png"
 

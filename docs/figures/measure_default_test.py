@@ -49,7 +49,7 @@ def seeds(text):
 def calibrated(folder, seed, contrast):
     """The calibrated kernel phases of one simulated CHARIS sequence."""
     from kpifs.io import write_observation
-    from kpifs.simulate import simulate_scene
+    from kpifs.simulation.simulate import simulate_scene
     from kpifs.workflow import (ExtractOptions, calibrate_observation, calibrator_options,
                                 extract_observation)
     extra = {} if contrast is None else {

@@ -27,7 +27,7 @@ import numpy as np
 import astropy.units as u
 
 from kpifs import KernelPhaseData
-from kpifs.calibrate import calibrate
+from kpifs.calibration.calibrate import calibrate
 from kpifs.covariance import whitening_matrix
 
 ALPHAS = (0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9, 1.0)

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kpifs.calibrate import calibrate
+from kpifs.calibration.calibrate import calibrate
 from kpifs.covariance import whiten, whitening_matrix
 from kpifs.detect import DetectionModel, NullCalibration
 from kpifs.detect import pipeline

@@ -213,7 +213,7 @@ def smearing(args, tmp):
 
 
 def _search(kpd, pfa, *, limits, seed=0):
-    from kpifs.adi import angular_differential
+    from kpifs.calibration.adi import angular_differential
     from kpifs.detect import detect
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -222,7 +222,7 @@ def _search(kpd, pfa, *, limits, seed=0):
 
 
 def injection(args, tmp):
-    from kpifs.extract import extract_kernel_phases
+    from kpifs.extraction.extract import extract_kernel_phases
     from kpifs.inject import _detected, _limit, inject_companion
     from kpifs.io import read_cube
     from kpifs.workflow import ExtractOptions, extract_observation

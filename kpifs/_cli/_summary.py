@@ -10,7 +10,7 @@ import numpy as np
 from astropy import units as u
 
 from ..detect.null import PFA_FLOOR
-from ..detect.sky import data_angles
+from ..io.angles import data_angles
 
 __all__ = []
 

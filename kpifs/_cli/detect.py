@@ -9,7 +9,7 @@ from .._utils import check_output_dir, check_output_path
 from ..data import KernelPhaseData
 from ..exceptions import KpifsError, KpifsWarning
 from ..io.cube import open_fits
-from ..field import field_sentence
+from ..model.field import field_sentence
 from ..detect.sky import detector_to_sky, mean_angle
 from ..plotting import save_detection_plots
 from ..workflow import detect_observation

@@ -7,13 +7,13 @@ from astropy.table import QTable
 
 from ..data import DetectionResult, KernelPhaseData
 from ..exceptions import KpifsError, KpifsWarning, MissingInformation
-from ..field import field_sentence
+from ..model.field import field_sentence
 from ..io.cube import check_header_checksums, open_fits
 from ..io.kpfits_read import _layout, _read_pixscale, _read_wavelengths
 from ..io.readers import detect_instrument, read_cube
 from ..io.wavelengths import parse_wavelengths
-from ..kernel import KernelModel, nyquist_usable
-from ..sampling import aliased_channels
+from ..model.kernel import KernelModel, nyquist_usable
+from ..model.sampling import aliased_channels
 from ..workflow import default_pupil, kernel_model_for
 from ._options import extract_options
 from ._summary import contrast_text, pfa_text, position_text

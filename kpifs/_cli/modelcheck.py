@@ -9,7 +9,7 @@ from ..io.readers import read_cube
 from ..io.wavelengths import parse_wavelengths
 from ..modelcheck import check_pupil_model
 from ..workflow import default_pupil
-from ..window import ExtractionWindow
+from ..model.window import ExtractionWindow
 
 
 def _floats(text, name):

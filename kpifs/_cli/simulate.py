@@ -8,7 +8,7 @@ from ..exceptions import KpifsError
 from ..io.layouts import write_observation
 from ..detect.sky import detector_to_sky
 from ..rotation import sequence_angles
-from ..simulate import PRESETS, SceneParameters, simulate_scene
+from ..simulation.simulate import PRESETS, SceneParameters, simulate_scene
 
 
 def run(args):

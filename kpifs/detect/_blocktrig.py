@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from ..kernel import MAS
+from ..model.kernel import MAS
 
 __all__ = ["axis_exp", "block_trig"]
 

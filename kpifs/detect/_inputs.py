@@ -1,17 +1,18 @@
 """What a search is given besides the data: the channels it keeps (aliased ones
-flagged or left out, `kpifs.sampling`), each channel's own kernel phases (filters
+flagged or left out, `kpifs.model.sampling`), each channel's own kernel phases (filters
 as channels), and whether the static-aberration term is added
-(`kpifs.aberrations`)."""
+(`kpifs.simulation.aberrations`)."""
 import logging
 import warnings
 
 import numpy as np
-from scipy import stats
 
+from .._lazy import lazy_module
 from ..exceptions import KpifsError, KpifsWarning
-from ..sampling import aliased_channels, channel_uv_mask, unmeasured
+from ..model.sampling import aliased_channels, channel_uv_mask, unmeasured
 
 log = logging.getLogger(__name__)
+stats = lazy_module("scipy.stats")
 
 
 def _wants_static(kpd, static):
@@ -34,7 +35,7 @@ def _aliased(kpd):
 
 def _measured(kpd, kp, cov):
     """*kp* and *cov* with each channel's rows beyond its own kernel phases (filters as
-    channels, `kpifs.sampling.nested_kernel`) set to zero: the whitening then leaves them
+    channels, `kpifs.model.sampling.nested_kernel`) set to zero: the whitening then leaves them
     out, and a model signature there (a uv point that channel does not sample) is never
     compared with anything."""
     n = kpd.channel_n_kp

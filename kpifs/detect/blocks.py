@@ -28,9 +28,9 @@ import numpy as np
 from astropy import units as u
 
 from .._utils import thread_map, to_quantity
-from ..adi import _check_rotation
+from ..calibration.adi import _check_rotation
 from ..exceptions import KpifsError
-from ..kernel import MAS
+from ..model.kernel import MAS
 from ..rotation import noise_whitening
 from ._blockfit import refine_stack
 from ._blocktrig import block_trig

@@ -12,7 +12,7 @@ from astropy import units as u
 
 from .._lazy import lazy_module
 from ..exceptions import KpifsError
-from ..kernel import MAS
+from ..model.kernel import MAS
 from .gain import window_gain
 from .sky import sky_to_detector
 
@@ -31,7 +31,7 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
     kp : ndarray, shape (q, p)
         Calibrated kernel phases.
     whitening : ndarray, shape (q, p, p)
-    kernel_model : `~kpifs.kernel.KernelModel`
+    kernel_model : `~kpifs.model.kernel.KernelModel`
     wavelengths : `~astropy.units.Quantity` (q,)
     start : tuple
         Starting ``(alpha, beta)`` in mas.
@@ -39,7 +39,7 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
         Starting contrasts.
     pixscale, window
         The pixel scale and the extraction window
-        (`~kpifs.window.ExtractionWindow`), so
+        (`~kpifs.model.window.ExtractionWindow`), so
         that contrasts are true ones.
     bounds_mas : float, optional
         Half-width of the box (mas) around *start* the position may move in.

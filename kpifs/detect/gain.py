@@ -25,7 +25,7 @@ from collections import OrderedDict
 import numpy as np
 from astropy import units as u
 
-from ..kernel import MAS
+from ..model.kernel import MAS
 
 __all__ = ["window_gain"]
 
@@ -93,8 +93,8 @@ def window_gain(kernel_model, window, pixscale, wavelengths, offset):
 
     Parameters
     ----------
-    kernel_model : `~kpifs.kernel.KernelModel`
-    window : `~kpifs.window.ExtractionWindow` or None
+    kernel_model : `~kpifs.model.kernel.KernelModel`
+    window : `~kpifs.model.window.ExtractionWindow` or None
         None: no window, the gain is 1.
     pixscale : `~astropy.units.Quantity`
     wavelengths : `~astropy.units.Quantity` (nwave,)

@@ -28,35 +28,17 @@ from astropy.table import QTable
 
 from .._lazy import lazy_module
 from .._utils import thread_map
-from ..exceptions import KpifsError
-from ._laws import chi2_cdf, chi2_ppf, chi2_sf, norm_isf, norm_sf
+
+from ._laws import chi2_cdf, chi2_ppf, chi2_sf, lhs_normal, norm_isf, norm_sf, order_quantile
+from .spectral import spectrum_shape
 from .stats import check_probability, energy_threshold
 
 special = lazy_module("scipy.special")
 
-__all__ = ["spectrum_shape", "limit_np", "energy_lambda", "limit_energy", "limit_binary",
+__all__ = ["limit_np", "energy_lambda", "limit_energy", "limit_binary",
            "limit_binary_correlated_forms", "limit_energy_correlated", "mirror_half_map",
            "radial_curves",
            "pfa_to_sigma", "sigma_to_pfa", "chi2_ratio_sigma"]
-
-
-def spectrum_shape(spectrum, n_channels):
-    """Per-channel relative contrasts normalised to mean 1 (``None``: flat).
-
-    Examples
-    --------
-    >>> from kpifs.detect.limits import spectrum_shape
-    >>> spectrum_shape([2, 1, 0], 3)
-    array([2., 1., 0.])
-    """
-    if spectrum is None or (isinstance(spectrum, str) and spectrum == "flat"):
-        return np.ones(n_channels)
-    a = np.asarray(spectrum, float).ravel()
-    if a.size != n_channels:
-        raise KpifsError(f"the spectrum has {a.size} values for {n_channels} channels")
-    if not np.all(np.isfinite(a)) or np.any(a < 0) or a.sum() <= 0:
-        raise KpifsError("the spectrum must be finite, non-negative and not all zero")
-    return a / a.mean()
 
 
 def _norm_a(norm2, a):
@@ -150,20 +132,6 @@ def limit_binary(norm2, threshold, pd, *, form="B", spectrum=None, n_draws=4096,
                                seed)[0].reshape(shape)
 
 
-def _lhs_normal(n, d, seed):
-    """*n* standard normal draws in *d* dimensions by Latin hypercube sampling.
-
-    Every dimension has exactly one draw at the middle of each of *n*
-    equiprobable strata (in an independent random order): its marginal law is
-    reproduced to ``1 / n`` and the variance of any sum of one-dimensional
-    functions, which the binary statistic nearly is, falls far below plain
-    Monte Carlo's (McKay, Beckman & Conover 1979; Stein 1987).
-    """
-    rng = np.random.default_rng(seed)
-    strata = rng.permuted(np.tile(np.arange(n), (d, 1)), axis=1).T
-    return special.ndtri((strata + 0.5) / n)
-
-
 def limit_binary_correlated_forms(norm2, thresholds, pd, *, spectrum=None, n_draws=4096,
                                   seed=0, correlation):
     """`limit_binary` with *correlation* for several forms at once: ``{form: map}``.
@@ -202,7 +170,7 @@ def _limit_binary_draws(m, corr, thresholds, pd, powers, n_draws, seed):
     """
     npos, q = m.shape
     n = n_draws if corr is None else min(n_draws, 1024)
-    eps = _lhs_normal(n, q, seed).T.astype(np.float32)                   # (q, N)
+    eps = lhs_normal(n, q, seed).T.astype(np.float32)                   # (q, N)
     good = np.all(np.isfinite(m), axis=1) & (m.sum(axis=1) > 0)
     if corr is not None:
         good &= np.all(np.isfinite(corr.reshape(npos, -1)), axis=1)
@@ -216,9 +184,9 @@ def _limit_binary_draws(m, corr, thresholds, pd, powers, n_draws, seed):
             z = np.matmul(np.linalg.cholesky(corr[sl] + 1e-9 * np.eye(q)).astype(np.float32),
                           eps)
             sigma = np.sqrt(np.einsum("kii->ki", corr[sl]))
-        return [_order_quantile(_crossings(z, m[sl], threshold, power,
-                                           _moment_guess(m[sl], sigma, threshold, power, pd)),
-                                pd) for threshold, power in zip(thresholds, powers)]
+        return [order_quantile(_crossings(z, m[sl], threshold, power,
+                                          _moment_guess(m[sl], sigma, threshold, power, pd)),
+                               pd) for threshold, power in zip(thresholds, powers)]
     todo = np.flatnonzero(good)
     blocks = [todo[a:a + 64] for a in range(0, len(todo), 64)]
     for sl, lims in zip(blocks, thread_map(block, blocks)):
@@ -261,7 +229,7 @@ def _crossings(z, m, threshold, power, start, n_iter=12, rtol=1e-4):
     step and then falls monotonically onto it (at most a few steps where ``T`` is
     piecewise polynomial). Returns (k, N), 0 for draws above the threshold
     without a companion. ``P_D(c)`` is the fraction of draws crossing below ``c``
-    (`_order_quantile`): no root finding on a Monte-Carlo ``P_D``.
+    (`~kpifs.detect._laws.order_quantile`): no root finding on a Monte-Carlo ``P_D``.
     """
     k, q, n = z.shape
     m32 = m.astype(np.float32)
@@ -291,15 +259,6 @@ def _crossings(z, m, threshold, power, start, n_iter=12, rtol=1e-4):
         if done:
             break
     return c
-
-
-def _order_quantile(crossings, pd):
-    """Smallest contrast detected in a fraction *pd* of the draws (axis -1): an order
-    statistic of their crossing contrasts (NaN where that is never reached)."""
-    n = crossings.shape[-1]
-    k = min(n - 1, max(0, int(np.ceil(pd * n)) - 1))
-    out = np.partition(crossings, k, axis=-1)[..., k]
-    return np.where(np.isfinite(out), out, np.nan)
 
 
 def limit_energy_correlated(signal_proj, signal_norm2, noise_energy, threshold, pd):
@@ -335,7 +294,7 @@ def limit_energy_correlated(signal_proj, signal_norm2, noise_energy, threshold, 
         with np.errstate(invalid="ignore", divide="ignore"):
             root = (np.sqrt(np.maximum(proj * proj + x2[a:a + 256] * slack, 0)) - proj) \
                 / x2[a:a + 256]
-        return _order_quantile(np.where(slack <= 0, 0.0, np.maximum(root, 0)).T, pd)
+        return order_quantile(np.where(slack <= 0, 0.0, np.maximum(root, 0)).T, pd)
     out = np.concatenate([np.zeros(0)] + thread_map(chunk, range(0, len(x2), 256)))
     return np.where(x2 > 0, out, np.nan)
 

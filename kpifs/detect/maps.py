@@ -28,12 +28,12 @@ from astropy.table import QTable
 from .._utils import thread_map, to_quantity
 from ..data import DetectionGrid
 from ..exceptions import KpifsError
-from ..kernel import MAS
-from ..window import ExtractionWindow
+from ..model.kernel import MAS
+from ..model.window import ExtractionWindow
 from ._laws import norm_sf
 from ._signatures import _norm_chunks, _unit
 from ._laws import chi2_sf
-from .limits import spectrum_shape
+from .spectral import spectrum_shape
 from .channels import channel_shrinkage, whiten_weights
 from .spectral import spectral_basis, subspace_sign, subspace_weights
 from .stats import binary_pfa, binary_statistic
@@ -52,14 +52,14 @@ class DetectionModel:
 
     Parameters
     ----------
-    kernel_model : `~kpifs.kernel.KernelModel`
+    kernel_model : `~kpifs.model.kernel.KernelModel`
     wavelengths : `~astropy.units.Quantity` (q,)
     whitening : ndarray, shape (q, p, p)
         Per-channel whitening operators (`~kpifs.covariance.whitening_matrix`).
     grid : `~kpifs.data.DetectionGrid`
     pixscale : `~astropy.units.Quantity`, optional
         With *window*, the pixel scale of the extraction.
-    window : `~kpifs.window.ExtractionWindow`, optional
+    window : `~kpifs.model.window.ExtractionWindow`, optional
         The extraction window, whose attenuation enters the signatures.
     dof : sequence of int, optional
         Whitened dimension kept per channel (for the energy detector).

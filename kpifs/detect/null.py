@@ -14,7 +14,7 @@ worker) does not accumulate them.
 
 The empirical null (``coefficients='sign'``) combines instead *block rows*,
 the centred means of consecutive time blocks of each star's frames
-(`~kpifs.calibrate.block_rows`), with random signs: a sign-flip
+(`~kpifs.calibration.calibrate.block_rows`), with random signs: a sign-flip
 (randomisation) test whose draws are the differences the data themselves show
 between parts of the sequence, with their own non-Gaussian shape, drifts
 longer than a frame and correlations between channels. There are only

@@ -8,10 +8,10 @@ from astropy import units as u
 from ..covariance import empirical_covariance, rows_covariance, whiten, whitening_matrix
 from ..data import DetectionGrid, DetectionResult, KernelPhaseData
 from ..exceptions import KpifsError, KpifsWarning
-from ..kernel import MAS, KernelModel
-from ..aberrations import static_term
-from ..adi import inner_separation
-from ..pupil import make_pupil
+from ..model.kernel import MAS, KernelModel
+from ..simulation.aberrations import static_term
+from ..calibration.adi import inner_separation
+from ..model.pupil import make_pupil
 from ._inputs import _aliased, _check_closure_dof, _drop_aliased, _measured, _wants_static
 from ._laws import chi2_sf, norm_isf
 from .search import _POWER, _chi2_red, _sequential_search
@@ -19,7 +19,7 @@ from .sky import (add_sky_columns, data_angles, pa_bins,
                   search_frame, sky_search_columns)
 from .skyfit import refit_on_sky
 from .limits import (energy_lambda, limit_binary, limit_binary_correlated_forms, limit_energy,
-                     limit_np, mirror_half_map, radial_curves, spectrum_shape)
+                     limit_np, mirror_half_map, radial_curves)
 from .blocks import block_stack
 from .maps import DetectionModel
 from .null import DEFAULT_DRAWS, check_draws, search_null
@@ -27,8 +27,8 @@ from .channels import (MIN_SCALE, NOISE_CONFIDENCE, combined_scale, correlated_i
                        energy_null, energy_spread, map_noise, np_correlated, scale_block_rows,
                        subspace_scale, annulus_noise, ring_noise)
 from .quality import add_spectrum_model, flag_candidates, resolution_mas
-from ..field import search_field
-from .spectral import limit_subspace, spectral_basis
+from ..model.field import search_field
+from .spectral import limit_subspace, spectral_basis, spectrum_shape
 from .stats import TESTS, check_probability, energy_threshold
 
 
@@ -123,7 +123,7 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     ----------
     kpd : `~kpifs.KernelPhaseData`
         Calibrated data (one frame with a covariance, from
-        `~kpifs.calibrate.calibrate`). Uncalibrated data are refused unless
+        `~kpifs.calibration.calibrate.calibrate`). Uncalibrated data are refused unless
         *allow_uncalibrated* (the frames' mean is then searched, with a
         warning).
     test : {'auto', 'B', 'B-paper', 'S', 'NP', 'E'}
@@ -177,7 +177,7 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
         What the grid maximum's threshold and global P_FA are calibrated on
         (`~kpifs.detect.null.search_null`): the Gaussian Monte-Carlo draws of the
         error model's covariance rows, the sign-flip (empirical) draws of the
-        stars' time blocks (KP-BLKROWS, `~kpifs.calibrate.block_rows`), or
+        stars' time blocks (KP-BLKROWS, `~kpifs.calibration.calibrate.block_rows`), or
         the more conservative of the two (``'both'``, what ``'auto'`` picks when
         the data carry block rows). Both thresholds are reported
         (``result.meta['null']``).
@@ -192,7 +192,7 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
         Compute the detection limits (default). Without (as the injection
         curves do, which only need the candidates) ``result.limits`` is empty.
     aliased : {'keep', 'exclude'}
-        Channels whose pixels alias some of their uv points (`kpifs.sampling`)
+        Channels whose pixels alias some of their uv points (`kpifs.model.sampling`)
         are flagged in the result (``meta['aliased']``, the fraction per
         channel; cards ``ALIAS<i>`` of the products): a companion's contrast
         there is biased. ``'keep'`` (default) searches them, their noise is
@@ -203,7 +203,7 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
         ``'auto'``: single-channel data no calibrator was subtracted from, whose
         frames cannot show their static aberrations, carry the kernel-phase
         residual of those in their covariance, its shape imaged through the
-        pupil and its amplitude fitted to the data (`kpifs.aberrations`;
+        pupil and its amplitude fitted to the data (`kpifs.simulation.aberrations`;
         ``result.meta['static']``). (Calibrated data carry the calibrated error
         model, whose modes the term would not respect; several channels are
         correlated by it, which the term does not model.)
@@ -264,7 +264,7 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
         inner = inner_separation(model) if stack.mode == "angular-differential" else np.nan
         if own_grid and np.isfinite(inner) and inner > float(grid.min_sep):
             # the angular-differential search starts where the rotation keeps half a
-            # companion's signal (`kpifs.adi.inner_separation`)
+            # companion's signal (`kpifs.calibration.adi.inner_separation`)
             grid = default_grid(kpd, frame=frame, min_sep=inner * u.mas)
             model = stack.detection_model(grid, basis=basis)
             stack.info["inner_separation"] = inner

@@ -20,7 +20,7 @@ should not be taken at face value:
 import numpy as np
 from astropy import units as u
 
-from ..kernel import MAS
+from ..model.kernel import MAS
 from .spectral import subspace_spectrum
 
 __all__ = ["flag_candidates", "add_spectrum_model", "CHI2_FACTOR", "CONTRAST_BOUND"]

@@ -17,10 +17,13 @@ sky and one flux ratio for every channel (or one per channel).
 """
 import numpy as np
 from astropy import units as u
-from scipy import optimize, special
 
+from .._lazy import lazy_module
 from ..covariance import whitening_matrix
 from ..exceptions import KpifsError
+
+optimize = lazy_module("scipy.optimize")
+special = lazy_module("scipy.special")
 
 __all__ = ["fit_resolved_binary", "resolved_binary_chi2", "uniform_disk"]
 

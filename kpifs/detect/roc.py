@@ -1,6 +1,6 @@
 """The seed paper's ROC experiment: the tests compared on a simulated IFS scene.
 
-Steps: simulate the scene (`~kpifs.simulate.simulate_scene`); extract the
+Steps: simulate the scene (`~kpifs.simulation.simulate.simulate_scene`); extract the
 companion-free calibrator frames and estimate, per channel, the covariance of
 one frame's kernel phases; whiten; form the whitened companion signal
 ``x_i = W_i K arg(1 + c_i w exp(-2 pi i (alpha u + beta v)/lambda_i))``; draw M
@@ -18,10 +18,10 @@ from astropy.table import QTable
 
 from .._lazy import lazy_module
 from ..covariance import empirical_covariance
-from ..extract import extract_kernel_phases
-from ..kernel import KernelModel
-from ..pupil import make_pupil
-from ..simulate import simulate_scene
+from ..extraction.extract import extract_kernel_phases
+from ..model.kernel import KernelModel
+from ..model.pupil import make_pupil
+from ..simulation.simulate import simulate_scene
 from .stats import TESTS, auc, known_position_subspace, monte_carlo_roc, roc_curve
 
 stats = lazy_module("scipy.stats")
@@ -157,7 +157,7 @@ def paper_experiment(*, preset="paper", n_frames=1000, n_draws=30000, seed=0, pf
     Parameters
     ----------
     preset : str
-        Scene preset (`~kpifs.simulate.PRESETS`); *scene* overrides its fields.
+        Scene preset (`~kpifs.simulation.simulate.PRESETS`); *scene* overrides its fields.
     n_frames : int
         Calibrator frames used to estimate the covariance.
     n_draws : int

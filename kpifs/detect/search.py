@@ -7,9 +7,9 @@ import warnings
 
 import numpy as np
 from astropy import units as u
-from scipy.optimize import nnls
 from astropy.table import vstack
 
+from .._lazy import lazy_module
 from ..covariance import whiten
 from ..exceptions import KpifsWarning
 from .fit import refine_candidates
@@ -19,6 +19,7 @@ from .sky import rotated_binary_kernel_phases
 __all__ = []
 
 log = logging.getLogger(__name__)
+optimize = lazy_module("scipy.optimize")
 
 #: How each statistic scales with the noise variance (B: a sum of squares).
 _POWER = {"B": 1.0, "B-paper": 0.5, "NP": 0.5, "S": 1.0}
@@ -177,7 +178,7 @@ def _others(kp, w, models, idx, refit=None, judged=None):
         basis = np.stack([w[i] @ models[j][i] for j in terms], axis=1)      # (p, n)
         if not np.any(basis):
             continue
-        coef = nnls(basis, w[i] @ kp[i])[0]          # a companion's flux is never negative
+        coef = optimize.nnls(basis, w[i] @ kp[i])[0]          # a companion's flux is never negative
         out[i] = np.stack([models[j][i] for j in idx], axis=1) @ coef[:len(idx)]
     return out
 

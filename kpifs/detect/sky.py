@@ -22,10 +22,11 @@ from astropy import units as u
 
 from .._utils import to_quantity
 from ..exceptions import KpifsError
-from ..kernel import MAS
+from ..io.angles import data_angles, mean_angle
+from ..model.kernel import MAS
 
 __all__ = ["sky_to_detector", "detector_to_sky", "separation_pa", "pa_bins",
-           "rotated_binary_kernel_phases", "mean_angle", "add_sky_columns", "data_angles",
+           "rotated_binary_kernel_phases", "add_sky_columns",
            "search_frame", "sky_search_columns"]
 
 #: Largest motion of a companion within one position-angle bin, in finest fringes.
@@ -140,7 +141,7 @@ def rotated_binary_kernel_phases(kernel_model, sky_offset, contrast, wavelengths
 
     Parameters
     ----------
-    kernel_model : `~kpifs.kernel.KernelModel`
+    kernel_model : `~kpifs.model.kernel.KernelModel`
     sky_offset : `~astropy.units.Quantity` (2,)
         ``(dRA, dDec)`` of the companion.
     contrast : float or array-like (nwave,)
@@ -175,22 +176,6 @@ def rotated_binary_kernel_phases(kernel_model, sky_offset, contrast, wavelengths
         out = out + wi * kernel_model.binary_kernel_phases([xi, yi] * u.mas, contrast,
                                                            wavelengths)
     return out
-
-
-def mean_angle(detpa):
-    """Circular mean (deg) of angles, NaN ignored; NaN when none is known.
-
-    Examples
-    --------
-    >>> from kpifs.detect.sky import mean_angle
-    >>> round(float(mean_angle([359.0, 1.0, 3.0])) % 360, 6)
-    1.0
-    """
-    a = np.deg2rad(np.asarray(detpa, float).ravel())
-    a = a[np.isfinite(a)]
-    if a.size == 0:
-        return np.nan
-    return float(np.rad2deg(np.arctan2(np.sin(a).mean(), np.cos(a).mean())) % 360.0)
 
 
 def add_sky_columns(table, detpa):
@@ -243,24 +228,6 @@ def add_sky_columns(table, detpa):
             perp = np.hypot(ux * xe, uy * ye)
             table["fit_pa_sky_err"] = np.rad2deg(
                 np.divide(perp, sep, out=np.full_like(sep, np.nan), where=sep > 0)) * u.deg
-
-
-def data_angles(kpd):
-    """The detector position angles of the frames behind *kpd* (deg), or None if unknown.
-
-    Calibrated data carry their target frames' angles (``meta['detpa_frames']``);
-    otherwise the data's own. Angles that were only assumed (no header keyword,
-    ``meta['detpa_source']`` 'none...' or 'unknown') count as unknown.
-    """
-    source = str(kpd.meta.get("detpa_source", ""))
-    if source.startswith(("none", "unknown")) or "(none" in source or "(unknown" in source:
-        return None
-    frames = kpd.meta.get("detpa_frames")
-    ang = frames if frames is not None else kpd.detpa
-    if ang is None:
-        return None
-    ang = np.atleast_1d(np.asarray(ang, float))
-    return ang if ang.size and np.all(np.isfinite(ang)) else None
 
 
 def search_frame(kpd, frame="auto"):

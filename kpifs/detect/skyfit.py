@@ -2,7 +2,7 @@
 
 When the target's frames were taken at several detector angles (their angles
 reach detection as ``kpd.meta['detpa_frames']``, set by
-`~kpifs.calibrate.calibrate`), the candidates' sky offsets are refitted with
+`~kpifs.calibration.calibrate.calibrate`), the candidates' sky offsets are refitted with
 the mean of the per-frame models (`kpifs.detect.sky`) instead of being rotated
 from the detector fit by the mean angle.
 """

@@ -32,9 +32,10 @@ from astropy import units as u
 
 from .._utils import to_quantity
 from ..exceptions import KpifsError
-from .limits import _lhs_normal, _order_quantile, spectrum_shape
+from ._laws import lhs_normal, order_quantile
 
-__all__ = ["DEFAULT_RANK", "smooth_basis", "blackbody_contrasts", "template_basis",
+__all__ = ["spectrum_shape", "DEFAULT_RANK", "smooth_basis", "blackbody_contrasts",
+           "template_basis",
            "read_spectra", "subspace_weights", "subspace_sign", "subspace_spectrum",
            "spectral_basis",
            "limit_subspace", "parse_spectrum"]
@@ -44,6 +45,25 @@ log = logging.getLogger(__name__)
 #: Rank of the default smooth basis (a quadratic in wavelength): measured on CHARIS
 #: simulations with blackbody and T-dwarf-like companion spectra (docs: choosing a test).
 DEFAULT_RANK = 3
+
+
+def spectrum_shape(spectrum, n_channels):
+    """Per-channel relative contrasts normalised to mean 1 (``None``: flat).
+
+    Examples
+    --------
+    >>> from kpifs.detect.spectral import spectrum_shape
+    >>> spectrum_shape([2, 1, 0], 3)
+    array([2., 1., 0.])
+    """
+    if spectrum is None or (isinstance(spectrum, str) and spectrum == "flat"):
+        return np.ones(n_channels)
+    a = np.asarray(spectrum, float).ravel()
+    if a.size != n_channels:
+        raise KpifsError(f"the spectrum has {a.size} values for {n_channels} channels")
+    if not np.all(np.isfinite(a)) or np.any(a < 0) or a.sum() <= 0:
+        raise KpifsError("the spectrum must be finite, non-negative and not all zero")
+    return a / a.mean()
 
 
 def _orthonormal(a):
@@ -354,7 +374,7 @@ def limit_subspace(weights, norm2, threshold, pd, *, spectrum=None, correlation=
     a = spectrum_shape(spectrum, q)
     amp = a[:, None] * np.sqrt(np.where(np.isfinite(n2), n2, 0.0).reshape(q, -1))
     m = np.einsum("jik,ik->kj", w, amp)                             # (npos, r)
-    xi = _lhs_normal(n_draws, r, seed)                               # (N, r)
+    xi = lhs_normal(n_draws, r, seed)                               # (N, r)
     out = np.full(m.shape[0], np.nan)
     corr = None if correlation is None else np.asarray(correlation, float).reshape(-1, q, q)
     for s in range(0, len(m), 512):
@@ -373,7 +393,7 @@ def limit_subspace(weights, norm2, threshold, pd, *, spectrum=None, correlation=
         with np.errstate(invalid="ignore", divide="ignore"):
             c = (np.sqrt(me ** 2 + m2 * np.maximum(slack, 0)) - me) / m2
         c = np.where(slack <= 0, 0.0, c)
-        lim = _order_quantile(c, pd)
+        lim = order_quantile(c, pd)
         if corr is not None:
             lim = np.where(np.all(np.isfinite(corr[s:s + 512]), axis=(1, 2)), lim, np.nan)
         out[s:s + 512] = np.where(m2[:, 0] > 0, lim, np.nan)

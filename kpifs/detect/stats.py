@@ -18,12 +18,12 @@ import numpy as np
 
 from .._lazy import lazy_module
 from ..exceptions import KpifsError
+from . import spectral
 from ._laws import chi2_isf, chi2_sf, ncx2_sf, norm_isf, norm_sf
 
 optimize = lazy_module("scipy.optimize")
 special = lazy_module("scipy.special")
 stats = lazy_module("scipy.stats")
-spectral = lazy_module("kpifs.detect.spectral")
 
 __all__ = ["TESTS", "check_probability", "np_threshold", "np_pd", "energy_threshold",
            "energy_pd", "binary_pfa", "binary_threshold", "binary_statistic", "np_statistic",

@@ -2,7 +2,7 @@
 
 This layer knows file layouts, not the science: readers return an `IFSCube`
 (or plain arrays and headers), writers take objects and only read the
-attributes they write. The containers of `kpifs.data` and `kpifs.kernel`
+attributes they write. The containers of `kpifs.data` and `kpifs.model.kernel`
 connect the KPFITS and detection-product layouts to astropy's I/O registry.
 """
 from .cube import IFSCube, read_generic  # noqa: F401

@@ -13,7 +13,7 @@ KPCOV_COPY_LIMIT = 64 * 2 ** 20
 _INSTRUMENT_CARDS = {"charis": ("CHARIS", "Subaru"), "sphere": ("SPHERE", "ESO-VLT-U3")}
 #: Error-model parameters (``meta['error_model']``) <-> primary header cards.
 _ERROR_MODEL_CARDS = {
-    "model": ("EMMODEL", "error model: modes (kpifs.errormodel) or frames"),
+    "model": ("EMMODEL", "error model: modes (fitted model) or frames"),
     "n_modes": ("EMNMODES", "modes of the frame scatter kept"),
     "dof": ("EMDOF", "degrees of freedom nu = sum (N_s - 1)"),
     "mode_fraction": ("EMFRAC", "modes kept / nu"),

@@ -23,7 +23,8 @@ from astropy.io import fits
 from .._utils import to_quantity
 from ..exceptions import KpifsError, KpifsWarning
 
-__all__ = ["parse_angles", "header_detpa", "frame_detpa", "known_angle_files"]
+__all__ = ["parse_angles", "header_detpa", "frame_detpa", "known_angle_files", "mean_angle",
+           "data_angles"]
 
 
 def parse_angles(value, *, source="--pa"):
@@ -161,3 +162,47 @@ def known_angle_files(paths, angles, *, keyword="the angle"):
                   f"missing or not a number) in {', '.join(gone)}: the others are searched on "
                   f"the sky (give --pa to keep them all)", KpifsWarning, stacklevel=3)
     return [int(i) for i in np.flatnonzero(known)]
+
+
+def mean_angle(detpa):
+    """Circular mean (deg) of angles, NaN ignored; NaN when none is known.
+
+    Examples
+    --------
+    >>> from kpifs.io.angles import mean_angle
+    >>> round(float(mean_angle([359.0, 1.0, 3.0])) % 360, 6)
+    1.0
+    """
+    a = np.deg2rad(np.asarray(detpa, float).ravel())
+    a = a[np.isfinite(a)]
+    if a.size == 0:
+        return np.nan
+    return float(np.rad2deg(np.arctan2(np.sin(a).mean(), np.cos(a).mean())) % 360.0)
+
+
+def data_angles(kpd):
+    """The detector position angles of the frames behind *kpd* (deg), or None if unknown.
+
+    Calibrated data carry their target frames' angles (``meta['detpa_frames']``);
+    otherwise the data's own. Angles that were only assumed (no header keyword,
+    ``meta['detpa_source']`` 'none...' or 'unknown') count as unknown.
+
+    Examples
+    --------
+    >>> from types import SimpleNamespace
+    >>> from kpifs.io.angles import data_angles
+    >>> data_angles(SimpleNamespace(meta={"detpa_source": "header PARANG"},
+    ...                             detpa=[10.0, 12.0])).tolist()
+    [10.0, 12.0]
+    >>> data_angles(SimpleNamespace(meta={"detpa_source": "none (assumed 0)"}, detpa=[0.0])) is None
+    True
+    """
+    source = str(kpd.meta.get("detpa_source", ""))
+    if source.startswith(("none", "unknown")) or "(none" in source or "(unknown" in source:
+        return None
+    frames = kpd.meta.get("detpa_frames")
+    ang = frames if frames is not None else kpd.detpa
+    if ang is None:
+        return None
+    ang = np.atleast_1d(np.asarray(ang, float))
+    return ang if ang.size and np.all(np.isfinite(ang)) else None

@@ -138,7 +138,7 @@ def read_charis(paths, *, wavelengths=None, pixscale=None, keep_unknown_angles=F
     Examples
     --------
     >>> import tempfile
-    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.simulation.simulate import simulate_scene
     >>> from kpifs.io.layouts import write_observation
     >>> from kpifs.io.charis import read_charis
     >>> tmp = tempfile.TemporaryDirectory()

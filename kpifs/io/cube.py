@@ -46,7 +46,7 @@ class IFSCube:
     variance : array-like or None
         Per-pixel noise variance of each frame, shape of *data* (read lazily;
         JWST ``ERR**2``), propagated to the kernel phases' errors
-        (`kpifs.pixelnoise`).
+        (`kpifs.calibration.pixelnoise`).
     variance_source : str or None
         Where *variance* came from.
 

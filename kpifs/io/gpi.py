@@ -238,7 +238,7 @@ def read_gpi(paths, *, wavelengths=None, pixscale=None, keep_unknown_angles=Fals
     >>> import tempfile
     >>> from kpifs.io import write_observation
     >>> from kpifs.io.gpi import read_gpi
-    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.simulation.simulate import simulate_scene
     >>> obs = simulate_scene("gpi", n_frames=2, npup=32, shape=(128, 128))
     >>> tmp = tempfile.TemporaryDirectory()
     >>> files = write_observation(obs, tmp.name, layout="gpi")

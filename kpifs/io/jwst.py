@@ -32,7 +32,7 @@ integration is a frame of one channel.
   adds others, `parse_dq_bits`).
 - Per-pixel noise: ``ERR`` squared, or ``VAR_POISSON + VAR_RNOISE + VAR_FLAT``
   without it, as ``cube.variance`` (read lazily): the extraction propagates it
-  to the kernel phases' errors (`kpifs.pixelnoise`).
+  to the kernel phases' errors (`kpifs.calibration.pixelnoise`).
 - Pupil: `jwst_pupil` (NIRISS ``NRM`` -> ``niriss_nrm``, ``CLEARP`` ->
   ``niriss_clearp``, a pupil-wheel filter or NIRCam -> ``jwst``).
 """
@@ -239,7 +239,8 @@ def jwst_setup(header):
 
 
 def jwst_pupil(header):
-    """The built-in pupil (a `~kpifs.pupil.TELESCOPES` or `~kpifs.pupil.MASKS` key) for a
+    """The built-in pupil (a `~kpifs.model.pupil.TELESCOPES` or `~kpifs.model.pupil.MASKS`
+    key) for a
     JWST header, or None (not JWST, or a ``PUPIL`` none of them models: never the full
     pupil in its place).
 
@@ -485,7 +486,7 @@ def read_jwst(paths, *, wavelengths=None, pixscale=None, dq_bits=DO_NOT_USE):
     >>> import tempfile
     >>> from kpifs.io import write_observation
     >>> from kpifs.io.jwst import read_jwst
-    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.simulation.simulate import simulate_scene
     >>> obs = simulate_scene("niriss", n_frames=2, npup=32, shape=(32, 32))
     >>> tmp = tempfile.TemporaryDirectory()
     >>> files = write_observation(obs, tmp.name, layout="jwst")

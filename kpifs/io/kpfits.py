@@ -16,7 +16,7 @@ and kpifs's own KP-COVROWS, KP-JCOV and DETPA-FR (calibrated data: the
 averaged target frames' angles, deg).
 
 KP-COV is always positive definite, so that any tool can invert it: an error
-model of few frames keeps only its best-measured modes (`kpifs.errormodel`),
+model of few frames keeps only its best-measured modes (`kpifs.calibration.errormodel`),
 and the directions it leaves out, which detection gives no weight, are given
 a variance that weighs next to nothing (``COVFILL`` rad^2,
 `~kpifs.covariance.filled_covariance`); the chi-square of KP-DATA under
@@ -37,7 +37,7 @@ file and the part.
 
 This module knows the layout, not the science: it turns objects into HDUs
 (reading only the attributes it writes) and files into plain arrays and
-headers. The containers (`~kpifs.kernel.KernelModel`,
+headers. The containers (`~kpifs.model.kernel.KernelModel`,
 `~kpifs.data.KernelPhaseData`) connect these functions to astropy's unified
 I/O registry, so that ``KernelPhaseData.read(path)`` works. The code is in
 three modules, all reached from here: this one writes, `kpifs.io.kpfits_model`
@@ -160,7 +160,7 @@ def _primary_header(kpd, inputs, history):
         del hdr[key]                         # the input's, if any: rewritten from the data
     if kpd.meta.get("channel_n_kp") is not None:
         # channels that sample different uv points: each measures the first n kernel
-        # phases (kpifs.sampling.nested_kernel); its other rows are zero, not data
+        # phases (kpifs.model.sampling.nested_kernel); its other rows are zero, not data
         for i, n in enumerate(kpd.meta["channel_n_kp"], 1):
             hdr[f"NKPCH{i}"] = (int(n), f"kernel phases channel {i} measures (first ones)")
     if kpd.meta.get("bad_frames"):

@@ -23,7 +23,7 @@ from astropy.io import fits
 
 from .._meta import VERSION
 from .._utils import check_output_path, write_hdulist
-from ..apertures import canonical_name
+from .._utils import canonical_name
 from ..exceptions import KpifsError
 from .charis import CHARIS_DETPA_OFFSET
 from .layouts_instruments import write_gpi_exposures, write_jwst_calints
@@ -167,7 +167,8 @@ def write_sphere_cube(outdir, cube, wavelengths, pixscale, *, prefix="", cards=N
 
 
 def write_observation(obs, outdir, *, layout="plain", overwrite=False):
-    """Write a `~kpifs.simulate.SimulatedObservation` (target and calibrator) to *outdir*.
+    """Write a `~kpifs.simulation.simulate.SimulatedObservation` (target and calibrator)
+    to *outdir*.
 
     Returns a dict ``{"target": [paths], "calibrator": [paths]}``.
 
@@ -175,7 +176,7 @@ def write_observation(obs, outdir, *, layout="plain", overwrite=False):
     --------
     >>> import tempfile
     >>> from kpifs.io import write_observation
-    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.simulation.simulate import simulate_scene
     >>> tmp = tempfile.TemporaryDirectory()
     >>> files = write_observation(simulate_scene("paper", n_frames=1, npup=32), tmp.name)
     >>> [p.name for p in files["target"]]

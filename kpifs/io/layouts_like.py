@@ -62,7 +62,7 @@ def source_layout(cube):
     >>> import tempfile
     >>> from kpifs.io import read_cube, write_observation
     >>> from kpifs.io.layouts_like import source_layout
-    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.simulation.simulate import simulate_scene
     >>> files = write_observation(simulate_scene("paper", n_frames=2, npup=32),
     ...                           tempfile.mkdtemp())
     >>> with read_cube(files["target"]) as cube:

@@ -2,7 +2,7 @@
 
 Every uv point of the model must be made by exactly one pair of holes, and the
 kernel must span exactly the closure phases of the mask's triangles (what
-`~kpifs.kernel.KernelModel.from_pupil` gives for a mask, and what
+`~kpifs.model.kernel.KernelModel.from_pupil` gives for a mask, and what
 `kpifs.io.oifits` reads). The closure phases of every triangle ``(i, j, k)``,
 ``phi(r_i - r_j) + phi(r_j - r_k) - phi(r_i - r_k)``, are ``C K^+ kp``; their
 covariance ``C K^+ Sigma K^+T C^T`` is singular (only (N-1)(N-2)/2 of them are
@@ -20,17 +20,13 @@ import warnings
 import numpy as np
 from astropy.io import fits
 
-from .._lazy import lazy_module
 from .._meta import VERSION
 from .._utils import write_hdulist
+from ..covariance import empirical_covariance
 from ..exceptions import KpifsError, KpifsWarning
+from .angles import data_angles, mean_angle
 
 __all__ = ["write_oifits", "closure_triangles"]
-
-# the detector angles' rules live in kpifs.detect.sky, above this layer (and it brings
-# astropy.table): loaded when a file is written
-_sky = lazy_module("kpifs.detect.sky")
-_covariance = lazy_module("kpifs.covariance")
 
 MAS = np.pi / 180 / 3600 / 1000
 _ARCSEC = np.pi / 180 / 3600
@@ -109,19 +105,19 @@ def _mean_and_covariance(kpd):
             joint[w * nk:(w + 1) * nk, w * nk:(w + 1) * nk] = kpd.covariance[w]
         return kpd.kp[0], joint, "the covariance of the data"
     n = kpd.n_frame
-    joint = _covariance.empirical_covariance(kpd.kp, joint=True, debias=True) / n
+    joint = empirical_covariance(kpd.kp, joint=True, debias=True) / n
     return kpd.kp.mean(axis=0), joint, f"the mean of {n} frames and their scatter / {n}"
 
 
 def _orientation(kpd):
     """The detector angle (deg) the uv points are turned by, and a note."""
-    ang = _sky.data_angles(kpd)
+    ang = data_angles(kpd)
     if ang is None:
         warnings.warn(f"{kpd.name}: detector position angle unknown: (u, v) written as on "
                       f"the detector (North up, East left assumed)", KpifsWarning,
                       stacklevel=4)
         return 0.0, "detector angle unknown, 0 assumed"
-    theta = float(_sky.mean_angle(ang))
+    theta = float(mean_angle(ang))
     if np.ptp(ang) > 1.0:
         warnings.warn(f"{kpd.name}: the frames' detector angles span {np.ptp(ang):.1f} deg; "
                       f"(u, v) written at their mean, {theta:.2f} deg", KpifsWarning,

@@ -12,11 +12,64 @@ from .._meta import VERSION
 from .._utils import write_hdulist
 from ..exceptions import KpifsError
 from .cube import open_fits
-from ..field import FIELD_CARDS, field_cards, field_from_header
 from ._kpfits_common import card
 
-__all__ = ["detection_hdulist", "write_detection", "read_detection_parts",
-           "detection_header_meta"]
+__all__ = ["field_cards", "field_from_header", "FIELD_CARDS", "detection_hdulist",
+           "write_detection", "read_detection_parts", "detection_header_meta"]
+
+
+#: Header cards of a detection product that record the field: key -> (card, comment).
+FIELD_CARDS = {"inner": ("FLDIN", "[mas] smallest separation searched"),
+               "outer": ("FLDOUT", "[mas] largest separation searched"),
+               "limit": ("FLDLIM", "bound reached: model/window/image/grid"),
+               "n_kp": ("FLDNKP", "kernel phases per channel"),
+               "n_frames": ("FLDNFR", "frames of the target"),
+               "alias": ("FLDALIAS", "[mas] model aliasing, .95 lam_min/(2 step)"),
+               "window": ("FLDWIN", "[mas] extraction window radius"),
+               "image": ("FLDIMG", "[mas] half the side of the images read"),
+               "step": ("FLDSTEP", "[m] grid step of the pupil model"),
+               "step_for": ("FLDSTEPR", "[m] grid step that reaches FLDREACH"),
+               "reach": ("FLDREACH", "[mas] next bound beyond the model's")}
+
+
+def field_cards(field, header):
+    """Write *field* (`kpifs.model.field.search_field`) as cards of *header*.
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.products import field_cards, field_from_header
+    >>> f = {"inner": 20.0, "outer": 180.0, "limit": "window", "alias": None,
+    ...      "window": 180.0, "image": 300.0, "step": None, "n_kp": 60, "n_frames": 8}
+    >>> field_from_header(field_cards(f, fits.Header())) == f
+    True
+    """
+    for key, (name, comment) in FIELD_CARDS.items():
+        v = field.get(key)
+        if isinstance(v, (int, np.integer)):
+            header[name] = (int(v), comment)
+        elif v is not None:
+            header[name] = (v if isinstance(v, str) else round(float(v), 6), comment)
+    return header
+
+
+def field_from_header(header):
+    """The field a product's cards record (`field_cards`), or None.
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.products import field_from_header
+    >>> field_from_header(fits.Header()) is None                  # no FLD* cards
+    True
+    >>> field_from_header(fits.Header({"FLDOUT": 180.0, "FLDIN": 20.0}))["outer"]
+    180.0
+    """
+    if "FLDOUT" not in header:
+        return None
+    out = {key: header.get(name) for key, (name, _) in FIELD_CARDS.items()}
+    keep = ("alias", "window", "image", "step", "n_frames")
+    return {k: v for k, v in out.items() if v is not None or k in keep}
 
 
 def _image(data, name, wcs_header, bunit=None, comment=None):

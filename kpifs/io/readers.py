@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 from astropy import units as u
 
-from ..apertures import canonical_name
+from .._utils import canonical_name
 from ..exceptions import KpifsError, KpifsWarning
 from .charis import charis_setup, is_charis, read_charis
 from .cube import FrameStack, IFSCube, open_fits, read_generic, refuse_kpfits
@@ -30,7 +30,7 @@ def detect_instrument(path):
     --------
     >>> import tempfile
     >>> from kpifs.io import detect_instrument, write_observation
-    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.simulation.simulate import simulate_scene
     >>> obs = simulate_scene("charis", n_frames=1, npup=32, shape=(32, 32))
     >>> tmp = tempfile.TemporaryDirectory()
     >>> files = write_observation(obs, tmp.name, layout="charis")
@@ -89,7 +89,7 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
     --------
     >>> import tempfile, astropy.units as u
     >>> from kpifs.io import read_cube, write_observation
-    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.simulation.simulate import simulate_scene
     >>> tmp = tempfile.TemporaryDirectory()
     >>> d = tmp.name
     >>> files = write_observation(simulate_scene("paper", n_frames=2, npup=32), d)

@@ -130,7 +130,7 @@ def read_sphere(path, *, wavelengths=None, pixscale=None, angles=None):
     --------
     >>> import tempfile
     >>> from kpifs.io import read_sphere, write_observation
-    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.simulation.simulate import simulate_scene
     >>> obs = simulate_scene("sphere", n_frames=2, npup=32, shape=(32, 32))
     >>> tmp = tempfile.TemporaryDirectory()
     >>> files = write_observation(obs, tmp.name, layout="sphere")

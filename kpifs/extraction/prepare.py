@@ -1,4 +1,5 @@
-"""Slice preparation: star centres, bad pixels and cut-outs (the window is `kpifs.window`).
+"""Slice preparation: star centres, bad pixels and cut-outs (the window is
+`kpifs.model.window`).
 
 Centres are in pixel coordinates ``(x, y)`` (0-based, x along columns), the
 convention of photutils. The kernel phases are insensitive to a centring
@@ -10,7 +11,7 @@ import warnings
 
 import numpy as np
 
-from .exceptions import KpifsError, KpifsWarning
+from ..exceptions import KpifsError, KpifsWarning
 
 __all__ = ["find_centres", "fill_bad_pixels", "cut_out", "CENTROID_METHODS"]
 
@@ -71,7 +72,7 @@ def find_centres(images, *, method="com", box_size=7):
     Examples
     --------
     >>> import numpy as np
-    >>> from kpifs.prepare import find_centres
+    >>> from kpifs.extraction.prepare import find_centres
     >>> y, x = np.mgrid[:32, :32]
     >>> img = np.exp(-((x - 15.3) ** 2 + (y - 16.6) ** 2) / 8)
     >>> np.round(find_centres(img, box_size=9), 1)
@@ -147,7 +148,7 @@ def fill_bad_pixels(images, *, sigma=1.0):
     Examples
     --------
     >>> import numpy as np
-    >>> from kpifs.prepare import fill_bad_pixels
+    >>> from kpifs.extraction.prepare import fill_bad_pixels
     >>> img = np.ones((1, 9, 9)); img[0, 4, 4] = np.nan
     >>> float(fill_bad_pixels(img)[0, 4, 4])
     1.0
@@ -177,7 +178,7 @@ def cut_out(sl, centres, ws, *, copy=True):
     Examples
     --------
     >>> import numpy as np
-    >>> from kpifs.prepare import cut_out
+    >>> from kpifs.extraction.prepare import cut_out
     >>> cut, delta = cut_out(np.arange(100.).reshape(1, 10, 10), [[4.3, 5.0]], 4)
     >>> float(cut[0, 2, 2]), delta
     (54.0, array([[0.3, 0. ]]))

@@ -12,10 +12,10 @@ import warnings
 import numpy as np
 from astropy import units as u
 
-from .data import KernelPhaseData
-from .exceptions import KpifsError, KpifsWarning
-from .rotation import (NOISE_MODES, _span, noise_whitening, rotation_blocks,
-                       rotation_needed)
+from ..data import KernelPhaseData
+from ..exceptions import KpifsError, KpifsWarning
+from ..rotation import (NOISE_MODES, _span, noise_whitening, rotation_blocks,
+                        rotation_needed)
 
 __all__ = ["angular_differential", "inner_separation"]
 
@@ -26,7 +26,7 @@ def angular_differential(target, calibrated=None, *, n_modes=NOISE_MODES):
     """A product searched by the blocks' departures only (``kpifs extract
     --angular-differential``).
 
-    With *calibrated* (the target calibrated by `~kpifs.calibrate.calibrate`) its
+    With *calibrated* (the target calibrated by `~kpifs.calibration.calibrate.calibrate`) its
     blocks are marked for the angular-differential search, which then keeps the
     calibrated mean too, scaled by its own reduced chi-square (a static
     target-calibrator difference is in the mean alone; where the rotation moves
@@ -40,7 +40,7 @@ def angular_differential(target, calibrated=None, *, n_modes=NOISE_MODES):
     --------
     >>> import numpy as np, astropy.units as u
     >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
-    >>> from kpifs.adi import angular_differential
+    >>> from kpifs.calibration.adi import angular_differential
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     >>> rng = np.random.default_rng(0)
     >>> t = KernelPhaseData(rng.normal(0, 0.1, (24, 1, km.n_kp)), [1.6] * u.um, 10 * u.mas,
@@ -131,7 +131,7 @@ def inner_separation(model, *, level=ADI_WARN):
     >>> import warnings
     >>> import numpy as np, astropy.units as u
     >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
-    >>> from kpifs.adi import angular_differential
+    >>> from kpifs.calibration.adi import angular_differential
     >>> from kpifs.detect import detect
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1.0 * u.m))
     >>> pa = np.linspace(100.0, 140.0, 16)                  # 40 deg of rotation

@@ -56,9 +56,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._utils import thread_map
-from .covariance import rows_covariance
-from .exceptions import KpifsError
+from .._utils import thread_map
+from ..covariance import rows_covariance
+from ..exceptions import KpifsError
 
 __all__ = ["ErrorModel", "fit_error_model", "RESIDUAL_METHODS"]
 
@@ -72,7 +72,7 @@ MIN_FRAMES_CV = 6
 
 @dataclass
 class ErrorModel:
-    """Covariance model of calibrated mean kernel phases (see `kpifs.errormodel`).
+    """Covariance model of calibrated mean kernel phases (see `kpifs.calibration.errormodel`).
 
     Attributes
     ----------
@@ -94,7 +94,7 @@ class ErrorModel:
     Examples
     --------
     >>> import numpy as np
-    >>> from kpifs.errormodel import fit_error_model
+    >>> from kpifs.calibration.errormodel import fit_error_model
     >>> rng = np.random.default_rng(1)
     >>> em = fit_error_model(rng.standard_normal((30, 1, 50)), [rng.standard_normal((30, 1, 50))])
     >>> em.covariance().shape, em.n_modes, em.dof, em.meta()["residual_method"]
@@ -288,7 +288,8 @@ def _channel_model(sets, w, n, k, n_groups, cv_blocks, residual):
 
 def fit_error_model(target, calibrators, *, n_modes=0.5, residual="auto", n_groups=4,
                     cv_blocks=10, source="target"):
-    """Fit the error model of `kpifs.errormodel` to the frames of a target and calibrators.
+    """Fit the error model of `kpifs.calibration.errormodel` to the frames of a target and
+    calibrators.
 
     The modes are those of each channel (so that whitening channel by channel
     projects the data exactly onto the modelled subspace); the covariance rows
@@ -321,7 +322,7 @@ def fit_error_model(target, calibrators, *, n_modes=0.5, residual="auto", n_grou
     Examples
     --------
     >>> import numpy as np
-    >>> from kpifs.errormodel import fit_error_model
+    >>> from kpifs.calibration.errormodel import fit_error_model
     >>> rng = np.random.default_rng(0)
     >>> mix = rng.standard_normal((6, 2 * 40))          # 6 aberration modes, 2 channels
     >>> def frames(n):                                     # drifting: a random walk

@@ -2,7 +2,7 @@
 
 The extraction is linear in the pixels to first order: a pixel noise of
 variance ``var`` gives the kernel phases of one frame the covariance
-``J diag(var) J^T``, ``J = dk/dI`` (`kpifs.covariance.kernel_jacobian`). The
+``J diag(var) J^T``, ``J = dk/dI`` (`kernel_jacobian`). The
 Jacobian of each channel is taken at the mean frame around its mean centre
 (the frames of one star differ by far less than their Fourier amplitudes);
 each frame's own variance, cut around its own centre, gives its errors.
@@ -13,7 +13,7 @@ each frame's own variance, cut around its own centre, gives its errors.
 channel, ``(nwave, nkp, nkp)``), with ``meta['pixel_noise']`` naming the
 source.
 
-The frames' error model (`kpifs.errormodel`) keeps only the leading modes of
+The frames' error model (`kpifs.calibration.errormodel`) keeps only the leading modes of
 the frames' scatter, about half as many as the frames' degrees of freedom:
 from few frames no more directions are measured. The rest of the kernel
 phases is thrown away, and where the kernel phases' noise is uneven (the
@@ -21,7 +21,7 @@ uv points near the pupil's edge, where the transfer function is small) the
 leading modes are the noisiest directions. `complement_rows` gives the
 calibrated mean the propagated pixel noise in the directions the modes leave
 out, so that a calibration keeps every kernel phase, each weighted by its
-own noise (`~kpifs.calibrate.calibrate`, ``pixel_noise='auto'``).
+own noise (`~kpifs.calibration.calibrate.calibrate`, ``pixel_noise='auto'``).
 """
 import logging
 import warnings
@@ -29,13 +29,14 @@ import warnings
 import numpy as np
 from astropy import units as u
 
-from .covariance import kernel_jacobian
-from .exceptions import KpifsWarning
-from .prepare import cut_out
-from .sampling import unmeasured
+from .._utils import to_quantity
+from ..exceptions import KpifsError, KpifsWarning
+from ..extraction.prepare import cut_out
+from ..model.sampling import unmeasured
 
 __all__ = ["attach_pixel_noise", "pixel_noise", "scatter_ratio", "calibrated_pixel_covariance",
-           "complement_rows", "MIN_SCATTER_RATIO", "MIN_SCATTER_DOF"]
+           "complement_rows", "propagated_covariance", "kernel_jacobian",
+           "MIN_SCATTER_RATIO", "MIN_SCATTER_DOF"]
 
 log = logging.getLogger(__name__)
 
@@ -78,8 +79,8 @@ def pixel_noise(images, variance, kpd, *, counts=None):
     --------
     >>> import numpy as np, astropy.units as u
     >>> from kpifs import extract_kernel_phases
-    >>> from kpifs.pixelnoise import pixel_noise
-    >>> from kpifs.simulate import simulate_psf
+    >>> from kpifs.calibration.pixelnoise import pixel_noise
+    >>> from kpifs.simulation.simulate import simulate_psf
     >>> psf = 1e6 * simulate_psf("niriss_nrm", [1.6] * u.um, pixscale=10.42 * u.mas,
     ...                          shape=(32, 32), npup=48)
     >>> frames = np.stack([psf, psf])
@@ -159,7 +160,7 @@ def scatter_ratio(kpd):
     --------
     >>> import numpy as np, astropy.units as u
     >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
-    >>> from kpifs.pixelnoise import scatter_ratio
+    >>> from kpifs.calibration.pixelnoise import scatter_ratio
     >>> km = KernelModel.from_pupil(make_pupil("niriss_nrm"))
     >>> kp = np.random.default_rng(1).normal(0, 0.1, (50, 1, 15))
     >>> kpd = KernelPhaseData(kp, [4.8] * u.um, 65.6 * u.mas, km)
@@ -217,8 +218,8 @@ def attach_pixel_noise(kpd, cube):
     --------
     >>> import tempfile
     >>> from kpifs.io import read_cube, write_observation
-    >>> from kpifs.pixelnoise import attach_pixel_noise
-    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.calibration.pixelnoise import attach_pixel_noise
+    >>> from kpifs.simulation.simulate import simulate_scene
     >>> from kpifs.workflow import ExtractOptions, extract_observation
     >>> obs = simulate_scene("niriss", n_frames=3, npup=32, shape=(32, 32), seed=1)
     >>> tmp = tempfile.TemporaryDirectory()
@@ -272,7 +273,7 @@ def calibrated_pixel_covariance(target, calibrators):
     --------
     >>> import numpy as np, astropy.units as u
     >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
-    >>> from kpifs.pixelnoise import calibrated_pixel_covariance
+    >>> from kpifs.calibration.pixelnoise import calibrated_pixel_covariance
     >>> km = KernelModel.from_pupil(make_pupil("niriss_nrm"))
     >>> def star(n):
     ...     return KernelPhaseData(np.zeros((n, 1, 15)), [4.8] * u.um, 65.6 * u.mas, km,
@@ -303,7 +304,7 @@ def complement_rows(rows, pixel_covariance, *, data=None, groups=8, rtol=1e-9):
     Parameters
     ----------
     rows : ndarray, shape (nrow, q, p)
-        The error model's covariance rows (`~kpifs.errormodel.ErrorModel.rows`).
+        The error model's covariance rows (`~kpifs.calibration.errormodel.ErrorModel.rows`).
     pixel_covariance : ndarray, shape (q, p, p)
         The calibrated mean's pixel noise (`calibrated_pixel_covariance`).
     data : ndarray, shape (q, p), optional
@@ -321,7 +322,7 @@ def complement_rows(rows, pixel_covariance, *, data=None, groups=8, rtol=1e-9):
     Examples
     --------
     >>> import numpy as np
-    >>> from kpifs.pixelnoise import complement_rows
+    >>> from kpifs.calibration.pixelnoise import complement_rows
     >>> rows = np.zeros((1, 1, 3)); rows[0, 0, 0] = 2.0          # one mode: the first axis
     >>> extra, scale = complement_rows(rows, np.eye(3)[None])
     >>> extra.shape, np.round(extra[:, 0].T @ extra[:, 0], 12)[0].tolist()
@@ -364,3 +365,93 @@ class _Channels:
     def __getitem__(self, key):
         idx, ic = key
         return np.asarray(self.stack[idx, self.chans[ic]], float)
+
+
+def propagated_covariance(images, variance, kernel_model, *, wavelengths, pixscale, centres,
+                          window):
+    """Photon and read noise propagated through the linear extraction, for one frame.
+
+    To first order ``dphi_b = Im(dV_b / V_b)`` with ``dV = M (w dI)``; with
+    independent pixel noise of variance ``var`` this gives
+    ``cov(phi) = J diag(var) J^T`` and ``cov(k) = K cov(phi) K^T``.
+
+    Parameters
+    ----------
+    images, variance : ndarray, shape (nwave, ny, nx)
+        A (mean) frame and its per-pixel variance.
+    kernel_model : `~kpifs.model.kernel.KernelModel`
+        The model used for the extraction (after any Nyquist cut).
+    wavelengths, pixscale
+        As for `~kpifs.extract_kernel_phases`.
+    centres : array-like, shape (nwave, 2) or (2,)
+        Star centres ``(x, y)``.
+    window : `~kpifs.model.window.ExtractionWindow`
+        The extraction's window (``kpd.window``).
+
+    Returns
+    -------
+    ndarray, shape (nwave, nkp, nkp)
+
+    Examples
+    --------
+    >>> import astropy.units as u
+    >>> from kpifs import ExtractionWindow, KernelModel, make_pupil
+    >>> from kpifs.calibration.pixelnoise import propagated_covariance
+    >>> from kpifs.simulation.simulate import simulate_psf
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> img = 1e6 * simulate_psf("subaru", [1.6] * u.um, pixscale=10.42 * u.mas,
+    ...                          shape=(32, 32), npup=48)
+    >>> cov = propagated_covariance(img, img + 100, km, wavelengths=[1.6] * u.um,
+    ...                             pixscale=10.42 * u.mas, centres=(16, 16),
+    ...                             window=ExtractionWindow(32, 12.8))
+    >>> cov.shape
+    (1, 37, 37)
+    """
+    wl = np.atleast_1d(to_quantity(wavelengths, u.m, name="wavelengths"))
+    ps = to_quantity(pixscale, u.mas, name="pixel scale")
+    images = np.asarray(images, float)
+    variance = np.asarray(variance, float)
+    if images.shape != variance.shape or images.ndim != 3 or images.shape[0] != len(wl):
+        raise KpifsError(f"images {images.shape} and variance {variance.shape} must both be "
+                         f"(nwave={len(wl)}, ny, nx)")
+    centres = np.broadcast_to(np.asarray(centres, float), (len(wl), 2))
+    km = kernel_model
+    ws = window.size
+    out = np.empty((len(wl), km.n_kp, km.n_kp))
+    for i in range(len(wl)):
+        img = np.nan_to_num(images[i:i + 1])
+        var = np.nan_to_num(variance[i:i + 1], nan=0.0, posinf=0.0)
+        cut, delta = cut_out(img, centres[i:i + 1], ws)
+        vcut, _ = cut_out(var, centres[i:i + 1], ws)
+        jk = kernel_jacobian(cut[0], window.weights(delta)[0],
+                             km.dft_matrix(wl[i], ps, (ws, ws)), km)
+        out[i] = (jk * vcut[0].ravel()[None, :]) @ jk.T
+    return out
+
+
+def kernel_jacobian(cut, weights, mat, kernel_model):
+    """``d k / d I``: the kernel phases' derivatives with respect to a cut-out's pixels.
+
+    ``dphi_b = Im(dV_b / V_b) = (Re V dIm V - Im V dRe V) / |V|^2`` with ``dV = M (w dI)``,
+    then ``dk = K dphi``. *mat* is the model's stacked real/imaginary DFT matrix
+    (`~kpifs.model.kernel.KernelModel.dft_matrix`), *weights* the window over the cut-out.
+    Returns ``(nkp, npix)``.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.calibration.pixelnoise import kernel_jacobian
+    >>> km = KernelModel.from_pupil(make_pupil("niriss_nrm"))
+    >>> psf = np.zeros((16, 16)); psf[8, 8] = 1.0               # a point source at the origin
+    >>> mat = km.dft_matrix(4.8 * u.um, 65.55 * u.mas, (16, 16))
+    >>> kernel_jacobian(psf + 1e-3, np.ones((16, 16)), mat, km).shape
+    (15, 256)
+    """
+    km = kernel_model
+    w = np.asarray(weights, float).ravel()
+    ri = mat @ (np.asarray(cut, float).ravel() * w)
+    re, im = ri[:km.n_uv], ri[km.n_uv:]
+    jac = (re[:, None] * mat[km.n_uv:] - im[:, None] * mat[:km.n_uv]) * w[None, :]
+    jac /= (re ** 2 + im ** 2)[:, None]
+    return km.kernel @ jac

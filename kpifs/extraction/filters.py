@@ -4,7 +4,7 @@ Each filter has its own wavelength, pixel scale and sampling limit, and its
 own integrations (exposures in different filters are neither simultaneous
 nor equally many). Each filter keeps **its own kernel**: the kernel of the uv
 points it samples (``|b| <= lambda / (2 pixscale)``). Those sets are nested,
-so one kernel serves all (`~kpifs.sampling.nested_kernel`, DESIGN.md section 6):
+so one kernel serves all (`~kpifs.model.sampling.nested_kernel`, DESIGN.md section 6):
 its first rows are the kernel of the filter that samples least, the next ones
 complete it to the next filter's, and so on. A filter measures its first
 ``n`` kernel phases (``meta['channel_n_kp']``, cards ``NKPCH<i>``); its other
@@ -41,14 +41,14 @@ import numpy as np
 from astropy import units as u
 from astropy.io import fits
 
-from .data import KernelPhaseData
-from ._utils import to_quantity
-from .exceptions import KpifsError, KpifsWarning
-from .io.cube import open_fits
-from .io.jwst import JWST_FILTERS, jwst_mode, own_pixscale, pixscale_fits
-from .kernel import KernelModel, nyquist_usable
-from .sampling import nested_kernel
-from .window import DEFAULT_WINDOW_RADIUS, ExtractionWindow
+from ..data import KernelPhaseData
+from .._utils import to_quantity
+from ..exceptions import KpifsError, KpifsWarning
+from ..io.cube import open_fits
+from ..io.jwst import JWST_FILTERS, jwst_mode, own_pixscale, pixscale_fits
+from ..model.kernel import KernelModel, nyquist_usable
+from ..model.sampling import nested_kernel
+from ..model.window import DEFAULT_WINDOW_RADIUS, ExtractionWindow
 
 __all__ = ["jwst_filters", "filter_groups", "filter_models", "filter_window_radius",
            "stack_filters"]
@@ -64,7 +64,7 @@ def jwst_filters(paths):
 
     Examples
     --------
-    >>> from kpifs.filters import jwst_filters
+    >>> from kpifs.extraction.filters import jwst_filters
     >>> jwst_filters([])
     {}
     """
@@ -135,7 +135,7 @@ def filter_groups(targets, calibrators, *, pixscale=None):
 
     Examples
     --------
-    >>> from kpifs.filters import filter_groups
+    >>> from kpifs.extraction.filters import filter_groups
     >>> from kpifs.exceptions import KpifsError
     >>> try:
     ...     filter_groups([], [])
@@ -184,7 +184,7 @@ def filter_models(km, order, groups, scales, *, filter_kernels="own"):
     --------
     >>> import astropy.units as u
     >>> from kpifs import KernelModel, make_pupil
-    >>> from kpifs.filters import filter_models
+    >>> from kpifs.extraction.filters import filter_models
     >>> km = KernelModel.from_pupil(make_pupil("niriss_nrm"))
     >>> scales = {"F277W": (2.8, 65.55, 80), "F480M": (4.82, 65.55, 80)}
     >>> model, own = filter_models(km, ["F277W", "F480M"], {}, scales)
@@ -229,7 +229,7 @@ def filter_window_radius(order, scales, window_radius=None):
 
     Examples
     --------
-    >>> from kpifs.filters import filter_window_radius
+    >>> from kpifs.extraction.filters import filter_window_radius
     >>> r = filter_window_radius(["F150W", "F480M"], {"F150W": (1.5, 31.0, 64),
     ...                                                "F480M": (4.8, 63.0, 64)})
     >>> round(r["F150W"] * 31.0, 6) == round(r["F480M"] * 63.0, 6)
@@ -264,8 +264,8 @@ def stack_filters(products, names, *, kernel_model=None):
         One calibrated frame per filter.
     names : list of str
         The filters' names.
-    kernel_model : `~kpifs.kernel.KernelModel`, optional
-        The nested kernel (`~kpifs.sampling.nested_kernel`) when the filters have
+    kernel_model : `~kpifs.model.kernel.KernelModel`, optional
+        The nested kernel (`~kpifs.model.sampling.nested_kernel`) when the filters have
         their own: each product's kernel must be its first rows on the product's
         uv points. Default: the products share one kernel.
 
@@ -273,7 +273,7 @@ def stack_filters(products, names, *, kernel_model=None):
     --------
     >>> import numpy as np, astropy.units as u
     >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
-    >>> from kpifs.filters import stack_filters
+    >>> from kpifs.extraction.filters import stack_filters
     >>> km = KernelModel.from_pupil(make_pupil("niriss_nrm"))
     >>> one = [KernelPhaseData(np.zeros((1, 1, 15)), [w] * u.um, ps * u.mas, km,
     ...                        covariance=np.eye(15)[None], covariance_rows=np.eye(15)[:, None],

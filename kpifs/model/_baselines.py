@@ -1,6 +1,6 @@
 """Baselines of a discrete pupil and the kernel of its phase-transfer matrix (private).
 
-The pieces of `kpifs.kernel.KernelModel` that work on plain arrays: the unique
+The pieces of `kpifs.model.kernel.KernelModel` that work on plain arrays: the unique
 half-plane uv points with their redundancies and baseline-mapping matrix, the
 mapping for given uv points (files without BLM-MAT), and the kernel from the
 SVD, kept in a small cache (models rebuilt for every file of an archive share
@@ -12,7 +12,7 @@ from collections import OrderedDict
 
 import numpy as np
 
-from ._lazy import lazy_module
+from .._lazy import lazy_module
 
 spatial = lazy_module("scipy.spatial")
 

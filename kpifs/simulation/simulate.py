@@ -5,7 +5,7 @@ screen (achromatic optical path, so the phase scales as ``1/lambda``), and a
 matrix Fourier transform (Soummer et al. 2007) straight onto the detector
 pixels, ``E(theta) = sum_r P(r) exp(i phi(r)) exp(+2 pi i r.theta / lambda)``.
 With this propagation sign a pupil phase ``phi`` gives the Fourier phase
-``R^-1 A phi`` of `~kpifs.kernel.KernelModel` (``phi_j - phi_k`` on baseline
+``R^-1 A phi`` of `~kpifs.model.kernel.KernelModel` (``phi_j - phi_k`` on baseline
 ``r_j - r_k``). A companion at ``(alpha, beta)`` is the same field evaluated at
 ``theta - (alpha, beta)``, so it shares the star's aberrations.
 
@@ -20,12 +20,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from astropy import units as u
 
-from ._memory import check_memory
-from ._utils import as_rng, one_blas_thread, to_quantity
-from ._utils import progress as progress_bar
-from .exceptions import KpifsError
-from .kernel import MAS
-from .pupil import MASKS, TELESCOPES, pupil_image
+from .._memory import check_memory
+from .._utils import as_rng, one_blas_thread, to_quantity
+from .._utils import progress as progress_bar
+from ..exceptions import KpifsError
+from ..model.kernel import MAS
+from ..model.pupil import MASKS, TELESCOPES, pupil_image
 
 __all__ = ["simulate_psf", "phase_screens", "SceneParameters", "PRESETS", "simulate_scene",
            "SimulatedObservation", "charis_field"]
@@ -68,7 +68,7 @@ def phase_screens(npup, dx, n, *, rms=100e-9, mask=None, cutoff=None, seed=None)
 
     Examples
     --------
-    >>> from kpifs.simulate import phase_screens
+    >>> from kpifs.simulation.simulate import phase_screens
     >>> s = phase_screens(64, 0.125, 3, rms=50e-9, seed=1)
     >>> s.shape, round(float(s[0].std() * 1e9), 1)
     ((3, 64, 64), 50.0)
@@ -103,7 +103,7 @@ def simulate_psf(pupil, wavelengths, *, pixscale, shape=(64, 64), npup=128, opd=
     Parameters
     ----------
     pupil : str
-        Telescope name or FITS pupil image (see `~kpifs.pupil.pupil_image`).
+        Telescope name or FITS pupil image (see `~kpifs.model.pupil.pupil_image`).
     wavelengths : `~astropy.units.Quantity`, shape (nwave,)
     pixscale : `~astropy.units.Quantity`
     shape : tuple of int
@@ -119,7 +119,7 @@ def simulate_psf(pupil, wavelengths, *, pixscale, shape=(64, 64), npup=128, opd=
     pupil_rotation : `~astropy.units.Quantity`
         Turn of the pupil (counter-clockwise from +x to +y).
     supersample : int
-        Anti-aliasing of the pupil (`~kpifs.pupil.pupil_image`).
+        Anti-aliasing of the pupil (`~kpifs.model.pupil.pupil_image`).
     pupil_scale : `~astropy.units.Quantity`, optional
         Pixel size of a pupil image (m), overriding its ``PUPSCALE``.
 
@@ -131,7 +131,7 @@ def simulate_psf(pupil, wavelengths, *, pixscale, shape=(64, 64), npup=128, opd=
     Examples
     --------
     >>> import astropy.units as u
-    >>> from kpifs.simulate import simulate_psf
+    >>> from kpifs.simulation.simulate import simulate_psf
     >>> img = simulate_psf("subaru", [1.6] * u.um, pixscale=10.42 * u.mas, shape=(40, 40))
     >>> img.shape, bool(0.8 < img.sum() < 1.0)
     ((1, 40, 40), True)
@@ -160,7 +160,7 @@ class SceneParameters:
 
     Examples
     --------
-    >>> from kpifs.simulate import SceneParameters
+    >>> from kpifs.simulation.simulate import SceneParameters
     >>> p = SceneParameters()
     >>> p.telescope, p.shape, round(float(p.contrasts.mean()), 6)
     ('subaru', (40, 40), 0.000631)
@@ -224,7 +224,7 @@ def charis_field(shape=(201, 201), *, side=133.0, angle=27.0):
 
     Examples
     --------
-    >>> from kpifs.simulate import charis_field
+    >>> from kpifs.simulation.simulate import charis_field
     >>> field = charis_field()
     >>> field.shape, bool(field[100, 100]), bool(field[0, 0])
     ((201, 201), True, False)
@@ -303,7 +303,7 @@ class SimulatedObservation:
 
     Examples
     --------
-    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.simulation.simulate import simulate_scene
     >>> obs = simulate_scene("paper", n_frames=1, seed=3, npup=32)
     >>> obs.truth["KPSIMX"][0], obs.calibrator.shape
     (80.0, (1, 3, 40, 40))
@@ -401,7 +401,7 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
 
     Examples
     --------
-    >>> from kpifs.simulate import simulate_scene
+    >>> from kpifs.simulation.simulate import simulate_scene
     >>> obs = simulate_scene("paper", n_frames=2, seed=1)
     >>> obs.target.shape
     (2, 3, 40, 40)

@@ -5,7 +5,7 @@ multiples of ``1 / p`` (``p`` the pixel scale). The true transform, the optical
 transfer function, reaches ``D / lam`` (``D`` the pupil's extent), so a uv
 point ``b / lam`` is free of the copies only while it lies farther than ``D /
 lam`` from every shifted origin ``(k, l) / p``. Dropping uv points beyond the
-Nyquist limit ``1 / (2 p)`` (`kpifs.kernel.nyquist_usable`) is not enough when
+Nyquist limit ``1 / (2 p)`` (`kpifs.model.kernel.nyquist_usable`) is not enough when
 ``p > lam / (2 D)``: the points between ``lam / p - D`` and the Nyquist limit
 then carry a piece of the star's aliased transfer function, which the binary
 model does not contain. A companion's kernel phases there are biased (its
@@ -25,8 +25,8 @@ import numpy as np
 from astropy import units as u
 from scipy.spatial.distance import pdist
 
-from ._utils import to_quantity
-from .exceptions import KpifsError
+from .._utils import to_quantity
+from ..exceptions import KpifsError
 
 __all__ = ["aliased_uv", "aliased_channels", "pupil_extent", "nested_kernel",
            "channel_uv_mask", "unmeasured", "measured_rows"]
@@ -41,7 +41,7 @@ def pupil_extent(pupil):
     --------
     >>> import astropy.units as u
     >>> from kpifs import make_pupil
-    >>> from kpifs.sampling import pupil_extent
+    >>> from kpifs.model.sampling import pupil_extent
     >>> round(float(pupil_extent(make_pupil("subaru", step=0.5 * u.m)).value), 1)
     8.6
     """
@@ -70,7 +70,7 @@ def aliased_uv(uv, wavelengths, pixscale, *, diameter):
     Examples
     --------
     >>> import astropy.units as u
-    >>> from kpifs.sampling import aliased_uv
+    >>> from kpifs.model.sampling import aliased_uv
     >>> aliased_uv([[7.0, 0.0], [3.0, 0.0]] * u.m, [1.16, 1.6] * u.um, 16.2 * u.mas,
     ...            diameter=8.2 * u.m)
     array([[ True, False],
@@ -100,7 +100,7 @@ def aliased_channels(kernel_model, wavelengths, pixscale, *, uv_mask=None):
     --------
     >>> import astropy.units as u
     >>> from kpifs import KernelModel, make_pupil
-    >>> from kpifs.sampling import aliased_channels
+    >>> from kpifs.model.sampling import aliased_channels
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=0.5 * u.m))
     >>> frac = aliased_channels(km, [1.16, 1.6] * u.um, 16.2 * u.mas)
     >>> bool(frac[0] > 0), float(frac[1])
@@ -120,7 +120,7 @@ def nested_kernel(kernel_model, usable):
     """One kernel for channels that sample nested sets of uv points.
 
     A channel samples the uv points within its limit ``lam / (2 p)``
-    (`~kpifs.kernel.nyquist_usable`), so the channels' sets are nested. The
+    (`~kpifs.model.kernel.nyquist_usable`), so the channels' sets are nested. The
     kernel of a smaller set, extended by zeros, lies in the kernel of a larger
     one. The rows returned are the smallest set's kernel, then the rows that
     complete it to the next set's kernel, and so on: channel ``c``'s kernel
@@ -129,13 +129,13 @@ def nested_kernel(kernel_model, usable):
 
     Parameters
     ----------
-    kernel_model : `~kpifs.kernel.KernelModel`
+    kernel_model : `~kpifs.model.kernel.KernelModel`
     usable : array-like of bool, shape (nchan, nuv)
         The uv points each channel samples.
 
     Returns
     -------
-    model : `~kpifs.kernel.KernelModel`
+    model : `~kpifs.model.kernel.KernelModel`
         The model on the uv points some channel samples, with the nested kernel.
     counts : ndarray of int, shape (nchan,)
         Each channel's number of kernel phases (0 where it has none).
@@ -144,8 +144,8 @@ def nested_kernel(kernel_model, usable):
     --------
     >>> import astropy.units as u
     >>> from kpifs import KernelModel, make_pupil
-    >>> from kpifs.kernel import nyquist_usable
-    >>> from kpifs.sampling import nested_kernel
+    >>> from kpifs.model.kernel import nyquist_usable
+    >>> from kpifs.model.sampling import nested_kernel
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     >>> usable = nyquist_usable(km.uv, [1.2, 2.2] * u.um, 20 * u.mas)
     >>> model, counts = nested_kernel(km, usable)
@@ -191,7 +191,7 @@ def channel_uv_mask(kernel_model, counts):
     --------
     >>> import astropy.units as u
     >>> from kpifs import KernelModel, make_pupil
-    >>> from kpifs.sampling import channel_uv_mask
+    >>> from kpifs.model.sampling import channel_uv_mask
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     >>> channel_uv_mask(km, [km.n_kp]).shape == (1, km.n_uv)
     True
@@ -207,7 +207,7 @@ def unmeasured(counts, n_kp):
 
     Examples
     --------
-    >>> from kpifs.sampling import unmeasured
+    >>> from kpifs.model.sampling import unmeasured
     >>> unmeasured([1, 2], 2).tolist()
     [[False, True], [False, False]]
     """
@@ -224,8 +224,8 @@ def measured_rows(kp, kernel_model, dropped=()):
     --------
     >>> import numpy as np, astropy.units as u
     >>> from kpifs import KernelModel, make_pupil
-    >>> from kpifs.kernel import nyquist_usable
-    >>> from kpifs.sampling import measured_rows, nested_kernel
+    >>> from kpifs.model.kernel import nyquist_usable
+    >>> from kpifs.model.sampling import measured_rows, nested_kernel
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     >>> model, counts = nested_kernel(km, nyquist_usable(km.uv, [1.2, 2.2] * u.um, 20 * u.mas))
     >>> kp, own = measured_rows(np.ones((1, 2, model.n_kp)), model)

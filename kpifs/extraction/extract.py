@@ -1,7 +1,7 @@
 """Batched per-wavelength kernel-phase extraction.
 
 For each wavelength one Fourier operator at the model's uv points
-(`kpifs.fourier`: separable products when the uv points lie on a lattice, as
+(`kpifs.model.fourier`: separable products when the uv points lie on a lattice, as
 for every grid pupil model; a non-uniform FFT or the dense DFT matrix
 ``M[b, pix] = exp(-2 pi i (u_b x + v_b y)/lam)`` otherwise) is built for the
 window's pixels, kept in a bounded module-level cache, and applied to whole
@@ -9,7 +9,7 @@ batches of frames. The window is cut at the integer pixel nearest the star
 centre; the sub-pixel remainder ``delta`` is applied afterwards as the exact
 phase ramp ``+2 pi b.delta/lam``, so the star centre is the DFT origin without
 interpolating the image. The apodisation follows the star to
-`~kpifs.window.WINDOW_QUANTUM` of a pixel, so windows are cached too.
+`~kpifs.model.window.WINDOW_QUANTUM` of a pixel, so windows are cached too.
 
 `extract_kernel_phases` checks its inputs once (`_check_inputs`) and then runs
 `_extract_batch` on each batch of frames of each channel.
@@ -23,17 +23,17 @@ from threading import Lock
 import numpy as np
 from astropy import units as u
 
-from ._checks import drop_dead_channels
-from ._utils import progress as progress_bar, thread_map, to_quantity
-from .data import KernelPhaseData
-from .exceptions import KpifsError, KpifsWarning
-from .fourier import METHODS as FOURIER_METHODS, fourier_operator
-from .io.pages import release_pages
-from .io.wavelengths import check_wavelengths
-from .kernel import MAS, KernelModel, load_kernel_model
+from .._checks import drop_dead_channels
+from .._utils import progress as progress_bar, thread_map, to_quantity
+from ..data import KernelPhaseData
+from ..exceptions import KpifsError, KpifsWarning
+from ..model.fourier import METHODS as FOURIER_METHODS, fourier_operator
+from ..io.pages import release_pages
+from ..io.wavelengths import check_wavelengths
+from ..model.kernel import MAS, KernelModel, load_kernel_model
 from .prepare import CENTROID_METHODS, cut_out, fill_bad_pixels, find_centres
-from .sampling import measured_rows
-from .window import WINDOW_QUANTUM, ExtractionWindow
+from ..model.sampling import measured_rows
+from ..model.window import WINDOW_QUANTUM, ExtractionWindow
 
 __all__ = ["extract_kernel_phases"]
 
@@ -341,30 +341,30 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
     ----------
     data : array-like, shape (nwave, ny, nx) or (nframe, nwave, ny, nx)
         Images (memory-mapped arrays are read one batch of frames at a time).
-    pupil : `~kpifs.kernel.KernelModel`, `~kpifs.pupil.PupilModel` or str
+    pupil : `~kpifs.model.kernel.KernelModel`, `~kpifs.model.pupil.PupilModel` or str
         Kernel model, pupil model, telescope name or FITS file (see
-        `~kpifs.kernel.load_kernel_model`).
+        `~kpifs.model.kernel.load_kernel_model`).
     wavelengths : `~astropy.units.Quantity`, shape (nwave,)
     pixscale : `~astropy.units.Quantity`
         Angular pixel size.
-    window : `~kpifs.window.ExtractionWindow`, optional
+    window : `~kpifs.model.window.ExtractionWindow`, optional
         Cut-out and apodisation; default `ExtractionWindow.default
-        <kpifs.window.ExtractionWindow.default>` for the image size. Pixels of
+        <kpifs.model.window.ExtractionWindow.default>` for the image size. Pixels of
         the cut-out outside the image count as excluded.
     centres : array-like, optional
         Star centres ``(x, y)`` in pixels, broadcastable to (nframe, nwave, 2);
-        found with `~kpifs.prepare.find_centres` (method *centroid*) if omitted.
+        found with `~kpifs.extraction.prepare.find_centres` (method *centroid*) if omitted.
     mask : array-like of bool, optional
         True for bad pixels, broadcastable to the data; NaN pixels are bad too.
     centroid : str
         Centroid method when *centres* is omitted.
     bad_pixels : {'fill', 'exclude'}
         ``'fill'``: interpolate bad pixels from their neighbours
-        (`~kpifs.prepare.fill_bad_pixels`); ``'exclude'``: leave them out of the
+        (`~kpifs.extraction.prepare.fill_bad_pixels`); ``'exclude'``: leave them out of the
         Fourier sums (set to zero).
     on_nyquist : {'drop', 'raise', 'own'}
         What to do with uv points beyond the Nyquist limit of some channel
-        (see `~kpifs.kernel.KernelModel.for_wavelengths`; ``'own'``: each
+        (see `~kpifs.model.kernel.KernelModel.for_wavelengths`; ``'own'``: each
         channel keeps its own, ``meta['channel_n_kp']``).
     batch_size : int
         Frames processed together (bounds the memory in use).
@@ -388,7 +388,7 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
         lists the input indices of the frames left out.
     fourier : {'auto', 'separable', 'nufft', 'dense'}
         How the Fourier transform at the uv points is computed (see
-        `kpifs.fourier`); every path gives the same phases to ~1e-9 rad.
+        `kpifs.model.fourier`); every path gives the same phases to ~1e-9 rad.
         ``'auto'``: separable products when the uv points lie on a lattice
         (grid pupil models), else a non-uniform FFT when finufft is
         installed, else the dense DFT matrix.
@@ -407,7 +407,7 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
     --------
     >>> import numpy as np, astropy.units as u
     >>> from kpifs import extract_kernel_phases
-    >>> from kpifs.simulate import simulate_psf
+    >>> from kpifs.simulation.simulate import simulate_psf
     >>> wl = [1.6] * u.um
     >>> cube = simulate_psf("subaru", wl, pixscale=10.42 * u.mas, shape=(40, 40))
     >>> kpd = extract_kernel_phases(cube, "subaru", wavelengths=wl, pixscale=10.42 * u.mas)

@@ -2,33 +2,20 @@
 
 `ApertureGeometry` describes a circular aperture with a central obstruction and
 spider vanes; `TELESCOPES` holds the published ones (FORMATS.md); and
-`MODEL_DEFAULTS` says how `kpifs.pupil.make_pupil` discretises each of them
-by default, with the source of every number. `kpifs.pupil` re-exports all of
+`MODEL_DEFAULTS` says how `kpifs.model.pupil.make_pupil` discretises each of them
+by default, with the source of every number. `kpifs.model.pupil` re-exports all of
 them.
 """
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from .._utils import canonical_name
 from ._segmented import (GPI_MASK_MAGNIFICATION, GPI_NRM_HOLES_MM, NIRISS_NRM_HOLES,
                          SEGMENTED_TELESCOPES, MaskGeometry)
 
 __all__ = ["ApertureGeometry", "TELESCOPES", "ModelDefaults", "MODEL_DEFAULTS",
            "BINARY_MIN_TRANSMISSION", "model_defaults"]
-
-
-def canonical_name(name):
-    """The canonical spelling of a built-in pupil or mask name: lower case, ``_`` for ``-``.
-
-    Both spellings are accepted everywhere (``'niriss-nrm'`` is ``'niriss_nrm'``).
-
-    Examples
-    --------
-    >>> from kpifs.pupil import canonical_name
-    >>> canonical_name("SPHERE-SAM7")
-    'sphere_sam7'
-    """
-    return str(name).strip().lower().replace("-", "_")
 
 
 class _Names(dict):
@@ -70,7 +57,7 @@ class ApertureGeometry:
 
     Examples
     --------
-    >>> from kpifs.pupil import ApertureGeometry
+    >>> from kpifs.model.pupil import ApertureGeometry
     >>> geo = ApertureGeometry(diameter=4.0, obstruction=1.0, name="small")
     >>> geo.transmission([0.0, 1.0, 3.0], [0.0, 0.0, 0.0])
     array([0., 1., 0.])
@@ -149,7 +136,7 @@ class ModelDefaults:
 
     Examples
     --------
-    >>> from kpifs.pupil import MODEL_DEFAULTS
+    >>> from kpifs.model.pupil import MODEL_DEFAULTS
     >>> MODEL_DEFAULTS["subaru"].step, MODEL_DEFAULTS["subaru"].min_redundancy
     (0.38, 0.5)
     """
@@ -197,7 +184,7 @@ def model_defaults(pupil):
 
     Examples
     --------
-    >>> from kpifs.pupil import model_defaults
+    >>> from kpifs.model.pupil import model_defaults
     >>> d = model_defaults("pharo")
     >>> d.step, d.grey, d.min_transmission
     (0.16, True, 0.2)

@@ -3,7 +3,7 @@
 A frame whose phases wrapped (a uv point of small amplitude crossing +-pi), or
 whose centring failed, gives kernel phases far off while its pixels look
 normal: the extraction's bad-frame checks (empty, NaN, no flux) pass it. In
-the error model (`kpifs.errormodel`) one such frame inflates the held-out
+the error model (`kpifs.calibration.errormodel`) one such frame inflates the held-out
 variance of every mode: on a simulated NIRCam F150W sequence (20 frames, one
 frame 19 times the others' scatter) the modelled variances came out a
 thousand times the frames', and the whitened energy of the calibrated data
@@ -12,7 +12,7 @@ thousand times the frames', and the whitened energy of the calibrated data
 `outlier_frames` scores each frame by its mean squared robust z-score
 (deviation from the median frame over 1.4826 MAD, per channel and kernel
 phase; about 1 for Gaussian frames) and flags scores above `THRESHOLD` times
-the median score. `~kpifs.calibrate.calibrate` leaves them out with a
+the median score. `~kpifs.calibration.calibrate.calibrate` leaves them out with a
 warning naming the file and the frames.
 """
 import copy
@@ -35,7 +35,7 @@ def outlier_frames(kp, *, threshold=THRESHOLD):
     Examples
     --------
     >>> import numpy as np
-    >>> from kpifs.outliers import outlier_frames
+    >>> from kpifs.calibration.outliers import outlier_frames
     >>> kp = np.random.default_rng(0).normal(0, 0.01, (20, 2, 30))
     >>> kp[7] += 0.3                                   # one frame far off
     >>> bad, score = outlier_frames(kp)
@@ -63,7 +63,7 @@ def without_outlier_frames(kpd, *, threshold=THRESHOLD):
     --------
     >>> import numpy as np, astropy.units as u
     >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
-    >>> from kpifs.outliers import without_outlier_frames
+    >>> from kpifs.calibration.outliers import without_outlier_frames
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     >>> kp = np.random.default_rng(1).normal(0, 0.01, (12, 1, km.n_kp))
     >>> kp[3] += 0.5

@@ -10,7 +10,7 @@ that lies inside the real pupil. By default models are *grey*: cells at least
 as a weight, so that the light of partly covered cells (pupil edge, spiders)
 is modelled and the kernel cancels its aberrations; uv points made only of
 such cells (redundancy below ``min_redundancy`` = 0.5) are left out of the
-kernel model (`~kpifs.kernel.KernelModel.from_pupil`). ``grey=False`` gives a
+kernel model (`~kpifs.model.kernel.KernelModel.from_pupil`). ``grey=False`` gives a
 *binary* model (every kept cell counts 1; cut 0.9 by default). The defaults of
 each built-in pupil (step, cut, orientation) are in `MODEL_DEFAULTS`, with
 their sources.
@@ -20,11 +20,11 @@ import numpy as np
 from astropy import units as u
 from astropy.io import fits
 
-from ._utils import to_quantity
+from .._utils import to_quantity
 from .apertures import (BINARY_MIN_TRANSMISSION, MASKS, MODEL_DEFAULTS,  # noqa: F401
                         TELESCOPES, ApertureGeometry, MaskGeometry, ModelDefaults,
                         canonical_name, model_defaults)
-from .exceptions import KpifsError
+from ..exceptions import KpifsError
 
 __all__ = ["PupilModel", "ApertureGeometry", "TELESCOPES", "ModelDefaults", "MODEL_DEFAULTS",
            "model_defaults", "make_pupil", "pupil_image", "read_pupil_fits"]
@@ -178,7 +178,7 @@ def read_pupil_fits(path, *, pupil_scale=None):
     --------
     >>> import tempfile, numpy as np
     >>> from astropy.io import fits
-    >>> from kpifs.pupil import read_pupil_fits
+    >>> from kpifs.model.pupil import read_pupil_fits
     >>> tmp = tempfile.TemporaryDirectory()
     >>> path = tmp.name + "/pupil.fits"
     >>> fits.writeto(path, np.ones((8, 8)), fits.Header({"PUPSCALE": 0.5}))
@@ -289,7 +289,7 @@ def make_pupil(pupil="subaru", *, step=None, offset=None, min_transmission=None,
         Keep the fractional transmissions (a grey model, the default) or
         count every kept cell 1 (``False``: a binary model).
     min_redundancy : float, optional
-        Recorded in the model's ``meta`` for `~kpifs.kernel.KernelModel.from_pupil`:
+        Recorded in the model's ``meta`` for `~kpifs.model.kernel.KernelModel.from_pupil`:
         uv points of smaller redundancy are left out (default 0.5 for a grey
         model, 0 for a binary one).
     hexagonal : bool
@@ -383,7 +383,7 @@ def pupil_image(pupil="subaru", *, npix=256, pixel_size=None, rotation=0 * u.deg
 
     Examples
     --------
-    >>> from kpifs.pupil import pupil_image
+    >>> from kpifs.model.pupil import pupil_image
     >>> img, dx = pupil_image("subaru", npix=128)
     >>> img.shape, round(float(dx), 4)
     ((128, 128), 0.0619)

@@ -12,7 +12,7 @@ companion-free data sets.
 
 Its *shape* comes from physics: `static_residual_rows` images the star
 through the telescope's own pupil with random wavefronts (an AO residual's
-spectrum, `kpifs.simulate.phase_screens`), extracts kernel phases with the
+spectrum, `kpifs.simulation.simulate.phase_screens`), extracts kernel phases with the
 data's model, window and pixel scale, and keeps their scatter as covariance
 rows, correlated across channels as one wavefront seen at every wavelength
 is. A pupil that is not built in (a KPFITS of another telescope) is imaged as
@@ -46,16 +46,18 @@ import logging
 
 import numpy as np
 from astropy import units as u
-from scipy.optimize import minimize_scalar
 
-from ._utils import to_quantity
-from .apertures import MASKS, TELESCOPES
-from .covariance import whiten
-from .exceptions import KpifsError
-from .extract import extract_kernel_phases
-from .pupil import pupil_image
+from .._lazy import lazy_module
+from .._utils import to_quantity
+from ..model.apertures import MASKS, TELESCOPES
+from ..covariance import whiten
+from ..exceptions import KpifsError
+from ..extraction.extract import extract_kernel_phases
+from ..model.pupil import pupil_image
 from .simulate import _mft_matrices, phase_screens
-from .window import ExtractionWindow
+from ..model.window import ExtractionWindow
+
+optimize = lazy_module("scipy.optimize")
 
 __all__ = ["static_residual_rows", "leading_static_rows", "fit_static_amplitude",
            "static_term"]
@@ -158,7 +160,7 @@ def static_residual_rows(kernel_model, wavelengths, pixscale, *, window=None, te
     --------
     >>> import astropy.units as u
     >>> from kpifs import KernelModel, make_pupil
-    >>> from kpifs.aberrations import static_residual_rows
+    >>> from kpifs.simulation.aberrations import static_residual_rows
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1.0 * u.m))
     >>> rows = static_residual_rows(km, [2.12] * u.um, 10 * u.mas, n_screens=20)
     >>> rows.shape == (20, 1, km.n_kp), bool(abs(rows).max() > 0)
@@ -180,7 +182,8 @@ def static_residual_rows(kernel_model, wavelengths, pixscale, *, window=None, te
     screens = phase_screens(STATIC_NPUP, dx, n_screens, rms=rms_m, mask=img > 0, seed=seed)
     p = ps.to_value(u.mas) * np.pi / 180 / 3600e3
     cube = np.empty((n_screens, len(wl), size, size))
-    # one pair of MFT matrices per wavelength for every screen (`kpifs.simulate._propagate`,
+    # one pair of MFT matrices per wavelength for every screen
+    # (`kpifs.simulation.simulate._propagate`,
     # batched); the field's energy is the pupil's whatever the phase
     norm = (p * dx) ** 2 / np.sum(img ** 2)
     for i, lam in enumerate(wl):
@@ -209,7 +212,7 @@ def leading_static_rows(rows, whitening, *, variance=STATIC_VARIANCE, max_rank=S
     Examples
     --------
     >>> import numpy as np
-    >>> from kpifs.aberrations import leading_static_rows
+    >>> from kpifs.simulation.aberrations import leading_static_rows
     >>> rng = np.random.default_rng(0)
     >>> modes = rng.standard_normal((5, 100))              # a term of 5 strong directions
     >>> rows = (rng.standard_normal((200, 5)) @ modes + 1e-3 * rng.standard_normal((200, 100)))
@@ -242,7 +245,7 @@ def fit_static_amplitude(y, whitening, rows):
     Examples
     --------
     >>> import numpy as np
-    >>> from kpifs.aberrations import fit_static_amplitude
+    >>> from kpifs.simulation.aberrations import fit_static_amplitude
     >>> rng = np.random.default_rng(0)
     >>> rows = rng.standard_normal((30, 1, 200)) / 30 ** 0.5
     >>> y = rng.standard_normal((1, 200)) + 2.0 * rng.standard_normal(30) @ rows[:, 0]
@@ -264,7 +267,8 @@ def fit_static_amplitude(y, whitening, rows):
     if not len(s2):
         return 0.0
     scale = 1.0 / np.median(s2)
-    res = minimize_scalar(nll, bounds=(np.log(scale) - 25, np.log(scale) + 25), method="bounded")
+    res = optimize.minimize_scalar(nll, bounds=(np.log(scale) - 25, np.log(scale) + 25),
+                                   method="bounded")
     return float(np.exp(res.x)) if nll(res.x) < nll(np.log(scale) - 25) - 1e-9 else 0.0
 
 

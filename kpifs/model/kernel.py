@@ -17,11 +17,11 @@ import numpy as np
 from astropy import units as u
 
 from ._baselines import _blm_for_uv, _kernel_from_tfm, _uv_from_pupil
-from ._registry import io_methods, register
-from ._utils import to_quantity, write_hdulist
-from .exceptions import KpifsError, KpifsWarning
+from .._registry import io_methods, register
+from .._utils import to_quantity, write_hdulist
+from ..exceptions import KpifsError, KpifsWarning
 from .fourier import fourier_operator
-from .io.kpfits import has_kernel_model, model_hdulist, read_model_file, read_model_parts
+from ..io.kpfits import has_kernel_model, model_hdulist, read_model_file, read_model_parts
 from .pupil import PupilModel, make_pupil
 from .sampling import nested_kernel
 
@@ -53,7 +53,7 @@ def nyquist_usable(uv, wavelengths, pixscale):
     Examples
     --------
     >>> import astropy.units as u
-    >>> from kpifs.kernel import nyquist_usable
+    >>> from kpifs.model.kernel import nyquist_usable
     >>> nyquist_usable([[7.9, 0]] * u.m, [1.16, 1.6] * u.um, 16.2 * u.mas)
     array([[False],
            [ True]])
@@ -73,7 +73,7 @@ class KernelModel:
 
     Attributes
     ----------
-    pupil : `~kpifs.pupil.PupilModel`
+    pupil : `~kpifs.model.pupil.PupilModel`
         The discrete pupil.
     uv : `~astropy.units.Quantity`, shape (nuv, 2)
         Unique baselines in the half plane (m).
@@ -149,11 +149,11 @@ class KernelModel:
 
     @classmethod
     def from_pupil(cls, pupil, *, rtol=1e-9, uv_tol=None, min_redundancy=None):
-        """Build the kernel model of a `~kpifs.pupil.PupilModel`.
+        """Build the kernel model of a `~kpifs.model.pupil.PupilModel`.
 
         Parameters
         ----------
-        pupil : `~kpifs.pupil.PupilModel`
+        pupil : `~kpifs.model.pupil.PupilModel`
         rtol : float
             Singular values below ``rtol`` times the largest count as zero when
             computing the rank.
@@ -279,7 +279,7 @@ class KernelModel:
         `~kpifs.KpifsWarning` saying how many and at which channels; with
         ``'raise'`` a `~kpifs.KpifsError` is raised; with ``'own'`` each channel
         keeps the uv points it samples: the model's kernel is nested
-        (`~kpifs.sampling.nested_kernel`, counts in ``meta['nested_counts']``).
+        (`~kpifs.model.sampling.nested_kernel`, counts in ``meta['nested_counts']``).
 
         Examples
         --------
@@ -332,7 +332,7 @@ class KernelModel:
         that ``M @ image.ravel()`` stacks ``Re V`` and ``Im V`` with
         ``V(u, v) = sum I(x, y) exp(-2 pi i (u x + v y) / lam)``. Pixel ``(ny//2,
         nx//2)`` of the window is the origin. This is the dense reference of
-        `kpifs.fourier` (extraction uses a faster path when there is one);
+        `kpifs.model.fourier` (extraction uses a faster path when there is one);
         matrices are kept in its bounded module-level cache, keyed by the uv
         points, wavelength, pixel scale and shape, so models rebuilt per file
         share them.
@@ -466,11 +466,11 @@ def load_kernel_model(pupil="subaru", *, pupil_scale=None, **pupil_options):
 
     A FITS file holding a ``KER-MAT`` extension is read as a kernel model;
     any other FITS file as a pupil image (pixel size from ``PUPSCALE`` or
-    *pupil_scale*); anything else is passed to `~kpifs.pupil.make_pupil`.
+    *pupil_scale*); anything else is passed to `~kpifs.model.pupil.make_pupil`.
 
     Examples
     --------
-    >>> from kpifs.kernel import load_kernel_model
+    >>> from kpifs.model.kernel import load_kernel_model
     >>> load_kernel_model("subaru")
     <KernelModel 'subaru': ... kernel phases>
     """

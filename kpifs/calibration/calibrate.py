@@ -17,15 +17,15 @@ import warnings
 import numpy as np
 from astropy import units as u
 
-from ._checks import check_same_setup
-from .covariance import (calibrated_covariance, empirical_covariance, hartlap_factor,
-                         rows_covariance)
-from .data import KernelPhaseData
+from .._checks import check_same_setup
+from ..covariance import (calibrated_covariance, empirical_covariance, hartlap_factor,
+                          rows_covariance)
+from ..data import KernelPhaseData
 from .errormodel import fit_error_model
-from .exceptions import KpifsError, KpifsWarning
+from ..exceptions import KpifsError, KpifsWarning
 from .outliers import THRESHOLD as OUTLIER_THRESHOLD, without_outlier_frames
 from .pixelnoise import calibrated_pixel_covariance, complement_rows
-from .rotation import rotation_blocks
+from ..rotation import rotation_blocks
 
 __all__ = ["calibrate", "check_compatible", "check_calibration", "mean_detpa", "block_rows",
            "MAX_DETPA_SPAN"]
@@ -45,7 +45,7 @@ def check_compatible(target, other):
     --------
     >>> import numpy as np, astropy.units as u
     >>> from kpifs import KernelModel, KernelPhaseData, KpifsError, make_pupil
-    >>> from kpifs.calibrate import check_compatible
+    >>> from kpifs.calibration.calibrate import check_compatible
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     >>> a = KernelPhaseData(np.zeros((2, 1, km.n_kp)), [1.6] * u.um, 10 * u.mas, km)
     >>> b = KernelPhaseData(np.zeros((2, 1, km.n_kp)), [1.6] * u.um, 12 * u.mas, km)
@@ -89,7 +89,7 @@ def check_calibration(target, calibrators):
     --------
     >>> import numpy as np, astropy.units as u
     >>> from kpifs import KernelModel, KernelPhaseData, KpifsError, make_pupil
-    >>> from kpifs.calibrate import check_calibration
+    >>> from kpifs.calibration.calibrate import check_calibration
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     >>> a = KernelPhaseData(np.ones((4, 1, km.n_kp)), [1.6] * u.um, 10 * u.mas, km)
     >>> try:
@@ -129,7 +129,7 @@ def mean_detpa(detpa):
 
     Examples
     --------
-    >>> from kpifs.calibrate import mean_detpa
+    >>> from kpifs.calibration.calibrate import mean_detpa
     >>> [round(float(v), 6) for v in mean_detpa([1.0, 359.0, 3.0])]
     [1.0, 4.0]
     """
@@ -195,13 +195,13 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True
         result have unit variance on average, as the detection tests assume
         (``error_model='frames'`` only).
     error_model : {'auto', 'modes', 'frames'}
-        ``'modes'``: the model of `kpifs.errormodel` (temporal correlation,
+        ``'modes'``: the model of `kpifs.calibration.errormodel` (temporal correlation,
         calibration residual, the leading modes only), jointly across channels;
         ``'frames'``: the frames' sample covariance / N (independent frames,
         no calibration residual). ``'auto'``: 'modes' when every star has
         several frames, else 'frames' (single frames with KP-COV).
     n_modes, residual
-        Options of `~kpifs.errormodel.fit_error_model`.
+        Options of `~kpifs.calibration.errormodel.fit_error_model`.
     fit_modes : float or None
         With the 'modes' error model, a second model of this many modes (a
         fraction of the frames' degrees of freedom, default `FIT_MODES`)
@@ -213,7 +213,7 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True
     pixel_noise : {'auto', 'none'}
         With the 'modes' error model, ``'auto'`` gives the directions its modes
         leave out the propagated pixel noise when every star has it (JWST ``ERR``,
-        `~kpifs.pixelnoise.complement_rows`): every kernel phase is then used,
+        `~kpifs.calibration.pixelnoise.complement_rows`): every kernel phase is then used,
         weighted by its noise, instead of the modes alone.
 
     Returns
@@ -226,7 +226,7 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True
     --------
     >>> import numpy as np, astropy.units as u
     >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
-    >>> from kpifs.calibrate import calibrate
+    >>> from kpifs.calibration.calibrate import calibrate
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     >>> rng = np.random.default_rng(0)
     >>> tgt = KernelPhaseData(rng.normal(0.01, 0.1, (300, 2, km.n_kp)), [1.6, 1.7] * u.um,
@@ -277,7 +277,7 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True
 
 def _calibrate_modes(target, calibrators, *, n_modes, residual, joint, fit_modes=None,
                      pixel_noise="auto"):
-    """`calibrate` with the error model of `kpifs.errormodel`."""
+    """`calibrate` with the error model of `kpifs.calibration.errormodel`."""
     for kpd in [target, *calibrators]:
         if kpd.n_frame < MIN_FRAMES:
             raise KpifsError(f"{_name(kpd)}: {kpd.n_frame} frames are too few to estimate the "
@@ -316,7 +316,7 @@ def _calibrate_modes(target, calibrators, *, n_modes, residual, joint, fit_modes
 
 
 def _drop_outliers(kpd):
-    """*kpd* without frames far from the rest (`kpifs.outliers`), with a warning."""
+    """*kpd* without frames far from the rest (`kpifs.calibration.outliers`), with a warning."""
     kept, dropped = without_outlier_frames(kpd)
     if dropped and kept.n_frame >= MIN_FRAMES:
         warnings.warn(f"{_name(kpd)}: frame(s) {dropped} (0-based, of {kpd.n_frame}) left out: "
@@ -367,7 +367,8 @@ def _result(target, calibrators, d, cov, jcov, rows, extra, n_cal):
                           f"the detector smears a companion fixed on the sky over that arc "
                           f"(its signal is lost beyond ~{_smear_limit(target, span):.0f} mas); "
                           f"the result carries the mean angle {pa:.1f} deg (and the time "
-                          f"blocks, searched block by block: kpifs.rotation)", KpifsWarning,
+                          f"blocks, searched block by block: kpifs.rotation)",
+                          KpifsWarning,
                           stacklevel=2)
     log.info("calibrated %s (%d frames) with %d calibrator(s)", _name(target), n_t,
              len(calibrators))
@@ -464,7 +465,7 @@ def block_rows(target, calibrators, *, n_blocks=None):
     --------
     >>> import numpy as np, astropy.units as u
     >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
-    >>> from kpifs.calibrate import block_rows
+    >>> from kpifs.calibration.calibrate import block_rows
     >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
     >>> rng = np.random.default_rng(0)
     >>> t, c = (KernelPhaseData(rng.normal(0, 0.1, (36, 1, km.n_kp)), [1.6] * u.um,

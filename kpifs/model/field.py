@@ -20,8 +20,7 @@ from astropy import units as u
 MAS = np.pi / 180 / 3600 / 1000
 
 
-__all__ = ["search_field", "field_sentence", "field_cards", "field_from_header", "FIELD_CARDS",
-           "ALIAS_MARGIN"]
+__all__ = ["search_field", "field_sentence", "ALIAS_MARGIN"]
 
 #: Fraction of the aliasing limit ``lambda_min / (2 s)`` the default grid reaches.
 ALIAS_MARGIN = 0.95
@@ -44,7 +43,7 @@ def search_field(kpd, grid):
     >>> import numpy as np, astropy.units as u
     >>> from kpifs import ExtractionWindow, KernelModel, KernelPhaseData, make_pupil
     >>> from kpifs.detect import default_grid
-    >>> from kpifs.field import search_field
+    >>> from kpifs.model.field import search_field
     >>> km = KernelModel.from_pupil(make_pupil("gpi"))
     >>> kpd = KernelPhaseData(np.zeros((1, 1, km.n_kp)), [1.4946] * u.um, 14.161 * u.mas,
     ...                       km, window=ExtractionWindow(64, 25.6))
@@ -85,7 +84,7 @@ def field_sentence(field):
 
     Examples
     --------
-    >>> from kpifs.field import field_sentence
+    >>> from kpifs.model.field import field_sentence
     >>> field_sentence({"inner": 22.0, "outer": 183.0, "alias": 183.0, "window": 362.5,
     ...                 "image": 453.2, "limit": "model", "step": 0.8, "step_for": 0.4,
     ...                 "reach": 362.5, "n_kp": 60, "n_frames": 8})
@@ -131,47 +130,3 @@ def field_sentence(field):
         text += (f"; a wider window (--window-size, --window-radius) reaches "
                  f"{field['reach']:.0f} mas")
     return text
-
-
-#: Header cards of a detection product that record the field: key -> (card, comment).
-FIELD_CARDS = {"inner": ("FLDIN", "[mas] smallest separation searched"),
-               "outer": ("FLDOUT", "[mas] largest separation searched"),
-               "limit": ("FLDLIM", "bound reached: model/window/image/grid"),
-               "n_kp": ("FLDNKP", "kernel phases per channel"),
-               "n_frames": ("FLDNFR", "frames of the target"),
-               "alias": ("FLDALIAS", "[mas] model aliasing, .95 lam_min/(2 step)"),
-               "window": ("FLDWIN", "[mas] extraction window radius"),
-               "image": ("FLDIMG", "[mas] half the side of the images read"),
-               "step": ("FLDSTEP", "[m] grid step of the pupil model"),
-               "step_for": ("FLDSTEPR", "[m] grid step that reaches FLDREACH"),
-               "reach": ("FLDREACH", "[mas] next bound beyond the model's")}
-
-
-def field_cards(field, header):
-    """Write *field* (`search_field`) as cards of *header*.
-
-    Examples
-    --------
-    >>> from astropy.io import fits
-    >>> from kpifs.field import field_cards, field_from_header
-    >>> f = {"inner": 20.0, "outer": 180.0, "limit": "window", "alias": None,
-    ...      "window": 180.0, "image": 300.0, "step": None, "n_kp": 60, "n_frames": 8}
-    >>> field_from_header(field_cards(f, fits.Header())) == f
-    True
-    """
-    for key, (card, comment) in FIELD_CARDS.items():
-        v = field.get(key)
-        if isinstance(v, (int, np.integer)):
-            header[card] = (int(v), comment)
-        elif v is not None:
-            header[card] = (v if isinstance(v, str) else round(float(v), 6), comment)
-    return header
-
-
-def field_from_header(header):
-    """The field a product's cards record (`field_cards`), or None."""
-    if "FLDOUT" not in header:
-        return None
-    out = {key: header.get(card) for key, (card, _) in FIELD_CARDS.items()}
-    keep = ("alias", "window", "image", "step", "n_frames")
-    return {k: v for k, v in out.items() if v is not None or k in keep}

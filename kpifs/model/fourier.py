@@ -40,7 +40,7 @@ from collections import OrderedDict
 
 import numpy as np
 
-from .exceptions import KpifsError
+from ..exceptions import KpifsError
 
 __all__ = ["FourierOperator", "fourier_operator", "uv_lattice", "METHODS",
            "clear_cache", "cache_info"]
@@ -99,7 +99,7 @@ def uv_lattice(uv, *, rtol=1e-10):
     Examples
     --------
     >>> import numpy as np
-    >>> from kpifs.fourier import uv_lattice
+    >>> from kpifs.model.fourier import uv_lattice
     >>> sx, sy, m, n = uv_lattice([[0.38, 0.0], [-0.76, 0.38], [1.14, 1.14]])
     >>> round(sx, 2), m.tolist(), n.tolist()
     (0.38, [1, -2, 3], [0, 1, 3])
@@ -144,7 +144,7 @@ class FourierOperator:
     Examples
     --------
     >>> import numpy as np
-    >>> from kpifs.fourier import fourier_operator
+    >>> from kpifs.model.fourier import fourier_operator
     >>> uv = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])    # baselines (m)
     >>> op = fourier_operator(uv, 1.6e-6, 4.85e-8, (8, 8), method="dense")
     >>> re, im = op.apply(np.ones((2, 8, 8)))
@@ -311,7 +311,7 @@ def fourier_operator(uv, wavelength, pixscale, shape, *, method="auto", dtype=np
     Examples
     --------
     >>> import numpy as np
-    >>> from kpifs.fourier import fourier_operator
+    >>> from kpifs.model.fourier import fourier_operator
     >>> i, j = np.meshgrid(np.arange(-4, 5), np.arange(0, 5))
     >>> uv = 0.38 * np.column_stack([i.ravel(), j.ravel()])[5:]     # a half plane
     >>> op = fourier_operator(uv, 1.6e-6, 5e-8, (16, 16))
@@ -353,7 +353,7 @@ def clear_cache():
 
     Examples
     --------
-    >>> from kpifs.fourier import cache_info, clear_cache
+    >>> from kpifs.model.fourier import cache_info, clear_cache
     >>> clear_cache()
     >>> cache_info()[0]
     0
@@ -367,7 +367,7 @@ def cache_info():
 
     Examples
     --------
-    >>> from kpifs.fourier import cache_info, clear_cache
+    >>> from kpifs.model.fourier import cache_info, clear_cache
     >>> clear_cache(); cache_info()
     (0, 0)
     """

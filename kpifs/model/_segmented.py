@@ -7,8 +7,8 @@ The segments are flat-topped hexagons (edge normals at 30, 90 and 150 deg):
 ring A at 1.3235 m from the centre at 30 + 60k deg, ring B at twice that
 distance at the same angles, ring C at sqrt(3) times it at 60k deg; this
 puts the three-segment wings at x = +-2.29 m and segment B4 at -V3, as in
-the NIRISS mask's coordinates. `kpifs.apertures` registers the shapes
-below in `~kpifs.pupil.TELESCOPES`.
+the NIRISS mask's coordinates. `kpifs.model.apertures` registers the shapes
+below in `~kpifs.model.pupil.TELESCOPES`.
 """
 from dataclasses import dataclass, field
 
@@ -83,7 +83,7 @@ class SegmentedAperture:
 
     Examples
     --------
-    >>> from kpifs.pupil import TELESCOPES
+    >>> from kpifs.model.pupil import TELESCOPES
     >>> jwst = TELESCOPES["jwst"]
     >>> jwst.transmission([0.0, 1.3235, 0.0], [0.0, 0.0, -1.3235]).tolist()
     [0.0, 0.0, 1.0]
@@ -117,9 +117,9 @@ class MaskGeometry:
     """A non-redundant aperture mask: holes (circles or flat-topped hexagons) projected
     on the primary mirror.
 
-    Its discrete model is one sub-aperture per hole (`kpifs.pupil.make_pupil`),
+    Its discrete model is one sub-aperture per hole (`kpifs.model.pupil.make_pupil`),
     so that its kernel phases are closure phases. The built-in masks are in
-    `kpifs.pupil.MASKS`.
+    `kpifs.model.pupil.MASKS`.
 
     Parameters
     ----------
@@ -133,7 +133,7 @@ class MaskGeometry:
 
     Examples
     --------
-    >>> from kpifs.pupil import MASKS
+    >>> from kpifs.model.pupil import MASKS
     >>> m = MASKS["niriss_nrm"]
     >>> len(m.holes), m.shape, m.transmission([0.0, 0.0], [-2.64, 0.0]).tolist()
     (7, 'hex', [1.0, 0.0])
@@ -189,7 +189,7 @@ GPI_NRM_HOLES_MM = ((-1.061, -3.882), (-0.389, -5.192), (2.814, -0.243), (3.616,
                     (5.091, 0.920), (1.599, 4.929))
 GPI_MASK_MAGNIFICATION = 647.62
 
-#: The shapes registered in `kpifs.pupil.TELESCOPES` by `kpifs.apertures`.
+#: The shapes registered in `kpifs.model.pupil.TELESCOPES` by `kpifs.model.apertures`.
 SEGMENTED_TELESCOPES = {
     "jwst": SegmentedAperture(_SEGS, JWST_SEGMENT, 6.603464, _STRUTS,
                               name="JWST (18 segments, struts)"),

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .exceptions import KpifsError
+from ..exceptions import KpifsError
 
 __all__ = ["ExtractionWindow", "super_gaussian", "DEFAULT_WINDOW_RADIUS",
            "DEFAULT_MAX_WINDOW", "WINDOW_QUANTUM"]
@@ -46,7 +46,7 @@ def super_gaussian(r, radius, order=4):
 
     Examples
     --------
-    >>> from kpifs.window import super_gaussian
+    >>> from kpifs.model.window import super_gaussian
     >>> round(float(super_gaussian(10.0, 10.0)), 4)
     0.3679
     """
