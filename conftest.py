@@ -10,6 +10,14 @@ os.environ.setdefault("MPLBACKEND", "agg")
 def pytest_configure(config):
     import matplotlib
     matplotlib.use("agg")
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        # pytest-xdist runs one worker per core (pyproject's addopts): each worker, and
+        # the commands its tests run, keeps to one BLAS thread, so that the workers do
+        # not oversubscribe the cores between them
+        from threadpoolctl import threadpool_limits
+        for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ[var] = "1"
+        config._kpifs_blas = threadpool_limits(limits=1)
 
 
 @pytest.fixture(autouse=True)

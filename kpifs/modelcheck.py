@@ -313,14 +313,7 @@ def check_pupil_model(target, calibrator=None, *, wavelengths, pixscale, pupil="
     >>> bool(abs(chk.rotation.to_value(u.deg) - 2) < 0.5)
     True
     """
-    target = _frames(target, "target")
-    if calibrator is None:
-        half = len(target) // 2
-        target, calibrator = target[:half], target[half:]
-        pair = "the two halves of the sequence"
-    else:
-        calibrator = _frames(calibrator, "calibrator")
-        pair = "target and calibrator"
+    target, calibrator, pair = _pair(target, calibrator)
     wl = np.atleast_1d(to_quantity(wavelengths, u.um, name="wavelengths"))
     ps = to_quantity(pixscale, u.mas, name="pixel scale")
     if target.shape[1] != len(wl) or calibrator.shape[1:] != target.shape[1:]:
@@ -333,76 +326,114 @@ def check_pupil_model(target, calibrator=None, *, wavelengths, pixscale, pupil="
     n_steps = np.size(rotations) + np.size(scales) + len(cuts) + 2 * _REFINE_EVALUATIONS + (
         0 if steps is None else np.size(steps)) + 5
     ev.bar = progress_bar(desc="model check", unit="model", total=n_steps, enabled=progress)
-    # every model is a few small products: BLAS's threads would only wait for each other
 
     def model_for(options):
         return KernelModel.from_pupil(make_pupil(pupil, rotation=0 * u.deg,
                                                  pupil_scale=pupil_scale, **options))
 
+    # every model is a few small products: BLAS's threads would only wait for each other
     with ev.bar, one_blas_thread():
-        km = model_for(base)
-        rot_grid = np.atleast_1d(to_quantity(rotations, u.deg, name="rotations").value)
-        scale_grid = np.atleast_1d(np.asarray(scales, float))
-        rot0 = defaults.rotation
-        ev("default", km, rot0, 1.0, base)
-        rot = _scan_and_refine(lambda r: ev("rotation", km, rot0 + r, 1.0, base), rot_grid, 0.05)
-        rot += rot0
-        scale = _scan_and_refine(lambda f: ev("scale", km, rot, f, base), scale_grid, 5e-4)
-        if len(scale_grid) > 1 and len(rot_grid) > 1:
-            span = rot_grid[1] - rot_grid[0]
-            rot = _scan_and_refine(lambda r: ev("refine", km, r, scale, base),
-                                   np.array([rot - span / 2, rot, rot + span / 2]), 0.05)
-        ev("fitted", km, rot, scale, base)
-        fitted, default = ev.rows[-1], ev.rows[0]
-        # Trust the fitted geometry when the textbook pupil describes the amplitudes to
-        # within their noise; otherwise only when the kernel phases agree that it is better.
-        shape_ok = fitted["amp_mismatch"] < SHAPE_TOLERANCE * ev.floor
-        better = _significantly_lower(fitted, default)
-        use_fit = shape_ok or better
-        geo_rot, geo_scale = (rot, scale) if use_fit else (rot0, 1.0)
-        if shape_ok:
-            geo_reason = (f"rotation and pixel scale fitted to the Fourier amplitudes, which the "
-                          f"textbook pupil describes to within their noise (mismatch "
-                          f"{fitted['amp_mismatch']:.4f}, noise {ev.floor:.4f})")
-        else:
-            geo_reason = (f"the textbook pupil does not describe the Fourier amplitudes "
-                          f"(mismatch {fitted['amp_mismatch']:.4f} against a noise of "
-                          f"{ev.floor:.4f}): the fitted rotation {rot:+.2f} deg and scale "
-                          f"{scale:.4f} are indicative, and the calibrated reduced chi2 "
-                          f"{fitted['chi2_red']:.2f} against {default['chi2_red']:.2f} for the "
-                          f"default geometry "
-                          + ("confirms them" if better else "does not confirm them: default kept"))
-        # transmission cut and step, at the recommended orientation and scale
-        variants = [dict(base, min_transmission=c) for c in cuts]
-        if binary:
-            variants.append(dict(base, grey=False, min_transmission=BINARY_MIN_TRANSMISSION))
-        for st in ([] if steps is None else np.atleast_1d(to_quantity(steps, u.m, name="steps"))):
-            variants.append(dict(base, step=st))
-        if not any(v == base for v in variants):
-            variants.append(dict(base))
+        rot, scale = _fit_geometry(ev, model_for(base), rotations, scales, defaults.rotation,
+                                   base)
+        geo_rot, geo_scale, geo_reason, shape_ok = _geometry_choice(ev, rot, scale,
+                                                                    defaults.rotation)
+        variants = _variants(base, cuts, binary, steps)
         rows = []
         for opts in variants:
             scan = "step" if opts["step"] != base["step"] else "cut"
             ev(scan, model_for(opts), geo_rot, geo_scale, opts)
             rows.append(ev.rows[-1])
-        chi2 = [r["chi2_red"] for r in rows]
-        i_base = next(i for i, v in enumerate(variants) if v == base)
-        i_best = int(np.argmin(chi2))
-        pick = i_best if _significantly_lower(rows[i_best], rows[i_base]) else i_base
-
-    table = QTable(rows=[[r[k] for k in ev.rows[0]] for r in ev.rows], names=list(ev.rows[0]))
-    table["rotation"].unit = u.deg
-    for name in ("step",):
-        table[name] = u.Quantity([u.Quantity(v, u.m).value for v in table[name]], u.m)
-    for name in ("residual", "scatter"):
-        table[name].unit = u.rad
+    pick, reason = _model_choice(rows, variants, base, geo_reason, pair)
     chosen = variants[pick]
+    recommended = dict(pupil=str(pupil), rotation=geo_rot * u.deg, pixscale=ps * geo_scale,
+                       grey=chosen["grey"], min_transmission=chosen["min_transmission"],
+                       step=u.Quantity(chosen["step"], u.m), offset=chosen["offset"])
+    table = _table(ev.rows)
+    table.meta.update(pupil=str(pupil), pair=pair, pixscale_given=str(ps),
+                      rotation_deg=rot, scale=scale, amp_noise=ev.floor)
+    return ModelCheck(table, rot * u.deg, scale, recommended, reason,
+                      meta={"pair": pair, "n_target": len(target),
+                            "n_calibrator": len(calibrator), "shape_ok": bool(shape_ok),
+                            "amp_noise": ev.floor})
+
+
+def _pair(target, calibrator):
+    """The two sets of frames compared, and their description: a calibrator, or the two
+    halves of the target's sequence."""
+    target = _frames(target, "target")
+    if calibrator is None:
+        half = len(target) // 2
+        return target[:half], target[half:], "the two halves of the sequence"
+    return target, _frames(calibrator, "calibrator"), "target and calibrator"
+
+
+def _fit_geometry(ev, km, rotations, scales, rot0, base):
+    """The model's rotation (deg) and pixel-scale factor fitted to the Fourier amplitudes:
+    coarse scans refined, then the rotation refined again at the fitted scale."""
+    rot_grid = np.atleast_1d(to_quantity(rotations, u.deg, name="rotations").value)
+    scale_grid = np.atleast_1d(np.asarray(scales, float))
+    ev("default", km, rot0, 1.0, base)
+    rot = _scan_and_refine(lambda r: ev("rotation", km, rot0 + r, 1.0, base), rot_grid, 0.05)
+    rot += rot0
+    scale = _scan_and_refine(lambda f: ev("scale", km, rot, f, base), scale_grid, 5e-4)
+    if len(scale_grid) > 1 and len(rot_grid) > 1:
+        span = rot_grid[1] - rot_grid[0]
+        rot = _scan_and_refine(lambda r: ev("refine", km, r, scale, base),
+                               np.array([rot - span / 2, rot, rot + span / 2]), 0.05)
+    ev("fitted", km, rot, scale, base)
+    return rot, scale
+
+
+def _geometry_choice(ev, rot, scale, rot0):
+    """The geometry to use (rotation, scale), why, and whether the textbook pupil describes
+    the amplitudes. The fitted geometry is trusted when the textbook pupil describes the
+    amplitudes to within their noise; otherwise only when the kernel phases agree that it
+    is better."""
+    fitted, default = ev.rows[-1], ev.rows[0]
+    shape_ok = fitted["amp_mismatch"] < SHAPE_TOLERANCE * ev.floor
+    better = _significantly_lower(fitted, default)
+    geo_rot, geo_scale = (rot, scale) if (shape_ok or better) else (rot0, 1.0)
+    if shape_ok:
+        reason = (f"rotation and pixel scale fitted to the Fourier amplitudes, which the "
+                  f"textbook pupil describes to within their noise (mismatch "
+                  f"{fitted['amp_mismatch']:.4f}, noise {ev.floor:.4f})")
+    else:
+        reason = (f"the textbook pupil does not describe the Fourier amplitudes "
+                  f"(mismatch {fitted['amp_mismatch']:.4f} against a noise of "
+                  f"{ev.floor:.4f}): the fitted rotation {rot:+.2f} deg and scale "
+                  f"{scale:.4f} are indicative, and the calibrated reduced chi2 "
+                  f"{fitted['chi2_red']:.2f} against {default['chi2_red']:.2f} for the "
+                  f"default geometry "
+                  + ("confirms them" if better else "does not confirm them: default kept"))
+    return geo_rot, geo_scale, reason, shape_ok
+
+
+def _variants(base, cuts, binary, steps):
+    """The models compared at the chosen geometry: transmission cuts, the binary model,
+    grid steps, and the default."""
+    variants = [dict(base, min_transmission=c) for c in cuts]
+    if binary:
+        variants.append(dict(base, grey=False, min_transmission=BINARY_MIN_TRANSMISSION))
+    for st in ([] if steps is None else np.atleast_1d(to_quantity(steps, u.m, name="steps"))):
+        variants.append(dict(base, step=st))
+    if not any(v == base for v in variants):
+        variants.append(dict(base))
+    return variants
+
+
+def _model_choice(rows, variants, base, geo_reason, pair):
+    """The variant recommended (its index) and the sentence that says why: the default
+    unless another is lower by `CHI2_SIGMAS` standard deviations of the difference."""
+    chi2 = [r["chi2_red"] for r in rows]
+    i_base = next(i for i, v in enumerate(variants) if v == base)
+    i_best = int(np.argmin(chi2))
+    pick = i_best if _significantly_lower(rows[i_best], rows[i_base]) else i_base
 
     def kind(o):
         return (f"{'grey' if o['grey'] else 'binary'} cut {o['min_transmission']} step "
                 f"{u.Quantity(o['step'], u.m).value:g} m")
-    reason = (f"{geo_reason}; between {pair} the {kind(chosen)} model gives calibrated "
-              f"reduced chi2 {chi2[pick]:.2f}")
+    reason = (f"{geo_reason}; between {pair} the {kind(variants[pick])} model gives "
+              f"calibrated reduced chi2 {chi2[pick]:.2f}")
     sd = _chi2_difference_sd(rows[i_best], rows[i_base])
     if pick == i_base:
         reason += (f" (the default; the best other, {kind(variants[i_best])}, "
@@ -413,12 +444,14 @@ def check_pupil_model(target, calibrator=None, *, wavelengths, pixscale, pupil="
         reason += (f", below the default's {chi2[i_base]:.2f} by "
                    f"{(chi2[i_base] - chi2[pick]) / sd:.1f} standard deviations of the "
                    f"difference")
-    recommended = dict(pupil=str(pupil), rotation=geo_rot * u.deg, pixscale=ps * geo_scale,
-                       grey=chosen["grey"], min_transmission=chosen["min_transmission"],
-                       step=u.Quantity(chosen["step"], u.m), offset=chosen["offset"])
-    table.meta.update(pupil=str(pupil), pair=pair, pixscale_given=str(ps),
-                      rotation_deg=rot, scale=scale, amp_noise=ev.floor)
-    return ModelCheck(table, rot * u.deg, scale, recommended, reason,
-                      meta={"pair": pair, "n_target": len(target),
-                            "n_calibrator": len(calibrator), "shape_ok": bool(shape_ok),
-                            "amp_noise": ev.floor})
+    return pick, reason
+
+
+def _table(rows):
+    """The evaluations as a table with units."""
+    table = QTable(rows=[[r[k] for k in rows[0]] for r in rows], names=list(rows[0]))
+    table["rotation"].unit = u.deg
+    table["step"] = u.Quantity([u.Quantity(v, u.m).value for v in table["step"]], u.m)
+    for name in ("residual", "scatter"):
+        table[name].unit = u.rad
+    return table

@@ -418,74 +418,18 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
                          centres=centres, mask=mask, window=window, centroid=centroid,
                          bad_pixels=bad_pixels, on_nyquist=on_nyquist, source=source,
                          fourier=fourier, precision=precision)
-    km, win, wl = plan.model, plan.window, plan.wavelengths
-    nframe, nwave = plan.cube.shape[:2]
-    if detpa is not None:
-        detpa = np.atleast_1d(to_quantity(detpa, u.deg, name="detector position angle").value)
-        if detpa.shape != (nframe,):
-            raise KpifsError(f"{source}: {detpa.size} detector position angle(s) for {nframe} "
-                             f"frame(s)")
+    km, win = plan.model, plan.window
+    nframe = plan.cube.shape[0]
+    detpa = _frame_angles(detpa, nframe, source)
     if bad_frames not in ("drop", "fail"):
         raise KpifsError(f"bad_frames must be 'drop' or 'fail', got {bad_frames!r}")
-    kp = np.empty((nframe, nwave, km.n_kp))
-    phases = np.empty((nframe, nwave, km.n_uv)) if keep_phases else None
-    amps = np.empty((nframe, nwave, km.n_uv)) if keep_phases else None
-    used_centres = np.empty((nframe, nwave, 2))
-    bad = np.full((nframe, nwave), "", dtype=object)
-    keys = ("n_bad_pixels", "n_inf", "n_clipped", "core_nan", "negative")
-    uv, prad = km.uv.to_value(u.m), plan.pixscale.to_value(u.mas) * MAS
-    image_bytes, read, lock = plan.cube[0, 0].nbytes, [0], Lock()
-
-    def channel(iw):
-        # wavelength outermost: each operator is built (or fetched) once per call; the
-        # channels are independent (each writes its own slices) and share the cores
-        op = fourier_operator(uv, wl[iw].to_value(u.m), prad, (win.size, win.size),
-                              method=plan.fourier, dtype=PRECISIONS[plan.precision])
-        counts = np.zeros(len(keys), int)
-        for f0 in range(0, nframe, batch_size):
-            f1 = min(nframe, f0 + batch_size)
-            res = _extract_batch(plan, iw, f0, f1, op)
-            with lock:    # a memory-mapped input's pages go back every RELEASE_BYTES read
-                read[0] += (f1 - f0) * image_bytes
-                release = read[0] >= RELEASE_BYTES
-                read[0] = 0 if release else read[0]
-            if release:
-                release_pages(plan.cube)
-            kp[f0:f1, iw], used_centres[f0:f1, iw], bad[f0:f1, iw] = res.kp, res.centres, res.bad
-            counts += [getattr(res, k) for k in keys]
-            if keep_phases:
-                phases[f0:f1, iw], amps[f0:f1, iw] = res.phases, res.amplitudes
-        return counts
-    # photutils' centroids run with the warnings filters changed: those channels in turn
-    count = dict(zip(keys, np.sum(thread_map(channel, range(nwave), serial=(
-        plan.centres is None and plan.centroid in ("quadratic", "2dg")), wrap=(
-        lambda it: progress_bar(it, desc=f"extracting {source}"[:40], unit="channel",
-                                total=nwave, enabled=progress))), axis=0).tolist()))
+    kp, used_centres, bad, phases, amps, count = _extract_channels(
+        plan, batch_size=batch_size, keep_phases=keep_phases, progress=progress, source=source)
     bad, kp, used_centres, wl, phases, amps, dead = drop_dead_channels(
-        bad, kp, used_centres, wl, phases, amps, source=source)
+        bad, kp, used_centres, plan.wavelengths, phases, amps, source=source)
     drop = _bad_frames(bad, wl, bad_frames, source)
     keep = np.setdiff1d(np.arange(nframe), drop)
-    n_slices = len(keep) * len(wl)
-    if count["n_clipped"]:
-        warnings.warn(f"{source}: the star is closer to the image edge than the window radius "
-                      f"({win.radius:.1f} pixels) in {count['n_clipped']} of {n_slices} "
-                      f"slice(s); the edge cuts the window (use a smaller --window-radius)",
-                      KpifsWarning, stacklevel=2)
-    if count["core_nan"]:
-        warnings.warn(f"{source}: bad or NaN pixels on the PSF core (more than "
-                      f"{CORE_FLUX_WARN:.0%} of the flux interpolated) in {count['core_nan']} "
-                      f"of {n_slices} slice(s): their kernel phases rest on interpolated or "
-                      f"missing pixels", KpifsWarning, stacklevel=2)
-    if count["n_inf"]:
-        warnings.warn(f"{source}: {count['n_inf']} infinite pixel value(s), treated as bad "
-                      f"pixels", KpifsWarning, stacklevel=2)
-    if count["negative"]:
-        warnings.warn(f"{source}: negative pixels hold more than "
-                      f"{NEGATIVE_FLUX_WARN:.0%} of the positive flux in {count['negative']} "
-                      f"slice(s) (background over-subtracted?)", KpifsWarning, stacklevel=2)
-    if count["n_bad_pixels"]:
-        log.info("%s: %d bad or NaN pixels excluded from the Fourier sums", source,
-                 count["n_bad_pixels"])
+    _warn_counts(count, len(keep) * len(wl), win, source)
     if len(drop):
         kp, used_centres = kp[keep], used_centres[keep]
         phases, amps = (None, None) if not keep_phases else (phases[keep], amps[keep])
@@ -498,3 +442,84 @@ def extract_kernel_phases(data, pupil, *, wavelengths, pixscale, window=None, ce
             "channel_n_kp": own}
     return KernelPhaseData(kp, wl, plan.pixscale, km, window=win, phases=phases,
                            amplitudes=amps, centres=ctab, header=header, detpa=detpa, meta=meta)
+
+
+def _frame_angles(detpa, nframe, source):
+    """The frames' detector position angles (deg) as an array of one per frame, or None."""
+    if detpa is None:
+        return None
+    detpa = np.atleast_1d(to_quantity(detpa, u.deg, name="detector position angle").value)
+    if detpa.shape != (nframe,):
+        raise KpifsError(f"{source}: {detpa.size} detector position angle(s) for {nframe} "
+                         f"frame(s)")
+    return detpa
+
+
+#: What `_extract_batch` counts in each slice, summed over the cube (`_warn_counts`).
+_COUNTS = ("n_bad_pixels", "n_inf", "n_clipped", "core_nan", "negative")
+
+
+def _extract_channels(plan, *, batch_size, keep_phases, progress, source):
+    """Every channel of *plan*'s cube, in batches of frames: kernel phases (and the raw
+    phases and amplitudes), centres used, each slice's reason to be unusable (or ''), and
+    the counts `_warn_counts` reports."""
+    km, win, wl = plan.model, plan.window, plan.wavelengths
+    nframe, nwave = plan.cube.shape[:2]
+    kp = np.empty((nframe, nwave, km.n_kp))
+    phases = np.empty((nframe, nwave, km.n_uv)) if keep_phases else None
+    amps = np.empty((nframe, nwave, km.n_uv)) if keep_phases else None
+    used_centres = np.empty((nframe, nwave, 2))
+    bad = np.full((nframe, nwave), "", dtype=object)
+    uv, prad = km.uv.to_value(u.m), plan.pixscale.to_value(u.mas) * MAS
+    image_bytes, read, lock = plan.cube[0, 0].nbytes, [0], Lock()
+
+    def channel(iw):
+        # wavelength outermost: each operator is built (or fetched) once per call; the
+        # channels are independent (each writes its own slices) and share the cores
+        op = fourier_operator(uv, wl[iw].to_value(u.m), prad, (win.size, win.size),
+                              method=plan.fourier, dtype=PRECISIONS[plan.precision])
+        counts = np.zeros(len(_COUNTS), int)
+        for f0 in range(0, nframe, batch_size):
+            f1 = min(nframe, f0 + batch_size)
+            res = _extract_batch(plan, iw, f0, f1, op)
+            with lock:    # a memory-mapped input's pages go back every RELEASE_BYTES read
+                read[0] += (f1 - f0) * image_bytes
+                release = read[0] >= RELEASE_BYTES
+                read[0] = 0 if release else read[0]
+            if release:
+                release_pages(plan.cube)
+            kp[f0:f1, iw], used_centres[f0:f1, iw], bad[f0:f1, iw] = res.kp, res.centres, res.bad
+            counts += [getattr(res, k) for k in _COUNTS]
+            if keep_phases:
+                phases[f0:f1, iw], amps[f0:f1, iw] = res.phases, res.amplitudes
+        return counts
+    # photutils' centroids run with the warnings filters changed: those channels in turn
+    count = dict(zip(_COUNTS, np.sum(thread_map(channel, range(nwave), serial=(
+        plan.centres is None and plan.centroid in ("quadratic", "2dg")), wrap=(
+        lambda it: progress_bar(it, desc=f"extracting {source}"[:40], unit="channel",
+                                total=nwave, enabled=progress))), axis=0).tolist()))
+    return kp, used_centres, bad, phases, amps, count
+
+
+def _warn_counts(count, n_slices, win, source):
+    """The warnings (and the log line) that the counts of `_extract_channels` call for."""
+    if count["n_clipped"]:
+        warnings.warn(f"{source}: the star is closer to the image edge than the window radius "
+                      f"({win.radius:.1f} pixels) in {count['n_clipped']} of {n_slices} "
+                      f"slice(s); the edge cuts the window (use a smaller --window-radius)",
+                      KpifsWarning, stacklevel=3)
+    if count["core_nan"]:
+        warnings.warn(f"{source}: bad or NaN pixels on the PSF core (more than "
+                      f"{CORE_FLUX_WARN:.0%} of the flux interpolated) in {count['core_nan']} "
+                      f"of {n_slices} slice(s): their kernel phases rest on interpolated or "
+                      f"missing pixels", KpifsWarning, stacklevel=3)
+    if count["n_inf"]:
+        warnings.warn(f"{source}: {count['n_inf']} infinite pixel value(s), treated as bad "
+                      f"pixels", KpifsWarning, stacklevel=3)
+    if count["negative"]:
+        warnings.warn(f"{source}: negative pixels hold more than "
+                      f"{NEGATIVE_FLUX_WARN:.0%} of the positive flux in {count['negative']} "
+                      f"slice(s) (background over-subtracted?)", KpifsWarning, stacklevel=3)
+    if count["n_bad_pixels"]:
+        log.info("%s: %d bad or NaN pixels excluded from the Fourier sums", source,
+                 count["n_bad_pixels"])

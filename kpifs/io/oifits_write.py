@@ -168,18 +168,40 @@ def oifits_hdulist(kpd, *, target=None, insname=None, arrname=None, history=()):
     t = np.deg2rad(theta)
     rot = np.array([[-np.cos(t), np.sin(t)], [np.sin(t), np.cos(t)]])
     uv = km.uv.value @ rot.T                                         # East/North
-    xy = km.pupil.xy.value @ rot.T
     hdr = kpd.header
     date_obs = _date_obs(hdr)
-    obj = str(target or hdr.get("OBJECT", "") or "UNKNOWN").strip() or "UNKNOWN"
-    ins = insname or str(kpd.meta.get("instrument") or hdr.get("INSTRUME", "") or "KPIFS")
-    mask = km.pupil.name
-    arr = arrname or f"{mask}".upper()[:60]
+    names = dict(
+        obj=str(target or hdr.get("OBJECT", "") or "UNKNOWN").strip() or "UNKNOWN",
+        ins=insname or str(kpd.meta.get("instrument") or hdr.get("INSTRUME", "") or "KPIFS"),
+        mask=km.pupil.name, arr=arrname or f"{km.pupil.name}".upper()[:60])
+    prim = _primary(kpd, names, date_obs, orient, [
+        f"kpifs {VERSION}: closure phases from {kpd.name}; {how}", *map(str, history)])
     wl = kpd.wavelengths.to_value("m")
-    band = (np.full(nw, np.nan) if kpd.bandwidth is None
-            else np.broadcast_to(np.asarray(kpd.bandwidth.to_value("m"), float), (nw,)))
-    if not np.all(np.isfinite(band)):
-        band = np.gradient(wl) if nw > 1 else 0.05 * wl
+    corr, (lo, hi, i, j) = _correlations(cov, sig, nw, ntri)
+    mjd = float(_mjd(date_obs))
+    cards = {"OI_REVN": 2, "DATE-OBS": date_obs, "ARRNAME": names["arr"],
+             "INSNAME": names["ins"]}
+    if len(lo):
+        cards["CORRNAME"] = "KPIFS"
+    t3tab = _t3_table(t3, sig, uv, legs, sta, cards, mjd, float(hdr.get("EXPTIME", 0.0) or 0.0),
+                      correlated=bool(len(lo)))
+    hdus = [prim, _target_table(names["obj"], hdr),
+            _array_table(km, km.pupil.xy.value @ rot.T, wl, names["arr"]),
+            _wavelength_table(kpd, wl, names["ins"]), t3tab]
+    vis2 = _vis2(kpd, uv, cards, mjd, nw)
+    if vis2 is not None:
+        hdus.append(vis2)
+    if len(lo):
+        hdus.append(_table("OI_CORR", [
+            fits.Column("IINDX", "J", array=lo), fits.Column("JINDX", "J", array=hi),
+            fits.Column("CORR", "D", array=corr[i, j])],
+            {"OI_REVN": 1, "CORRNAME": "KPIFS", "NDATA": ntri * nw}))
+    return fits.HDUList(hdus)
+
+
+def _primary(kpd, names, date_obs, orient, history):
+    """The primary HDU: who wrote the file, when, what was observed and how."""
+    hdr, obj, ins, mask = kpd.header, names["obj"], names["ins"], names["mask"]
     prim = fits.PrimaryHDU()
     ph = prim.header
     for key, value, comment in (
@@ -196,15 +218,14 @@ def oifits_hdulist(kpd, *, target=None, insname=None, arrname=None, history=()):
             ("CALFLAG", bool(kpd.meta.get("calibrated", False)), "calibrator subtracted"),
             ("KPORIENT", orient, "orientation of (u, v) East/North")):
         ph[key] = (value, comment)
-    ph.add_history(f"kpifs {VERSION}: closure phases from {kpd.name}; {how}")
     for h in history:
-        ph.add_history(str(h))
-    n = len(xy)
-    # the hole size (a mask's meta; a read OIFITS model's step is half its aperture)
-    diam = float(km.pupil.meta.get("hole_diameter_m") or (2 * km.pupil.step.to_value("m")
-                 if km.pupil.step is not None else 0.0))
-    fov = 1.22 * wl.max() / diam / _ARCSEC if diam > 0 else 0.0
-    tab_target = _table("OI_TARGET", [
+        ph.add_history(h)
+    return prim
+
+
+def _target_table(obj, hdr):
+    """OI_TARGET: the one target."""
+    return _table("OI_TARGET", [
         fits.Column("TARGET_ID", "I", array=[1]),
         fits.Column("TARGET", "32A", array=[obj[:32]]),
         fits.Column("RAEP0", "D", unit="deg", array=[float(hdr.get("RA", 0.0) or 0.0)]),
@@ -222,7 +243,16 @@ def oifits_hdulist(kpd, *, target=None, insname=None, arrname=None, history=()):
         fits.Column("PARALLAX", "E", unit="deg", array=[0.0]),
         fits.Column("PARA_ERR", "E", unit="deg", array=[0.0]),
         fits.Column("SPECTYP", "32A", array=["UNKNOWN"])], {"OI_REVN": 2})
-    tab_array = _table("OI_ARRAY", [
+
+
+def _array_table(km, xy, wl, arr):
+    """OI_ARRAY: one station per sub-aperture, at its East/North position *xy* (m)."""
+    n = len(xy)
+    # the hole size (a mask's meta; a read OIFITS model's step is half its aperture)
+    diam = float(km.pupil.meta.get("hole_diameter_m") or (2 * km.pupil.step.to_value("m")
+                 if km.pupil.step is not None else 0.0))
+    fov = 1.22 * wl.max() / diam / _ARCSEC if diam > 0 else 0.0
+    return _table("OI_ARRAY", [
         fits.Column("TEL_NAME", "16A", array=[f"H{i + 1}" for i in range(n)]),
         fits.Column("STA_NAME", "16A", array=[f"H{i + 1}" for i in range(n)]),
         fits.Column("STA_INDEX", "I", array=np.arange(1, n + 1)),
@@ -233,34 +263,48 @@ def oifits_hdulist(kpd, *, target=None, insname=None, arrname=None, history=()):
         fits.Column("FOVTYPE", "6A", array=["FWHM"] * n)],
         {"OI_REVN": 2, "ARRNAME": arr, "FRAME": "SKY", "ARRAYX": 0.0, "ARRAYY": 0.0,
          "ARRAYZ": 0.0})
-    tab_wave = _table("OI_WAVELENGTH", [
+
+
+def _wavelength_table(kpd, wl, ins):
+    """OI_WAVELENGTH: the channels, with their bandwidths (from their spacing when the
+    data give none)."""
+    nw = len(wl)
+    band = (np.full(nw, np.nan) if kpd.bandwidth is None
+            else np.broadcast_to(np.asarray(kpd.bandwidth.to_value("m"), float), (nw,)))
+    if not np.all(np.isfinite(band)):
+        band = np.gradient(wl) if nw > 1 else 0.05 * wl
+    return _table("OI_WAVELENGTH", [
         fits.Column("EFF_WAVE", "E", unit="m", array=wl),
         fits.Column("EFF_BAND", "E", unit="m", array=band)], {"OI_REVN": 2, "INSNAME": ins})
-    # one correlation entry per pair of closure phases (1-based over T3PHI's elements:
-    # row r, channel w is element r * nw + w + 1)
+
+
+def _correlations(cov, sig, nw, ntri):
+    """The correlation matrix, and one entry per correlated pair of closure phases: the
+    1-based indices into T3PHI's elements (row r, channel w is element r * nw + w + 1),
+    and the pairs' indices into the matrix."""
     corr = cov / np.outer(sig, sig)
     i, j = np.triu_indices(nw * ntri, k=1)
     keep = np.abs(corr[i, j]) > 1e-12
     i, j = i[keep], j[keep]
     elem = lambda a: (a % ntri) * nw + a // ntri + 1    # noqa: E731  (w*ntri+tri -> 1-based)
     ei, ej = elem(i), elem(j)
-    lo, hi = np.minimum(ei, ej), np.maximum(ei, ej)
-    mjd = float(_mjd(date_obs))
+    return corr, (np.minimum(ei, ej), np.maximum(ei, ej), i, j)
+
+
+def _t3_table(t3, sig, uv, legs, sta, cards, mjd, exptime, *, correlated):
+    """OI_T3: the closure phases and their errors (deg), the triangles' legs."""
+    nw, ntri = t3.shape
     # legs AB = r_A - r_B and BC, each +-1 times one uv point: as the closure matrix has them
     u1 = np.array([s1 * uv[b1] for (b1, s1), _ in legs])
     u2 = np.array([s2 * uv[b2] for _, (b2, s2) in legs])
     phi = np.rad2deg(t3.T)                                            # (ntri, nw)
     err = np.rad2deg(sig.reshape(nw, ntri).T)
-    cards = {"OI_REVN": 2, "DATE-OBS": date_obs, "ARRNAME": arr, "INSNAME": ins}
-    if len(lo):
-        cards["CORRNAME"] = "KPIFS"
     nan = np.full((ntri, nw), np.nan)
     t3cols = [
         fits.Column("TARGET_ID", "I", array=np.ones(ntri, int)),
         fits.Column("TIME", "D", unit="s", array=np.zeros(ntri)),
         fits.Column("MJD", "D", unit="day", array=np.full(ntri, mjd)),
-        fits.Column("INT_TIME", "D", unit="s", array=np.full(ntri, float(
-            hdr.get("EXPTIME", 0.0) or 0.0))),
+        fits.Column("INT_TIME", "D", unit="s", array=np.full(ntri, exptime)),
         fits.Column("T3AMP", f"{nw}D", array=nan),
         fits.Column("T3AMPERR", f"{nw}D", array=nan),
         fits.Column("T3PHI", f"{nw}D", unit="deg", array=phi),
@@ -271,20 +315,11 @@ def oifits_hdulist(kpd, *, target=None, insname=None, arrname=None, history=()):
         fits.Column("V2COORD", "D", unit="m", array=u2[:, 1]),
         fits.Column("STA_INDEX", "3I", array=sta + 1),
         fits.Column("FLAG", f"{nw}L", array=np.zeros((ntri, nw), bool))]
-    if len(lo):
+    if correlated:
         # with CORRNAME, OIFITSlib reads both indices: T3AMP (not measured) has none, null
         t3cols += [fits.Column("CORRINDX_T3AMP", "J", null=-1, array=np.full(ntri, -1)),
                    fits.Column("CORRINDX_T3PHI", "J", array=np.arange(ntri) * nw + 1)]
-    hdus = [prim, tab_target, tab_array, tab_wave, _table("OI_T3", t3cols, cards)]
-    vis2 = _vis2(kpd, uv, cards, mjd, nw)
-    if vis2 is not None:
-        hdus.append(vis2)
-    if len(lo):
-        hdus.append(_table("OI_CORR", [
-            fits.Column("IINDX", "J", array=lo), fits.Column("JINDX", "J", array=hi),
-            fits.Column("CORR", "D", array=corr[i, j])],
-            {"OI_REVN": 1, "CORRNAME": "KPIFS", "NDATA": ntri * nw}))
-    return fits.HDUList(hdus)
+    return _table("OI_T3", t3cols, cards)
 
 
 def _vis2(kpd, uv, cards, mjd, nw):
