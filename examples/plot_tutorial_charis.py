@@ -24,6 +24,7 @@ import glob
 import io
 import os
 import tempfile
+from pathlib import Path
 import warnings
 
 import matplotlib.pyplot as plt
@@ -44,11 +45,11 @@ def kpifs(command):
     """Run one ``kpifs`` command line as the shell would (file patterns expanded) and
     show what it prints (the progress lines of long commands left out)."""
     print(f"$ kpifs {command}")
-    args = []
-    for word in command.split():
-        args += sorted(glob.glob(word)) if "*" in word else [word]
     err = io.StringIO()
-    with contextlib.redirect_stderr(err):
+    with in_folder(here), contextlib.redirect_stderr(err):
+        args = []
+        for word in command.split():
+            args += sorted(glob.glob(word)) if "*" in word else [word]
         code = main(args)
     for line in err.getvalue().splitlines():
         if "elapsed" not in line:
@@ -57,9 +58,21 @@ def kpifs(command):
         raise RuntimeError(f"kpifs {command} exited with status {code}")
 
 
+@contextlib.contextmanager
+def in_folder(path):
+    """Commands run in *path*, as in a shell after ``cd path``."""
+    old = os.getcwd()
+    os.chdir(path)
+    try:
+        yield
+    finally:
+        os.chdir(old)
+
+
+# the tutorial works in a temporary folder, ``here``: in your own reduction, the folder
+# that holds your files
 workdir = tempfile.TemporaryDirectory(prefix="kpifs-charis-")
-home = os.getcwd()
-os.chdir(workdir.name)
+here = Path(workdir.name)
 
 ###############################################################################
 # The files
@@ -74,9 +87,9 @@ os.chdir(workdir.name)
 truth = 5e-3 * np.linspace(1.4, 0.6, 22)
 obs = simulate_scene("charis", n_frames=30, seed=3, shape=(48, 48), exptime=1 * u.s,
                      contrasts=truth, companion_offset=[-70.0, 97.5] * u.mas)
-write_observation(obs, ".", layout="charis")
-print(len(glob.glob("target/*_cube.fits")), "target files,",
-      len(glob.glob("calibrator/*_cube.fits")), "calibrator files")
+write_observation(obs, here, layout="charis")
+print(len(list(here.glob("target/*_cube.fits"))), "target files,",
+      len(list(here.glob("calibrator/*_cube.fits"))), "calibrator files")
 
 ###############################################################################
 # ``kpifs info`` says what kpifs reads in a file: the instrument it recognised
@@ -101,7 +114,7 @@ kpifs("info target/CRSA00000000_cube.fits")
 # companion (here the calibrator, its two halves compared) and recommends a
 # model. Here the same function on a few channels and a short scan, for time:
 
-with read_cube(sorted(glob.glob("calibrator/*_cube.fits"))) as cube:
+with read_cube(sorted(here.glob("calibrator/*_cube.fits"))) as cube:
     frames, wl, pixscale = np.array(cube.data, float), cube.wavelengths, cube.pixscale
 few = slice(6, None, 8)                                  # 3 of the 22 channels
 with warnings.catch_warnings():
@@ -173,7 +186,7 @@ kpifs("detect calibrated_kp.fits --draws 2000 -o detection.fits --plots figures"
 # statistic in units of the threshold. The ``DETECTION`` extension of the
 # products keeps the data's own map (companion included), ``SEARCH`` this one.
 
-res = DetectionResult.read("detection.fits")
+res = DetectionResult.read(here / "detection.fits")
 shown = detector_to_sky(-70.0, 97.5, 113.0)     # PARANG 0 here: every DETPA is 113 deg
 plot_detection_map(res, truth=shown)
 plt.show()
@@ -225,7 +238,7 @@ kpifs("inject target/*_cube.fits --calibrator calibrator/*_cube.fits --curve "
 ###############################################################################
 
 from astropy.table import QTable                         # noqa: E402
-injections = QTable.read("curve.fits", hdu="INJECTIONS")
+injections = QTable.read(here / "curve.fits", hdu="INJECTIONS")
 injections.meta.update(pd=0.5, pfa=1e-3)
 plot_injection_limits(injections, analytic=res)
 plt.show()
@@ -251,5 +264,4 @@ plt.show()
 #   calibrated mean smears a companion; keep the blocks (the default with
 #   rotating sequences) or calibrate angular-differentially.
 
-os.chdir(home)
 workdir.cleanup()

@@ -24,6 +24,7 @@ import glob
 import io
 import os
 import tempfile
+from pathlib import Path
 import warnings
 
 import matplotlib.pyplot as plt
@@ -47,11 +48,11 @@ def kpifs(command):
     """Run one ``kpifs`` command line as the shell would (file patterns expanded) and
     show what it prints (the progress lines of long commands left out)."""
     print(f"$ kpifs {command}")
-    args = []
-    for word in command.split():
-        args += sorted(glob.glob(word)) if "*" in word else [word]
     err = io.StringIO()
-    with contextlib.redirect_stderr(err):
+    with in_folder(here), contextlib.redirect_stderr(err):
+        args = []
+        for word in command.split():
+            args += sorted(glob.glob(word)) if "*" in word else [word]
         code = main(args)
     for line in err.getvalue().splitlines():
         if "elapsed" not in line:
@@ -60,9 +61,21 @@ def kpifs(command):
         raise RuntimeError(f"kpifs {command} exited with status {code}")
 
 
+@contextlib.contextmanager
+def in_folder(path):
+    """Commands run in *path*, as in a shell after ``cd path``."""
+    old = os.getcwd()
+    os.chdir(path)
+    try:
+        yield
+    finally:
+        os.chdir(old)
+
+
+# the tutorial works in a temporary folder, ``here``: in your own reduction, the folder
+# that holds your files
 workdir = tempfile.TemporaryDirectory(prefix="kpifs-sphere-")
-home = os.getcwd()
-os.chdir(workdir.name)
+here = Path(workdir.name)
 
 ###############################################################################
 # The files
@@ -78,9 +91,9 @@ truth = 4e-3 * np.linspace(1.3, 0.7, 39)
 detpa = np.linspace(60.0, 60.8, 24)
 obs = simulate_scene("sphere", n_frames=24, seed=5, shape=(48, 48), detpa=detpa,
                      contrasts=truth, companion_offset=[80.0, 60.0] * u.mas)
-write_observation(obs, ".", layout="sphere")
-for name in sorted(glob.glob("target/*.fits")):
-    print(name, fits.getdata(name).shape)
+write_observation(obs, here, layout="sphere")
+for name in sorted(here.glob("target/*.fits")):
+    print(name.relative_to(here), fits.getdata(name).shape)
 
 ###############################################################################
 # ``kpifs info`` finds the wavelength and angle files beside the cube (by their
@@ -126,8 +139,8 @@ kpifs("info target/science_cube.fits")
 # The same cube with derotation angles given directly: the DETPA kpifs uses is
 # the same (no offset is added to ``--pa``).
 
-angles = fits.getdata("target/parallactic_angles.fits")
-np.savetxt("derotation_angles.txt", angles + SPHERE_DETPA_OFFSET)
+angles = fits.getdata(here / "target/parallactic_angles.fits")
+np.savetxt(here / "derotation_angles.txt", angles + SPHERE_DETPA_OFFSET)
 kpifs("extract target/science_cube.fits --pa derotation_angles.txt --step 0.8m "
       "-o target_kp.fits")
 kpifs("info target_kp.fits")
@@ -142,7 +155,7 @@ kpifs("info target_kp.fits")
 # recommends a model. Here the same function on a few channels and a short
 # scan, for time:
 
-with read_cube("calibrator/science_cube.fits") as cube:
+with read_cube(here / "calibrator/science_cube.fits") as cube:
     frames, wl, pixscale = np.array(cube.data, float), cube.wavelengths, cube.pixscale
 few = slice(6, None, 13)                                 # 3 of the 39 channels
 with warnings.catch_warnings():
@@ -193,7 +206,7 @@ kpifs("detect calibrated_kp.fits --draws 2000 -o detection.fits")
 # statistic; nothing left crosses the threshold (the contour). The cross is
 # the simulated companion, turned to the sky with the frames' mean DETPA.
 
-res = DetectionResult.read("detection.fits")
+res = DetectionResult.read(here / "detection.fits")
 plot_detection_map(res, truth=detector_to_sky(80.0, 60.0, float(np.mean(detpa))))
 plt.show()
 
@@ -223,7 +236,7 @@ kpifs("inject target/science_cube.fits --calibrator calibrator/science_cube.fits
 
 ###############################################################################
 
-injections = QTable.read("curve.fits", hdu="INJECTIONS")
+injections = QTable.read(here / "curve.fits", hdu="INJECTIONS")
 injections.meta.update(pd=0.5, pfa=1e-3)
 plot_injection_limits(injections, analytic=res)
 plt.show()
@@ -243,5 +256,4 @@ plt.show()
 # - wavelengths that look like nm given as um (or the reverse) are refused
 #   with the file named: check ``wavelength.fits``'s unit.
 
-os.chdir(home)
 workdir.cleanup()
