@@ -61,3 +61,20 @@ def test_saturated_ends_are_not_interpolated():
     between them."""
     low, high, value = limit_bracket([1.5e-3, 1.2e-2], [0, 4], [4, 4])
     assert (low, high) == (pytest.approx(1.5e-3), pytest.approx(1.2e-2)) and np.isnan(value)
+
+
+def test_info_reads_the_bracket_the_curve_file_holds(tmp_path, capsys):
+    """`kpifs info curve.fits` on a file the writer made (its LIMITS table names the
+    interpolated value limit_injection): the bracket, as `inject --curve` printed it
+    (it raised KeyError 'limit_interpolated', exit 3)."""
+    from types import SimpleNamespace
+    from kpifs._cli.inject import _curve_hdulist
+    from kpifs.cli import main
+    a = 1.92e-4
+    tab = _table([0.5 * a, a, 2 * a], [0, 2, 4], 4)
+    tab.meta.update(ladder="adaptive", n_draws=1000, method="test", n_angles=4, seed=0)
+    args = SimpleNamespace(pfa=1e-3, angles=4, seed=0)
+    _curve_hdulist(tab, [60.0] * u.mas, [a], args, "t.fits").writeto(tmp_path / "curve.fits")
+    assert main(["info", str(tmp_path / "curve.fits")]) == 0
+    assert "60 mas: injections between 9.6e-05 and 3.8e-04, analytic 1.92e-04" in (
+        capsys.readouterr().out)

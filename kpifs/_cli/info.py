@@ -186,8 +186,9 @@ def _injection(path):
           f"{hdr.get('NANGLES', '?')} position angle(s) per step, {n_rows} step(s) "
           f"({hdr.get('LADDER', 'given')} ladder)")
     for row in ([] if lim is None else lim):
-        if "limit_low" in lim.colnames:
-            text = bracket_text(row)
+        if "limit_low" in lim.colnames:      # the file names the interpolated value so
+            text = bracket_text({"limit_low": row["limit_low"], "limit_high": row["limit_high"],
+                                 "limit_interpolated": row["limit_injection"]})
         else:           # written before the brackets: the interpolated value and its flag
             flag = str(row["flag"]).strip() if "flag" in lim.colnames else "="
             text = ("" if flag in ("=", "") else flag + " ") + f"{row['limit_injection']:.2e}"
