@@ -118,6 +118,12 @@ class ExtractOptions:
     filter_kernels: str = _EXTRACT["filter_kernels"]   # `extract_filters`
     angular_differential: bool = _EXTRACT["angular_differential"]   # `reduce_observation`
 
+    def __post_init__(self):
+        # the registry's names: one check, one message, for the command line, a batch and
+        # Python alike
+        if self.instrument != "auto":
+            _INSTRUMENTS.get_instrument(self.instrument)
+
     def window_for(self, image_shape):
         """The `~kpifs.model.window.ExtractionWindow` these options give for images of a
         shape."""

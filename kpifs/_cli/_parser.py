@@ -33,13 +33,13 @@ def _cube_options(p):
     g = p.add_argument_group("input cubes")
     g.add_argument("--instrument", default=EXTRACT["instrument"], metavar="NAME",
                    help="file format: auto (the default: recognised from the header) or an "
-                        "instrument's name, e.g. charis, sphere, jwst, gpi, nirc2, generic "
-                        "(kpifs info --instruments lists them)")
+                        "instrument's name (kpifs info --instruments lists them; generic: "
+                        "any FITS cube)")
     g.add_argument("--wavelengths", help="list (1.52um,1.60um) or file (text/FITS, um or nm); "
                                          "default: from the file's header")
     g.add_argument("--pixscale", help="pixel scale, mas if no unit, e.g. 10.42mas; default: "
-                                      "from the header or the instrument (CHARIS 16.2mas, "
-                                      "SPHERE 7.46mas)")
+                                      "from the header or the instrument's (kpifs info "
+                                      "--instruments)")
     g.add_argument("--dq-bits", metavar="FLAGS",
                    help="JWST: DQ flags read as bad pixels besides DO_NOT_USE, by name or "
                         "value, e.g. SATURATED,JUMP_DET or 6 (default: DO_NOT_USE only)")
@@ -198,8 +198,8 @@ def _reduction_options(p, *, pa_help):
                    help="detector position angle of the target's frames (deg, East of North "
                         "of the detector +y axis): one value, a comma list with one per "
                         "frame, or a text/FITS file" + pa_help + " (default: the "
-                        "instrument's: CHARIS PARANG+113, SPHERE angle file+33.76, generic "
-                        "DETPA or 0)")
+                        "instrument's, e.g. CHARIS PARANG+113; kpifs info --instruments lists "
+                        "them; generic cubes: DETPA or 0)")
 
 
 def _output(p, help_text="output FITS file", *, required=True, default=None):
@@ -318,13 +318,13 @@ def _info(command):
 def _simulate(command):
     p = command("simulate", "simulate a target and a calibrator", EPILOG_SIMULATE)
     p.add_argument("--preset", default="paper", metavar="NAME",
-                   help="instrument and scene to start from: paper, charis, sphere, "
-                        "sphere-sam, niriss, nircam, gpi, nirc2, ... (see below; default "
+                   help="instrument and scene to start from, e.g. paper, charis, sphere, "
+                        "niriss, gpi (see below; an unknown name lists them; default "
                         "%(default)s)")
     p.add_argument("--layout", default="plain", metavar="NAME",
                    help="file layout: plain (one 4-D cube per star) or an instrument's "
-                        "pipeline files: charis, sphere, jwst, gpi, nirc2, ... (kpifs info "
-                        "--instruments lists them; default %(default)s)")
+                        "pipeline files, e.g. charis (kpifs info --instruments lists them; "
+                        "default %(default)s)")
     p.add_argument("--frames", type=int,
                    help="number of frames per star (default: the preset's)")
     p.add_argument("--contrasts", help="per-channel contrasts, comma separated (default: the "
