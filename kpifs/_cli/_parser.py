@@ -50,7 +50,7 @@ def _pupil_options(p, *, model_files=True):
     files = " or a kernel-model FITS" if model_files else ""
     g.add_argument("--pupil", default=EXTRACT["pupil"],
                    help="telescope: subaru (aliases scexao, charis), vlt (alias sphere), "
-                        "pharo, jwst (alias nircam_clear), niriss_clearp, gpi (alias "
+                        "pharo, keck, jwst (alias nircam_clear), niriss_clearp, gpi (alias "
                         "gemini_south); a mask: niriss_nrm, sphere_sam7, gpi_nrm ('-' for "
                         "'_' accepted); or a pupil image FITS (pixel size in PUPSCALE or "
                         f"--pupil-scale){files}. Circular and annular apertures (a diameter "

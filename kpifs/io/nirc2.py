@@ -188,7 +188,8 @@ def nirc2_detpa(header, *, source="NIRC2 file"):
     north = (NIRC2_NORTH[_after_servicing(header)]
              if _key(header.get("CAMNAME", "")) == "narrow" else 0.0)
     detpa = sum(values[:-1]) - values[-1] + north
-    return float(detpa), f"{' + '.join(keys[:-1])} - INSTANGL {north:+g} deg"
+    return float(detpa), (f"{' + '.join(keys[:-1])} - INSTANGL {'-' if north < 0 else '+'} "
+                          f"{abs(north):g} deg")
 
 
 def nirc2_setup(header):

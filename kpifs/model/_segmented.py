@@ -1,4 +1,4 @@
-"""JWST and Gemini/GPI apertures: hexagonal segments, struts and hole masks.
+"""JWST, Keck and Gemini/GPI apertures: hexagonal segments, struts and hole masks.
 
 Published geometry (FORMATS.md "JWST stage-2 products" and "Gemini Planet
 Imager"; jwst-kpi, stpsf/webbpsf, ImPlaneIA, gpipsfs). Coordinates in metres,
