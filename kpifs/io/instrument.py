@@ -1,7 +1,6 @@
 """What kpifs knows of an instrument, in one object per instrument module.
 
-Each instrument module (`kpifs.io.charis`, `kpifs.io.sphere`, `kpifs.io.jwst`,
-`kpifs.io.gpi`, `kpifs.io.nirc2`, `kpifs.io.generic`) ends with an `Instrument`
+Each instrument module (`kpifs.io.nirc2`, for one) ends with an `Instrument`
 named ``INSTRUMENT``: its recognition from a file's headers (an identifier, as
 in astropy's I/O registry), its reader to `~kpifs.io.IFSCube`, its angle
 convention, its default pupil and pixel scale, the facts its calibrator must

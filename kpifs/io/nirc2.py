@@ -25,9 +25,10 @@ one pointing; several files are more frames. One channel: the filter's.
   binary, or against the archive's ``ROTNORTH`` when it is present.
 - Pupil (``PMSNAME``, the pupil-stop wheel): ``largehex``, ``open`` and ``clear``
   are read with the Keck primary (``keck``: 36 hexagonal segments, the built-in
-  model; the largehex stop undersizes the outer edge slightly, which the model
-  ignores). Any other stop (the 9-hole and 18-hole masks, the circular stops)
-  is no pupil kpifs models: a warning asks for ``--pupil``.
+  model). Assumed: the largehex stop passes the primary's hexagonal outline (its
+  own edge and spider covers are not modelled; a pupil image given with
+  ``--pupil`` replaces the model). Any other stop (the 9-hole and 18-hole masks,
+  the circular stops) is no pupil kpifs models: a warning asks for ``--pupil``.
 """
 import logging
 import re

@@ -21,8 +21,8 @@ INSTRUMENTS = ("auto",) + tuple(_REGISTRY)
 
 
 def detect_instrument(path):
-    """The name of the registered instrument whose identifier claims a file (``'charis'``,
-    ``'sphere'``, ``'jwst'``, ``'gpi'``, ``'nirc2'``), else ``'generic'``.
+    """The name of the registered instrument (`kpifs.io.instruments.INSTRUMENTS`) whose
+    identifier claims a file (``'charis'``, ...), else ``'generic'``.
 
     Examples
     --------
@@ -55,8 +55,7 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
         one exposure per file).
     instrument : str
         ``'auto'`` or a registered instrument's name
-        (`kpifs.io.instruments.INSTRUMENTS`: charis, sphere, jwst, gpi, nirc2,
-        generic). ``'auto'`` asks each instrument's identifier in turn (CHARIS
+        (`kpifs.io.instruments.INSTRUMENTS`; ``'generic'``: any FITS cube). ``'auto'`` asks each instrument's identifier in turn (CHARIS
         pipeline cubes by ``LAM_MIN``/``DLOGLAM``/``NLAM``, SPHERE-IFS by
         ``INSTRUME``, ``ESO SEQ ARM`` or the Data Center's ``ESO PRO REC1 ID``,
         ...); anything else is read as a generic cube. The choice is logged and
@@ -109,7 +108,8 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
 
 
 def header_pupil(header):
-    """The built-in pupil an instrument's header names (JWST, GPI, NIRC2), or None.
+    """The built-in pupil an instrument's header names (a JWST pupil element, a GPI mask,
+    a NIRC2 pupil stop: the instrument's ``header_pupil``), or None.
 
     Examples
     --------
