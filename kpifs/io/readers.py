@@ -55,7 +55,8 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
         one exposure per file).
     instrument : str
         ``'auto'`` or a registered instrument's name
-        (`kpifs.io.instruments.INSTRUMENTS`; ``'generic'``: any FITS cube). ``'auto'`` asks each instrument's identifier in turn (CHARIS
+        (`kpifs.io.instruments.INSTRUMENTS`; ``'generic'``: any FITS cube).
+        ``'auto'`` asks each instrument's identifier in turn (CHARIS
         pipeline cubes by ``LAM_MIN``/``DLOGLAM``/``NLAM``, SPHERE-IFS by
         ``INSTRUME``, ``ESO SEQ ARM`` or the Data Center's ``ESO PRO REC1 ID``,
         ...); anything else is read as a generic cube. The choice is logged and
