@@ -10,10 +10,10 @@ module plus one line here.
 Examples
 --------
 >>> from kpifs.io.instruments import INSTRUMENTS
->>> list(INSTRUMENTS)
-['charis', 'sphere', 'jwst', 'gpi', 'nirc2', 'generic']
->>> INSTRUMENTS.layouts()
-('charis', 'sphere', 'jwst', 'gpi', 'nirc2', 'plain')
+>>> INSTRUMENTS["nirc2"].title, list(INSTRUMENTS)[-1]
+('Keck/NIRC2', 'generic')
+>>> INSTRUMENTS.by_layout("nirc2") is INSTRUMENTS["nirc2"]
+True
 """
 from ..exceptions import KpifsError
 from . import charis, generic, gpi, jwst, nirc2, sphere
