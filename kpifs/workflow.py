@@ -39,6 +39,7 @@ from .detect import spectral as _spectral, stats as _stats
 from .exceptions import KpifsError, KpifsWarning
 from .extraction.extract import extract_kernel_phases
 from .io.angles import frame_detpa, parse_angles
+from .io.instruments import INSTRUMENTS as _INSTRUMENTS
 from .io.readers import check_pupil_header, header_pupil, read_cube
 from .io.wavelengths import parse_wavelengths
 from .model.kernel import load_kernel_model
@@ -57,10 +58,10 @@ __all__ = ["ExtractOptions", "DetectOptions", "DEFAULT_PUPIL", "kernel_model_for
 
 log = logging.getLogger(__name__)
 
-#: The telescope pupil of each instrument's cubes (plain cubes: Subaru; JWST and GPI
-#: headers name theirs, `kpifs.io.readers.header_pupil`).
-DEFAULT_PUPIL = {"charis": "subaru", "sphere": "vlt", "generic": "subaru", "jwst": "jwst",
-                 "gpi": "gpi"}
+#: The telescope pupil of each registered instrument's cubes (plain cubes: Subaru; JWST,
+#: GPI and NIRC2 headers name theirs, `kpifs.io.readers.header_pupil`), as each
+#: instrument's module says (`kpifs.io.instruments.INSTRUMENTS`).
+DEFAULT_PUPIL = {name: inst.pupil for name, inst in _INSTRUMENTS.items()}
 
 
 @dataclass
@@ -116,6 +117,12 @@ class ExtractOptions:
     pixel_noise: str = _EXTRACT["pixel_noise"]
     filter_kernels: str = _EXTRACT["filter_kernels"]   # `extract_filters`
     angular_differential: bool = _EXTRACT["angular_differential"]   # `reduce_observation`
+
+    def __post_init__(self):
+        # the registry's names: one check, one message, for the command line, a batch and
+        # Python alike
+        if self.instrument != "auto":
+            _INSTRUMENTS.get_instrument(self.instrument)
 
     def window_for(self, image_shape):
         """The `~kpifs.model.window.ExtractionWindow` these options give for images of a

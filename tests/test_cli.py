@@ -139,8 +139,8 @@ def bad_files(tmp_path, sim_dir):
     ("nowl", ["--wavelengths", "1.5,1.6,1.7", "--pixscale", "10mas", "--window", "64"],
      "larger than"),
     ("nowl", ["--wavelengths", "1.5,1.6,1.7"], "no pixel scale"),
-    ("nowl", ["--wavelengths", "1.5,1.6,1.7", "--pixscale", "10mas", "--pupil", "keck"],
-     "unknown pupil 'keck'"),
+    ("nowl", ["--wavelengths", "1.5,1.6,1.7", "--pixscale", "10mas", "--pupil", "hubble"],
+     "unknown pupil 'hubble'"),
     ("nowl", ["--wavelengths", "1.5kg,1.6,1.7", "--pixscale", "10mas"], "wrong unit"),
     ("dir", [], "is a directory"),
 ])

@@ -170,8 +170,8 @@ def test_bad_input(subaru_model, paper_wavelengths, mutate, kwargs, match):
 
 
 def test_unknown_pupil_name(paper_wavelengths):
-    with pytest.raises(KpifsError, match="unknown pupil 'keck'"):
-        extract_kernel_phases(np.ones((3, 8, 8)), "keck", wavelengths=paper_wavelengths,
+    with pytest.raises(KpifsError, match="unknown pupil 'hubble'"):
+        extract_kernel_phases(np.ones((3, 8, 8)), "hubble", wavelengths=paper_wavelengths,
                               pixscale=PIX)
 
 

@@ -178,4 +178,4 @@ def test_read_cube_rejects_mixed_inputs(charis_files, sphere_files):
     with pytest.raises(KpifsError, match="different kinds"):
         read_cube([charis_files[0]["target"][0], sphere_files[0]["target"][0]])
     with pytest.raises(KpifsError, match="unknown instrument"):
-        read_cube(charis_files[0]["target"][0], instrument="nirc2")
+        read_cube(charis_files[0]["target"][0], instrument="osiris")

@@ -72,6 +72,7 @@ EPILOG_INFO = """examples:
   kpifs info target/CRSA00000000_cube.fits
   kpifs info kp.fits
   kpifs info detection.fits curve.fits
+  kpifs info --instruments            # the instruments kpifs reads
 """
 EPILOG_SIMULATE = """examples:
   kpifs simulate --preset paper --frames 100 -o sim
@@ -79,6 +80,7 @@ EPILOG_SIMULATE = """examples:
   kpifs simulate --preset sphere --layout sphere -o sphere_sim
   kpifs simulate --preset niriss --layout jwst -o niriss_sim   # NIRISS _calints.fits
   kpifs simulate --preset gpi --layout gpi -o gpi_sim          # GPI _spdc.fits
+  kpifs simulate --preset nirc2 --layout nirc2 -o nirc2_sim    # Keck/NIRC2 images
   kpifs simulate --preset charis --frames 40 --drift 40nm --drift-time 8 \\
       --static-diff 15nm -o unkind     # drifting aberrations, target != calibrator
   kpifs simulate --preset charis --layout charis --rotation 40deg -o turning

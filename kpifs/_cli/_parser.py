@@ -23,20 +23,23 @@ EXIT_STATUS = ("exit status: 0 success; 1 batch: some entries failed (see summar
                "3 internal error (--debug shows the traceback); 130 interrupted (Ctrl-C)")
 
 TESTS = ("B", "B-paper", "S", "NP", "E")
-INSTRUMENTS = ("auto", "charis", "sphere", "jwst", "gpi", "generic")
-PRESETS = ("paper", "charis", "sphere", "sphere-sam", "niriss", "nircam", "gpi")
+# instruments, their simulator layouts and presets are not listed here: the registry
+# (`kpifs.io.instruments`) checks them when the command runs, and `kpifs info
+# --instruments` lists them (the parser imports nothing heavy)
 ROC_PRESETS = ("paper", "charis", "sphere", "sphere-sam")
 
 
 def _cube_options(p):
     g = p.add_argument_group("input cubes")
-    g.add_argument("--instrument", default=EXTRACT["instrument"], choices=INSTRUMENTS,
-                   help="file format (default auto: recognised from the header)")
+    g.add_argument("--instrument", default=EXTRACT["instrument"], metavar="NAME",
+                   help="file format: auto (the default: recognised from the header) or an "
+                        "instrument's name (kpifs info --instruments lists them; generic: "
+                        "any FITS cube)")
     g.add_argument("--wavelengths", help="list (1.52um,1.60um) or file (text/FITS, um or nm); "
                                          "default: from the file's header")
     g.add_argument("--pixscale", help="pixel scale, mas if no unit, e.g. 10.42mas; default: "
-                                      "from the header or the instrument (CHARIS 16.2mas, "
-                                      "SPHERE 7.46mas)")
+                                      "from the header or the instrument's (kpifs info "
+                                      "--instruments)")
     g.add_argument("--dq-bits", metavar="FLAGS",
                    help="JWST: DQ flags read as bad pixels besides DO_NOT_USE, by name or "
                         "value, e.g. SATURATED,JUMP_DET or 6 (default: DO_NOT_USE only)")
@@ -47,7 +50,7 @@ def _pupil_options(p, *, model_files=True):
     files = " or a kernel-model FITS" if model_files else ""
     g.add_argument("--pupil", default=EXTRACT["pupil"],
                    help="telescope: subaru (aliases scexao, charis), vlt (alias sphere), "
-                        "pharo, jwst (alias nircam_clear), niriss_clearp, gpi (alias "
+                        "pharo, keck, jwst (alias nircam_clear), niriss_clearp, gpi (alias "
                         "gemini_south); a mask: niriss_nrm, sphere_sam7, gpi_nrm ('-' for "
                         "'_' accepted); or a pupil image FITS (pixel size in PUPSCALE or "
                         f"--pupil-scale){files}. Circular and annular apertures (a diameter "
@@ -195,8 +198,8 @@ def _reduction_options(p, *, pa_help):
                    help="detector position angle of the target's frames (deg, East of North "
                         "of the detector +y axis): one value, a comma list with one per "
                         "frame, or a text/FITS file" + pa_help + " (default: the "
-                        "instrument's: CHARIS PARANG+113, SPHERE angle file+33.76, generic "
-                        "DETPA or 0)")
+                        "instrument's, e.g. CHARIS PARANG+113; kpifs info --instruments lists "
+                        "them; generic cubes: DETPA or 0)")
 
 
 def _output(p, help_text="output FITS file", *, required=True, default=None):
@@ -304,19 +307,24 @@ def _inject(command):
 def _info(command):
     p = command("info", "describe a cube, KPFITS, model, detection or injection file",
                 EPILOG_INFO)
-    p.add_argument("files", nargs="+", metavar="FILE", help="FITS file(s) to describe")
+    p.add_argument("files", nargs="*", metavar="FILE", help="FITS file(s) to describe")
+    p.add_argument("--instruments", action="store_true",
+                   help="list the instruments kpifs reads: how each is recognised, its "
+                        "pupil, pixel scale, angles and simulator layout")
     _cube_options(p)
     _pupil_options(p)
 
 
 def _simulate(command):
     p = command("simulate", "simulate a target and a calibrator", EPILOG_SIMULATE)
-    p.add_argument("--preset", default="paper", choices=PRESETS,
-                   help="instrument and scene to start from (see below; default %(default)s)")
-    p.add_argument("--layout", default="plain",
-                   choices=("plain", "charis", "sphere", "jwst", "gpi"),
-                   help="file layout: one 4-D cube per star, or the instrument pipeline's "
-                        "files (default %(default)s)")
+    p.add_argument("--preset", default="paper", metavar="NAME",
+                   help="instrument and scene to start from, e.g. paper, charis, sphere, "
+                        "niriss, gpi (see below; an unknown name lists them; default "
+                        "%(default)s)")
+    p.add_argument("--layout", default="plain", metavar="NAME",
+                   help="file layout: plain (one 4-D cube per star) or an instrument's "
+                        "pipeline files, e.g. charis (kpifs info --instruments lists them; "
+                        "default %(default)s)")
     p.add_argument("--frames", type=int,
                    help="number of frames per star (default: the preset's)")
     p.add_argument("--contrasts", help="per-channel contrasts, comma separated (default: the "

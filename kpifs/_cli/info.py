@@ -9,6 +9,7 @@ from ..data import DetectionResult, KernelPhaseData
 from ..exceptions import KpifsError, KpifsWarning, MissingInformation
 from ..model.field import field_sentence
 from ..io.cube import check_header_checksums, open_fits
+from ..io.instruments import INSTRUMENTS
 from ..io.kpfits_read import _layout, _read_pixscale, _read_wavelengths
 from ..io.readers import detect_instrument, read_cube
 from ..io.wavelengths import parse_wavelengths
@@ -35,7 +36,21 @@ def _check_headers(path):
                       f"describes the header as it is now", KpifsWarning, stacklevel=2)
 
 
+def _instruments():
+    """``kpifs info --instruments``: the registry, one block per instrument."""
+    for inst in INSTRUMENTS.values():
+        names = ", ".join(inst.instrume) or "any FITS cube (the fallback)"
+        print(f"{inst.name}: {inst.title}\n  recognised by: {names}\n"
+              f"  pupil: {inst.pupil}{' (or as the header names)' if inst.header_pupil else ''}"
+              f"\n  pixel scale: {inst.pixscale}\n  detector angle: {inst.angles}\n"
+              f"  simulator layout: {inst.layout or 'none'}")
+
+
 def run(args):
+    if args.instruments:
+        _instruments()
+    elif not args.files:
+        raise KpifsError("kpifs info: give FITS file(s) to describe, or --instruments")
     for path in args.files:
         with open_fits(path) as hdul:
             _check_headers(path)

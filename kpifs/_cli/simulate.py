@@ -5,6 +5,7 @@ from astropy import units as u
 from .._checks import check_seed
 from .._utils import check_output_dir, to_quantity
 from ..exceptions import KpifsError
+from ..io.instruments import INSTRUMENTS
 from ..io.layouts import write_observation
 from ..detect.sky import detector_to_sky
 from ..rotation import sequence_angles
@@ -13,6 +14,9 @@ from ..simulation.simulate import PRESETS, SceneParameters, simulate_scene
 
 def run(args):
     check_seed(args.seed)
+    if args.preset not in PRESETS:
+        raise KpifsError(f"--preset {args.preset}: unknown; use one of {', '.join(PRESETS)}")
+    INSTRUMENTS.by_layout(args.layout)           # an unknown layout: refused before any work
     out = check_output_dir(args.output)          # refused now, not after the simulation
     earlier = [n for n in ("target.fits", "calibrator.fits", "target", "calibrator")
                if (out / n).exists()]

@@ -1,5 +1,7 @@
 """Files: instrument cubes, wavelength arguments, KPFITS kernel-phase files, products.
 
+Each instrument is one module holding an `~kpifs.io.instrument.Instrument`,
+registered once in `kpifs.io.instruments`.
 This layer knows file layouts, not the science: readers return an `IFSCube`
 (or plain arrays and headers), writers take objects and only read the
 attributes they write. The containers of `kpifs.data` and `kpifs.model.kernel`

@@ -16,18 +16,21 @@ angle of the detector +y axis there; pyKLIP uses 113.5 deg. An unavailable
 """
 import logging
 import warnings
+from pathlib import Path
 
 import numpy as np
 from astropy import units as u
+from astropy.io import fits
 
-from .._utils import to_quantity
+from .._utils import check_output_path, to_quantity, write_hdulist
 from ..exceptions import KpifsError, KpifsWarning
 from .angles import known_angle_files
 from .cube import FrameStack, IFSCube, open_fits
+from .instrument import Instrument, frame_angles, header_card, simulated_header
 from .wavelengths import check_wavelengths, parse_wavelengths
 
 __all__ = ["read_charis", "is_charis", "charis_wavelengths", "charis_setup", "CHARIS_PIXSCALE",
-           "CHARIS_DETPA_OFFSET"]
+           "CHARIS_DETPA_OFFSET", "write_charis_exposures", "INSTRUMENT"]
 
 log = logging.getLogger(__name__)
 
@@ -259,3 +262,90 @@ class _IvarBad(_OneFrame):
             return np.zeros((1,) + np.empty(self.shape[1:])[key[1:]].shape, bool)
         iv = np.asarray(self.ivar[key[1:]])
         return (~np.isfinite(iv) | (iv <= 0))[None]
+
+
+def write_charis_exposures(outdir, cube, ivar, wavelengths, pixscale, *, prefix="CRSA",
+                           cards=None, overwrite=False, exptime=None, obj="SIMULATED",
+                           parang=None):
+    """One CHARIS-pipeline ``*_cube.fits`` file per frame; wavelengths must be log-uniform.
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np, astropy.units as u
+    >>> from kpifs.io.charis import write_charis_exposures
+    >>> wl = 1.15956 * np.exp(np.arange(3) * 0.03) * u.um
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> paths = write_charis_exposures(tmp.name, np.ones((2, 3, 8, 8)),
+    ...                                np.ones((2, 3, 8, 8)), wl, 16.2 * u.mas)
+    >>> [p.name for p in paths]
+    ['CRSA00000000_cube.fits', 'CRSA00000001_cube.fits']
+    >>> tmp.cleanup()
+    """
+    wl_nm = u.Quantity(wavelengths, u.um).to_value(u.nm)
+    n = len(wl_nm)
+    dlog = np.log(wl_nm[-1] / wl_nm[0]) / (n - 1) if n > 1 else 0.0
+    grid = wl_nm[0] * np.exp(np.arange(n) * dlog)
+    if not np.allclose(grid, wl_nm, rtol=1e-5):
+        raise KpifsError("the CHARIS layout needs log-uniform wavelengths "
+                         "(LAM_MIN * exp(i * DLOGLAM)); these are not")
+    cube = np.asarray(cube)
+    band = "Broadband" if n == 22 else {15: "J", 20: "H", 17: "K"}.get(n, "Broadband")
+    paths = []
+    outdir = Path(outdir)
+    targets = [outdir / f"{prefix}{i:08d}_cube.fits" for i in range(len(cube))]
+    for p in targets:  # refuse before writing anything
+        check_output_path(p, overwrite=overwrite)
+    for i, path in enumerate(targets):
+        hdr = simulated_header(cards or {}, instrument="CHARIS", pixscale=pixscale,
+                               exptime=exptime, obj=obj)
+        hdr["TELESCOP"] = ("Subaru", "telescope")
+        hdr["LAM_MIN"] = (float(wl_nm[0]), "[nm] minimum wavelength")
+        hdr["LAM_MAX"] = (float(wl_nm[-1]), "[nm] maximum wavelength")
+        hdr["DLOGLAM"] = (float(dlog), "log wavelength spacing")
+        hdr["NLAM"] = (n, "number of wavelengths")
+        hdr["CAL_BAND"] = (band, "band/mode")
+        hdr["FILTNAME"] = (band, "filter")
+        hdr["MJD"] = (60000.0 + i * 1e-3, "simulated")
+        hdr["PARANG"] = (float(parang[i]) if parang is not None else 0.0, "[deg]")
+        sci = fits.ImageHDU(np.asarray(cube[i], np.float32), header=hdr.copy())
+        sci.header["CTYPE3"] = "AWAV-LOG"
+        sci.header["CUNIT3"] = "nm"
+        sci.header["CRPIX3"] = 1.0
+        sci.header["CRVAL3"] = float(wl_nm[0])
+        sci.header["CDELT3"] = float(wl_nm[0] * dlog)
+        iv = fits.ImageHDU(np.asarray(ivar[i], np.float32))
+        paths.append(write_hdulist(fits.HDUList([fits.PrimaryHDU(header=hdr), sci, iv]), path,
+                                   overwrite=overwrite))
+    return paths
+
+
+def _write(obs, role, outdir, common):
+    """`Instrument.write`: one ``*_cube.fits`` per frame in ``outdir/role``."""
+    p = obs.params
+    cube, var = ((obs.target, obs.variance_target) if role == "target"
+                 else (obs.calibrator, obs.variance_calibrator))
+    (outdir / role).mkdir(exist_ok=True)
+    return write_charis_exposures(outdir / role, cube, 1 / var, p.wavelengths, p.pixscale,
+                                  parang=frame_angles(p, len(cube), CHARIS_DETPA_OFFSET),
+                                  **common)
+
+
+def _hint(hdul, path):
+    """A header that says CHARIS without the pipeline's wavelength solution."""
+    if header_card(hdul[0].header, "INSTRUME") == "CHARIS":
+        warnings.warn(f"{path}: the header says CHARIS but has no wavelength solution "
+                      f"(LAM_MIN, DLOGLAM, NLAM): read as a plain cube; give the "
+                      f"wavelengths (--wavelengths)", KpifsWarning, stacklevel=3)
+
+
+def _read(paths, *, wavelengths=None, pixscale=None, pa_given=False, **_):
+    return read_charis(paths, wavelengths=wavelengths, pixscale=pixscale,
+                       keep_unknown_angles=pa_given)
+
+
+INSTRUMENT = Instrument(
+    name="charis", title="SCExAO/CHARIS", identify=is_charis, read=_read, pupil="subaru",
+    instrume=("CHARIS",), keywords=("CAL_BAND",), pupils=("subaru", "scexao", "charis"),
+    setup=charis_setup, pixscale=f"{CHARIS_PIXSCALE.value:g} mas (--pixscale)",
+    angles=f"PARANG + {CHARIS_DETPA_OFFSET:g} deg", layout="charis", write=_write,
+    hint=_hint)

@@ -27,19 +27,22 @@ About half of each slice is NaN, outside the tilted lenslet field.
 """
 import logging
 import warnings
+from pathlib import Path
 
 import numpy as np
 from astropy import units as u
+from astropy.io import fits
 
-from .._utils import to_quantity
+from .._utils import canonical_name, check_output_path, to_quantity, write_hdulist
 from ..exceptions import KpifsError, KpifsWarning
 from .angles import known_angle_files
 from .cube import FrameStack, IFSCube, open_fits
+from .instrument import Instrument, add_truth
 from .wavelengths import check_wavelengths
 
 __all__ = ["read_gpi", "is_gpi", "gpi_wavelengths", "gpi_pupil", "gpi_setup", "GPI_PIXSCALE",
            "GPI_BANDS",
-           "GPI_DIAMETER", "MIN_FIELD"]
+           "GPI_DIAMETER", "MIN_FIELD", "write_gpi_exposures", "GPI_IFSROTAT", "INSTRUMENT"]
 
 log = logging.getLogger(__name__)
 
@@ -339,3 +342,101 @@ def _flag_sampling(cube, name):
                       f"are shorter than the sampling limit {limit:.3f} um of the "
                       f"{GPI_DIAMETER} m pupil at {cube.pixscale:.3f}: their longest "
                       f"baselines are lost", KpifsWarning, stacklevel=3)
+
+
+#: IFSROTAT written in simulated GPI files (deg; 23.5 + PACAL with PACAL = 0).
+GPI_IFSROTAT = 23.5
+
+
+def _lenslet_field(shape, angle=23.5, fraction=0.68):
+    ny, nx = shape
+    y, x = np.mgrid[:ny, :nx]
+    x = x - (nx - 1) / 2
+    y = y - (ny - 1) / 2
+    c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
+    half = fraction * min(shape) / 2
+    return (np.abs(c * x + s * y) <= half) & (np.abs(-s * x + c * y) <= half)
+
+
+def write_gpi_exposures(outdir, cube, variance, wavelengths, pixscale, *, detpa=None,
+                        prefix="S20260101S", cards=None, overwrite=False, obj="SIMULATED",
+                        exptime=None, obsmode="H_direct"):
+    """One GPI ``*_spdc.fits`` per frame of ``(nframe, 37, ny, nx)`` (the kpifs frame).
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np, astropy.units as u
+    >>> from astropy.io import fits
+    >>> from kpifs.io.gpi import write_gpi_exposures
+    >>> wl = (1.4904 + (np.arange(37) + 0.5) * 0.3112 / 37) * u.um
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> paths = write_gpi_exposures(tmp.name, np.ones((1, 37, 32, 32)),
+    ...                             np.ones((1, 37, 32, 32)), wl, 14.161 * u.mas)
+    >>> paths[0].name, fits.getval(paths[0], "IFSFILT")
+    ('S20260101S0001_spdc.fits', 'IFSFILT_H_G1213')
+    >>> tmp.cleanup()
+    """
+    wl = u.Quantity(wavelengths, u.um).value
+    band = next((b for b, (lo, hi) in GPI_BANDS.items() if lo < wl[0] < wl[-1] < hi), "H")
+    cube = np.asarray(cube)
+    nf, nw, ny, nx = cube.shape
+    pa = np.zeros(nf) if detpa is None else np.broadcast_to(np.asarray(detpa, float), (nf,))
+    outdir = Path(outdir)
+    paths = [outdir / f"{prefix}{i + 1:04d}_spdc.fits" for i in range(nf)]
+    for p in paths:
+        check_output_path(p, overwrite=overwrite)
+    field = _lenslet_field((ny, nx))
+    s = float(u.Quantity(pixscale, u.mas).value) / 3.6e6
+    out = []
+    for i, path in enumerate(paths):
+        phu = fits.Header()
+        phu.update(INSTRUME="GPI", TELESCOP="Gemini South", OBJECT=obj,
+                   IFSFILT=f"IFSFILT_{band}_G1213", DISPERSR="DISP_PRISM_G6262",
+                   OBSMODE=obsmode, APODIZER="APOD_CLEAR_G6201", OCCULTER="SCIENCE",
+                   LYOTMASK="Open", IFSROTAT=GPI_IFSROTAT, PAR_ANG=float(pa[i]) + 66.5,
+                   RA=83.8, DEC=-5.4)
+        phu["DATE-OBS"], phu["MJD-OBS"] = "2026-01-01", 61041.0 + i * 1e-3
+        add_truth(phu, cards, obj)
+        data = np.where(field, cube[i], np.nan)[..., ::-1].astype(np.float32)
+        bad = ~np.isfinite(variance[i]) & field
+        sci = fits.ImageHDU(data, name="SCI")
+        h = sci.header
+        h["BUNIT"] = "ADU per coadd"
+        h["AVPARANG"] = (float(pa[i]) - GPI_IFSROTAT + 90, "[deg] mean parallactic angle")
+        h.update(CTYPE3="WAVE", CUNIT3="microns", CRPIX3=1, CRVAL3=float(wl[0]),
+                 CD3_3=float(np.mean(np.diff(wl))) if nw > 1 else 0.01)
+        h["PSFCENTX"] = (float(nx - 1 - nx // 2), "star x (0-based, file frame)")
+        h["PSFCENTY"] = (float(ny // 2), "star y (0-based)")
+        t = np.radians(pa[i])
+        h.update(CTYPE1="RA---TAN", CTYPE2="DEC--TAN", CRPIX1=(nx + 1) / 2, CRPIX2=(ny + 1) / 2,
+                 CRVAL1=83.8, CRVAL2=-5.4, CD1_1=s * np.cos(t), CD1_2=s * np.sin(t),
+                 CD2_1=-s * np.sin(t), CD2_2=s * np.cos(t))
+        exp = float(u.Quantity(exptime if exptime is not None else 1.0, u.s).value)
+        h.update(ITIME=exp, COADDS=1, EXPTIME=exp)
+        dq = (bad[..., ::-1]).astype(np.uint8)
+        hdul = fits.HDUList([fits.PrimaryHDU(header=phu), sci, fits.ImageHDU(dq, name="DQ")])
+        out.append(write_hdulist(hdul, path, overwrite=overwrite))
+    return out
+
+
+def _write(obs, role, outdir, common):
+    """`Instrument.write`: one ``*_spdc.fits`` per frame in ``outdir/role``."""
+    p = obs.params
+    cube, var = ((obs.target, obs.variance_target) if role == "target"
+                 else (obs.calibrator, obs.variance_calibrator))
+    (outdir / role).mkdir(exist_ok=True)
+    mode = "NRM_H" if canonical_name(p.telescope) == "gpi_nrm" else "H_direct"
+    return write_gpi_exposures(outdir / role, cube, var, p.wavelengths, p.pixscale,
+                               detpa=p.detpa, obsmode=mode, **common)
+
+
+def _read(paths, *, wavelengths=None, pixscale=None, pa_given=False, **_):
+    return read_gpi(paths, wavelengths=wavelengths, pixscale=pixscale,
+                    keep_unknown_angles=pa_given)
+
+
+INSTRUMENT = Instrument(
+    name="gpi", title="Gemini/GPI", identify=is_gpi, read=_read, pupil="gpi",
+    instrume=("GPI",), header_pupil=gpi_pupil, pupils=("gpi", "gemini_south", "gpi_nrm"),
+    setup=gpi_setup, pixscale=f"{GPI_PIXSCALE.value:g} mas (--pixscale)",
+    angles="AVPARANG + IFSROTAT - 90 deg (x mirrored)", layout="gpi", write=_write)

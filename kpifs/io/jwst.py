@@ -44,14 +44,15 @@ from astropy import units as u
 from astropy.io import fits
 
 from .._memory import check_memory
-from .._utils import to_quantity
+from .._utils import canonical_name, check_output_path, to_quantity, write_hdulist
 from ..exceptions import KpifsError, KpifsWarning
 from .cube import FrameStack, IFSCube, open_fits
+from .instrument import Instrument, add_truth
 
 __all__ = ["read_jwst", "is_jwst", "jwst_mode", "jwst_pupil", "jwst_setup", "jwst_detpa",
            "JWST_FILTERS", "JWST_PIXSCALES", "PUPIL_ELEMENTS", "PIXSCALE_TOLERANCE",
            "own_pixscale", "pixscale_fits", "SUPPORTED_EXP_TYPES", "DO_NOT_USE", "DQ_FLAGS",
-           "parse_dq_bits"]
+           "parse_dq_bits", "write_jwst_calints", "JWST_GEOMETRY", "INSTRUMENT"]
 
 log = logging.getLogger(__name__)
 
@@ -547,3 +548,150 @@ def _join(cubes):
                    variance=(FrameStack([c.variance for c in cubes])
                              if all(c.variance is not None for c in cubes) else None),
                    variance_source=first.variance_source)
+
+
+#: V3I_YANG (deg) and VPARITY written for each instrument (NIRISS: FORMATS.md).
+JWST_GEOMETRY = {"NIRISS": (-0.56, -1), "NIRCAM": (-0.03, -1)}
+
+
+def _filter_of(inst, wavelength):
+    best = min((abs(lam / wavelength - 1), name) for (i, name), (lam, _) in
+               JWST_FILTERS.items() if i == inst)
+    if best[0] > 0.01:
+        raise KpifsError(f"no {inst} filter at {wavelength:.4f} um (the JWST layout writes "
+                         f"one filter of kpifs's table per file)")
+    return best[1]
+
+
+def write_jwst_calints(path, cube, variance, wavelength, pixscale, *, instrument="NIRISS",
+                       pupil=None, detpa=0.0, cards=None, overwrite=False, obj="SIMULATED",
+                       exptime=None, seed=0):
+    """Write ``(nints, ny, nx)`` images as a JWST stage-2 ``*_calints.fits``.
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np, astropy.units as u
+    >>> from astropy.io import fits
+    >>> from kpifs.io.jwst import write_jwst_calints
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> p = write_jwst_calints(tmp.name + "/a_calints.fits", np.ones((2, 8, 8)),
+    ...                        np.ones((2, 8, 8)), 4.8196 * u.um, 65.55 * u.mas)
+    >>> fits.getheader(p, "DQ")["BZERO"], fits.getval(p, "FILTER")
+    (2147483648, 'F480M')
+    >>> tmp.cleanup()
+    """
+    check_output_path(path, overwrite=overwrite)
+    inst = instrument.upper()
+    lam = float(u.Quantity(wavelength, u.um).value)
+    ps = float(u.Quantity(pixscale, u.mas).value)
+    filt = _filter_of(inst, lam)
+    cube = np.asarray(cube, np.float32).copy()
+    var = np.asarray(variance, float)
+    nint, ny, nx = cube.shape
+    rng = np.random.default_rng(seed)
+    dq = np.zeros(cube.shape, np.uint32)
+    dead = ~np.isfinite(var)
+    dq[dead] |= 1
+    nan_dead = dead & (rng.random(cube.shape) < 0.5)
+    cube[nan_dead] = np.nan
+    for flag, value in ((None, np.nan), (2, None)):      # NaN without a flag; saturated only
+        idx = rng.integers(0, [nint, ny, nx], (3, 3))
+        for i, y, x in idx:
+            if flag is None:
+                cube[i, y, x] = value
+            else:
+                dq[i, y, x] |= flag
+    yang, parity = JWST_GEOMETRY.get(inst, (0.0, -1))
+    phu = fits.Header()
+    phu["TELESCOP"] = "JWST"
+    phu["INSTRUME"] = inst
+    if inst == "NIRISS":
+        phu["DETECTOR"] = "NIS"
+        phu["EXP_TYPE"] = "NIS_AMI"
+        wheel = filt in ("F090W", "F115W", "F140M", "F150W", "F158M", "F200W")
+        phu["FILTER"], phu["PUPIL"] = ("CLEAR", filt) if wheel else (filt, pupil or "CLEARP")
+        phu["SUBARRAY"] = f"SUB{nx}"
+    else:
+        phu["CHANNEL"] = "SHORT" if ps < 45 else "LONG"
+        phu["DETECTOR"] = "NRCA1" if ps < 45 else "NRCALONG"
+        phu["EXP_TYPE"] = "NRC_IMAGE"
+        phu["FILTER"], phu["PUPIL"] = filt, pupil or "CLEAR"
+        phu["SUBARRAY"] = "SUB64P" if nx == 64 else "FULL"
+    phu.update(SUBSTRT1=1, SUBSTRT2=1, SUBSIZE1=nx, SUBSIZE2=ny, NINTS=nint,
+               EFFINTTM=float(u.Quantity(exptime if exptime is not None else 1.0, u.s).value))
+    phu["TARG_RA"], phu["TARG_DEC"] = 53.1, -27.8
+    phu["DATE-OBS"], phu["TIME-OBS"] = "2026-01-01", "00:00:00.000"
+    # newer schemas: guide-star values under the reader's names in PRIMARY (never read)
+    phu["ROLL_REF"], phu["V3I_YANG"], phu["VPARITY"] = 0.0, 0.0, 1
+    add_truth(phu, cards, obj)
+    sci = fits.ImageHDU(cube, name="SCI")
+    sci.header["BUNIT"] = "DN/s"
+    sci.header["PIXAR_A2"] = ((ps / 1000) ** 2, "[arcsec^2] nominal pixel area")
+    sci.header["PIXAR_SR"] = (((ps / 1000) * np.pi / 180 / 3600) ** 2, "[sr] pixel area")
+    sci.header.update(RA_REF=53.1, DEC_REF=-27.8, V2_REF=-290.1, V3_REF=-697.5)
+    sci.header["ROLL_REF"] = (float(detpa) + yang * parity, "[deg] V3 PA at the reference")
+    sci.header["V3I_YANG"] = (yang, "[deg] angle from V3 to ideal y")
+    sci.header["VPARITY"] = (parity, "relative sense of rotation, V3 to ideal")
+    sci.header["PA_V3"] = sci.header["ROLL_REF"]
+    sci.header["PA_APER"] = float(detpa)
+    err = np.sqrt(np.where(np.isfinite(var), var, np.nan)).astype(np.float32)
+    var32 = np.where(np.isfinite(var), var, np.nan).astype(np.float32)
+    times = fits.BinTableHDU.from_columns(
+        [fits.Column(name="integration_number", format="J", array=np.arange(1, nint + 1)),
+         fits.Column(name="int_mid_MJD_UTC", format="D", array=60000 + np.arange(nint) * 1e-4)],
+        name="INT_TIMES")
+    asdf = fits.BinTableHDU.from_columns(
+        [fits.Column(name="ASDF_METADATA", format="20A", array=np.array([b"#ASDF 1.0.0"]))],
+        name="ASDF")
+    hdul = fits.HDUList([fits.PrimaryHDU(header=phu), sci, fits.ImageHDU(dq, name="DQ"),
+                         fits.ImageHDU(err, name="ERR"),
+                         fits.ImageHDU(var32, name="VAR_POISSON"),
+                         fits.ImageHDU(np.zeros_like(var32), name="VAR_RNOISE"),
+                         fits.ImageHDU(np.zeros_like(var32), name="VAR_FLAT"), times, asdf])
+    return write_hdulist(hdul, path, overwrite=overwrite)
+
+
+def _write(obs, role, outdir, common):
+    """`Instrument.write`: one ``*_calints.fits`` per detector angle (ROLL_REF is one per
+    exposure: issue 37, a rotating sequence was written with its mean angle)."""
+    p = obs.params
+    cube, var = ((obs.target, obs.variance_target) if role == "target"
+                 else (obs.calibrator, obs.variance_calibrator))
+    if len(p.wavelengths) != 1:
+        raise KpifsError("the JWST layout writes one filter per file: simulate one "
+                         "wavelength")
+    inst = "NIRCAM" if "nircam" in str(p.instrument).lower() else "NIRISS"
+    pupil = "NRM" if canonical_name(p.telescope) == "niriss_nrm" else None
+    det = "nis" if inst == "NIRISS" else ("nrca1" if p.pixscale.to_value(u.mas) < 45
+                                          else "nrcalong")
+    groups = _angle_groups(p.detpa, len(cube))
+    out = []
+    for k, (angle, frames) in enumerate(groups):
+        tag = ({"target": "00001", "calibrator": "00002"}[role] if len(groups) == 1 else
+               f"{1 if role == 'target' else 2}{k + 1:04d}")
+        path = outdir / f"jw01234001001_01101_{tag}_{det}_calints.fits"
+        out += [write_jwst_calints(path, cube[frames, 0], var[frames, 0], p.wavelengths[0],
+                                   p.pixscale, instrument=inst, pupil=pupil, detpa=angle,
+                                   seed=obs.seed + (role == "calibrator") + 2 * k, **common)]
+    return out
+
+
+def _angle_groups(detpa, nframe):
+    """``[(angle, frames)]``: runs of consecutive frames at one detector angle (deg)."""
+    if detpa is None:
+        return [(0.0, slice(0, nframe))]
+    pa = np.broadcast_to(np.asarray(detpa, float), (nframe,))
+    cuts = [0] + [i for i in range(1, nframe) if pa[i] != pa[i - 1]] + [nframe]
+    return [(float(pa[a]), slice(a, b)) for a, b in zip(cuts[:-1], cuts[1:])]
+
+
+def _read(paths, *, wavelengths=None, pixscale=None, dq_bits=DO_NOT_USE, **_):
+    return read_jwst(paths, wavelengths=wavelengths, pixscale=pixscale, dq_bits=dq_bits)
+
+
+INSTRUMENT = Instrument(
+    name="jwst", title="JWST NIRISS/NIRCam", identify=is_jwst, read=_read, pupil="jwst",
+    instrume=("NIRISS", "NIRCAM"), header_pupil=jwst_pupil,
+    pupils=("jwst", "niriss_clearp", "niriss_nrm", "nircam_clear"), setup=jwst_setup,
+    pixscale="NIRISS 65.55 mas, NIRCam 31/63 mas (checked against PIXAR_A2)",
+    angles="ROLL_REF - V3I_YANG * VPARITY (SCI header)", layout="jwst", write=_write)

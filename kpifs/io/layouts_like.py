@@ -80,7 +80,7 @@ def source_layout(cube):
         if hdu is None:
             with fits.open(path) as hdul:
                 hdu = next(i for i, h in enumerate(hdul) if h.is_image and h.data is not None
-                           and h.data.ndim >= (2 if kind == "generic" else 3))
+                           and h.data.ndim >= (3 if kind == "sphere" else 2))
         out.append(SourceFile(str(path), hdu, start, n, kind, getattr(part, "ys", None),
                               getattr(part, "xs", None)))
         start += n

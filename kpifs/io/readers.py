@@ -3,16 +3,11 @@ import logging
 import warnings
 from pathlib import Path
 
-import numpy as np
-from astropy import units as u
-
 from .._utils import canonical_name
 from ..exceptions import KpifsError, KpifsWarning
-from .charis import charis_setup, is_charis, read_charis
-from .cube import FrameStack, IFSCube, open_fits, read_generic, refuse_kpfits
-from .gpi import gpi_pupil, gpi_setup, is_gpi, read_gpi
-from .jwst import is_jwst, jwst_pupil, jwst_setup, parse_dq_bits, read_jwst
-from .sphere import is_sphere, read_sphere, sphere_setup
+from .cube import open_fits, refuse_kpfits
+from .instruments import INSTRUMENTS as _REGISTRY
+from .jwst import parse_dq_bits
 from .wavelengths import parse_wavelengths
 
 __all__ = ["read_cube", "detect_instrument", "header_pupil", "check_pupil_header",
@@ -20,11 +15,14 @@ __all__ = ["read_cube", "detect_instrument", "header_pupil", "check_pupil_header
 
 log = logging.getLogger(__name__)
 
-INSTRUMENTS = ("auto", "charis", "sphere", "jwst", "gpi", "generic")
+#: ``--instrument`` values: ``'auto'`` and the registered instruments
+#: (`kpifs.io.instruments.INSTRUMENTS`).
+INSTRUMENTS = ("auto",) + tuple(_REGISTRY)
 
 
 def detect_instrument(path):
-    """``'charis'``, ``'sphere'``, ``'jwst'``, ``'gpi'`` or ``'generic'`` from a file's headers.
+    """The name of the registered instrument (`kpifs.io.instruments.INSTRUMENTS`) whose
+    identifier claims a file (``'charis'``, ...), else ``'generic'``.
 
     Examples
     --------
@@ -41,19 +39,7 @@ def detect_instrument(path):
     hdul = open_fits(path)
     try:
         refuse_kpfits(hdul, path)
-        if is_charis(hdul):
-            return "charis"
-        if is_sphere(hdul):
-            return "sphere"
-        if is_jwst(hdul):
-            return "jwst"
-        if is_gpi(hdul):
-            return "gpi"
-        if str(hdul[0].header.get("INSTRUME", "")).strip().upper() == "CHARIS":
-            warnings.warn(f"{path}: the header says CHARIS but has no wavelength solution "
-                          f"(LAM_MIN, DLOGLAM, NLAM): read as a plain cube; give the "
-                          f"wavelengths (--wavelengths)", KpifsWarning, stacklevel=2)
-        return "generic"
+        return _REGISTRY.identify(hdul, path)
     finally:
         hdul.close()
 
@@ -67,11 +53,14 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
     paths : str or list of str
         Several files are read as more frames of one observation (CHARIS:
         one exposure per file).
-    instrument : {'auto', 'charis', 'sphere', 'generic'}
-        ``'auto'`` recognises CHARIS pipeline cubes (``LAM_MIN``/``DLOGLAM``/
-        ``NLAM``) and SPHERE-IFS products (``INSTRUME``, ``ESO SEQ ARM`` or the
-        Data Center's ``ESO PRO REC1 ID``); anything else is read as a generic
-        cube. The choice is logged and stored in ``cube.instrument``.
+    instrument : str
+        ``'auto'`` or a registered instrument's name
+        (`kpifs.io.instruments.INSTRUMENTS`; ``'generic'``: any FITS cube).
+        ``'auto'`` asks each instrument's identifier in turn (CHARIS
+        pipeline cubes by ``LAM_MIN``/``DLOGLAM``/``NLAM``, SPHERE-IFS by
+        ``INSTRUME``, ``ESO SEQ ARM`` or the Data Center's ``ESO PRO REC1 ID``,
+        ...); anything else is read as a generic cube. The choice is logged and
+        stored in ``cube.instrument``.
     wavelengths
         Any form `~kpifs.io.parse_wavelengths` accepts (a Quantity, values,
         ``"1.52um,1.6um"`` or a text/FITS file); overrides the header, or
@@ -103,8 +92,8 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
     paths = [str(p) for p in paths]
     if not paths:
         raise KpifsError("no input files")
-    if instrument not in INSTRUMENTS:
-        raise KpifsError(f"unknown instrument {instrument!r}: use one of {INSTRUMENTS}")
+    if instrument != "auto":
+        _REGISTRY.get_instrument(instrument)
     wavelengths = parse_wavelengths(wavelengths)     # once, whatever the number of files
     dq_bits = parse_dq_bits(dq_bits)
     if instrument == "auto":
@@ -115,56 +104,13 @@ def read_cube(paths, instrument="auto", *, wavelengths=None, pixscale=None, angl
         instrument = kinds[paths[0]]
         log.info("%s: read as %s", paths[0] if len(paths) == 1 else f"{len(paths)} files",
                  instrument)
-    if instrument == "charis":
-        return read_charis(paths, wavelengths=wavelengths, pixscale=pixscale,
-                           keep_unknown_angles=pa_given)
-    if instrument == "jwst":
-        return read_jwst(paths, wavelengths=wavelengths, pixscale=pixscale,
-                         dq_bits=dq_bits)
-    if instrument == "gpi":
-        return read_gpi(paths, wavelengths=wavelengths, pixscale=pixscale,
-                        keep_unknown_angles=pa_given)
-    readers = {"sphere": lambda p: read_sphere(p, wavelengths=wavelengths, pixscale=pixscale,
-                                               angles=angles),
-               "generic": lambda p: read_generic(p, wavelengths=wavelengths,
-                                                 pixscale=pixscale)}
-    cubes = []
-    try:
-        for p in paths:
-            cubes.append(readers[instrument](p))
-        if len(cubes) == 1:
-            return cubes[0]
-        return _concatenate(cubes)
-    except BaseException:
-        for c in cubes:
-            c.close()
-        raise
-
-
-def _concatenate(cubes):
-    first = cubes[0]
-    for c in cubes[1:]:
-        if len(c.wavelengths) != len(first.wavelengths) or not np.allclose(
-                c.wavelengths, first.wavelengths, rtol=1e-5):
-            raise KpifsError(f"{c.name}: its wavelengths differ from those of {first.name}")
-        if abs(c.pixscale / first.pixscale - 1) > 1e-3:
-            raise KpifsError(f"{c.name}: pixel scale {c.pixscale} differs from {first.pixscale}")
-    stack = FrameStack([c.data for c in cubes])
-    files = [f for c in cubes for f in c._files]
-    angles = detpa = None
-    if all(c.angles is not None for c in cubes):
-        angles = np.concatenate([c.angles.to_value(u.deg) for c in cubes]) * u.deg
-    if all(c.detpa is not None for c in cubes):
-        detpa = np.concatenate([c.detpa.to_value(u.deg) for c in cubes]) * u.deg
-    sources = list(dict.fromkeys(c.detpa_source for c in cubes))
-    return IFSCube(data=stack, wavelengths=first.wavelengths, pixscale=first.pixscale,
-                   header=first.header, angles=angles, detpa=detpa,
-                   detpa_source="; ".join(str(s) for s in sources), instrument=first.instrument,
-                   source=[s for c in cubes for s in c.source], _files=files)
+    return _REGISTRY[instrument].read(paths, wavelengths=wavelengths, pixscale=pixscale,
+                                      angles=angles, dq_bits=dq_bits, pa_given=pa_given)
 
 
 def header_pupil(header):
-    """The built-in pupil an instrument's header names (JWST, GPI), or None.
+    """The built-in pupil an instrument's header names (a JWST pupil element, a GPI mask,
+    a NIRC2 pupil stop: the instrument's ``header_pupil``), or None.
 
     Examples
     --------
@@ -175,14 +121,10 @@ def header_pupil(header):
     >>> header_pupil(fits.Header({"INSTRUME": "CHARIS"})) is None
     True
     """
-    if str(header.get("INSTRUME", "")).strip().upper() == "GPI":
-        return gpi_pupil(header)
-    return jwst_pupil(header)
-
-
-#: Pupils that fit each telescope's headers (a warning for any other built-in one).
-_PUPIL_FAMILIES = ({"jwst", "niriss_clearp", "niriss_nrm", "nircam_clear"},
-                   {"gpi", "gemini_south", "gpi_nrm"})
+    inst = _REGISTRY.of_header(header)
+    if inst is None or inst.header_pupil is None or not inst.names(header):
+        return None
+    return inst.header_pupil(header)
 
 
 def check_pupil_header(pupil, header, *, source="cube"):
@@ -203,7 +145,7 @@ def check_pupil_header(pupil, header, *, source="cube"):
     key = canonical_name(pupil) if isinstance(pupil, str) else str(pupil).lower()
     if expected is None or key.endswith((".fits", ".fit", ".fits.gz")):
         return
-    family = next((f for f in _PUPIL_FAMILIES if expected in f), {expected})
+    family = set(_REGISTRY.of_header(header).pupils) | {expected}
     if key not in family:
         warnings.warn(f"{source}: INSTRUME {header.get('INSTRUME')!r} but the pupil model is "
                       f"{pupil!r} (expected {expected!r})", KpifsWarning, stacklevel=2)
@@ -230,14 +172,9 @@ def observing_setup(header):
         return {}
     inst = str(header.get("INSTRUME", "") or "").strip().upper()
     out = {"instrument": inst} if inst and inst != "GENERIC" else {}
-    if inst in ("NIRISS", "NIRCAM"):
-        out.update(jwst_setup(header))
-    elif inst == "GPI":
-        out.update(gpi_setup(header))
-    elif inst == "CHARIS" or "CAL_BAND" in header:
-        out.update(charis_setup(header))
-    elif inst == "SPHERE" or "HIERARCH ESO INS2 COMB IFS" in header:
-        out.update(sphere_setup(header))
+    found = _REGISTRY.of_header(header)
+    if found is not None and found.setup is not None:
+        out.update(found.setup(header))
     return out
 
 

@@ -24,13 +24,15 @@ import numpy as np
 from astropy import units as u
 from astropy.io import fits
 
-from .._utils import to_quantity
+from .._utils import check_output_path, to_quantity, write_hdulist
 from ..exceptions import KpifsError, MissingInformation
 from .cube import IFSCube, open_fits
+from .instrument import Instrument, frame_angles, read_each, simulated_header
 from .wavelengths import parse_wavelengths, read_wavelength_file
 
 __all__ = ["read_sphere", "is_sphere", "sphere_setup", "SPHERE_PIXSCALE", "SPHERE_DETPA_OFFSET",
-           "SPHERE_PUPIL_OFFSET", "SPHERE_IFS_OFFSET", "SPHERE_TRUE_NORTH"]
+           "SPHERE_PUPIL_OFFSET", "SPHERE_IFS_OFFSET", "SPHERE_TRUE_NORTH", "write_sphere_cube",
+           "INSTRUMENT"]
 
 log = logging.getLogger(__name__)
 
@@ -193,3 +195,58 @@ def _angles(path, angles, nframe, dc):
     if ang.size != nframe:
         raise KpifsError(f"{path}: {ang.size} frame angles for {nframe} frame(s)")
     return (-ang if dc else ang) * u.deg
+
+
+def write_sphere_cube(outdir, cube, wavelengths, pixscale, *, prefix="", cards=None,
+                      overwrite=False, exptime=None, obj="SIMULATED", angles=None):
+    """SPHERE-IFS community-pipeline layout: wave-first 4-D cube plus wavelength file (nm).
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np, astropy.units as u
+    >>> from kpifs.io.sphere import write_sphere_cube
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> paths = write_sphere_cube(tmp.name, np.ones((2, 3, 8, 8)),
+    ...                           [1.0, 1.1, 1.2] * u.um, 7.46 * u.mas)
+    >>> [p.name for p in paths]
+    ['science_cube.fits', 'wavelength.fits', 'parallactic_angles.fits']
+    >>> tmp.cleanup()
+    """
+    outdir = Path(outdir)
+    cube = np.asarray(cube)
+    names = [outdir / f"{prefix}science_cube.fits", outdir / f"{prefix}wavelength.fits",
+             outdir / f"{prefix}parallactic_angles.fits"]
+    for p in names:
+        check_output_path(p, overwrite=overwrite)
+    hdr = simulated_header(cards or {}, instrument="SPHERE", pixscale=pixscale,
+                           exptime=exptime, obj=obj)
+    hdr["BUNIT"] = "ADU"
+    data = np.ascontiguousarray(np.swapaxes(cube, 0, 1), np.float32)
+    wl = u.Quantity(wavelengths, u.um).to_value(u.nm)
+    ang = np.zeros(len(cube)) if angles is None else np.asarray(angles, float)
+    return [write_hdulist(fits.HDUList([fits.PrimaryHDU(data, header=hdr)]), names[0],
+                          overwrite=overwrite),
+            write_hdulist(fits.HDUList([fits.PrimaryHDU(wl)]), names[1], overwrite=overwrite),
+            write_hdulist(fits.HDUList([fits.PrimaryHDU(ang)]), names[2], overwrite=overwrite)]
+
+
+def _write(obs, role, outdir, common):
+    """`Instrument.write`: the community pipeline's three files in ``outdir/role``."""
+    p = obs.params
+    cube = obs.target if role == "target" else obs.calibrator
+    (outdir / role).mkdir(exist_ok=True)
+    return write_sphere_cube(outdir / role, cube, p.wavelengths, p.pixscale,
+                             angles=frame_angles(p, len(cube), SPHERE_DETPA_OFFSET), **common)
+
+
+def _read(paths, *, wavelengths=None, pixscale=None, angles=None, **_):
+    return read_each(lambda p, **kw: read_sphere(p, wavelengths=wavelengths, pixscale=pixscale,
+                                                 angles=angles))(paths)
+
+
+INSTRUMENT = Instrument(
+    name="sphere", title="VLT/SPHERE-IFS", identify=is_sphere, read=_read, pupil="vlt",
+    instrume=("SPHERE",), keywords=("HIERARCH ESO INS2 COMB IFS",),
+    pupils=("vlt", "sphere", "sphere_sam7"), setup=sphere_setup,
+    pixscale=f"{SPHERE_PIXSCALE.value:g} mas (--pixscale)",
+    angles=f"angle file + {SPHERE_DETPA_OFFSET:.2f} deg", layout="sphere", write=_write)

@@ -1,4 +1,4 @@
-"""JWST and Gemini/GPI apertures: hexagonal segments, struts and hole masks.
+"""JWST, Keck and Gemini/GPI apertures: hexagonal segments, struts and hole masks.
 
 Published geometry (FORMATS.md "JWST stage-2 products" and "Gemini Planet
 Imager"; jwst-kpi, stpsf/webbpsf, ImPlaneIA, gpipsfs). Coordinates in metres,
@@ -199,3 +199,29 @@ SEGMENTED_TELESCOPES = {
         name="JWST/NIRISS CLEARP"),
 }
 SEGMENTED_TELESCOPES["nircam_clear"] = SEGMENTED_TELESCOPES["jwst"]
+
+#: Keck segments: 1.8 m corner to corner (1.5588 m flat to flat), 3 mm gaps.
+KECK_SEGMENT = 1.8 * np.sqrt(3) / 2
+KECK_PITCH = KECK_SEGMENT + 0.003
+
+
+def _hex_rings(pitch, rings):
+    """Centres of the segments of *rings* rings around a missing central one, flat-topped
+    hexagons (neighbours along 30 + 60k deg)."""
+    e1 = pitch * np.array([np.cos(np.pi / 6), np.sin(np.pi / 6)])
+    e2 = pitch * np.array([0.0, 1.0])
+    return tuple(tuple(q * e1 + r * e2) for q in range(-rings, rings + 1)
+                 for r in range(-rings, rings + 1)
+                 if 1 <= (abs(q) + abs(r) + abs(q + r)) // 2 <= rings)
+
+
+_KECK_SEGS = _hex_rings(KECK_PITCH, 3)
+#: Keck I/II primary as NIRC2 sees it through its ``largehex``/``open`` stops: 36 segments
+#: (10.95 m across corners), the secondary's 2.65 m obscuration and six 25 mm spider
+#: vanes at 60 deg steps (Keck NGAO pupil notes, as hcipy's Keck aperture cites them).
+#: Its turn on the detector is assumed (flat-topped segments): measure it with
+#: ``kpifs model-check``.
+SEGMENTED_TELESCOPES["keck"] = SegmentedAperture(
+    _KECK_SEGS, KECK_SEGMENT, 10.95, tuple((0.0, 0.0, a, 0.025) for a in range(0, 360, 60)),
+    disc=(0.0, 0.0, 1.325), area=71.9,          # m^2, summed on a 1 cm grid
+    name="Keck (36 segments, secondary, spiders)")

@@ -24,6 +24,7 @@ from .._memory import check_memory
 from .._utils import as_rng, one_blas_thread, to_quantity
 from .._utils import progress as progress_bar
 from ..exceptions import KpifsError
+from ..io.instruments import INSTRUMENTS
 from ..model.kernel import MAS
 from ..model.pupil import MASKS, TELESCOPES, pupil_image
 
@@ -295,6 +296,8 @@ PRESETS = {
                 wavefront_rms=20 * u.nm, exptime=60 * u.s,   # 60 s exposures: AO averaged
                 detpa=np.linspace(-86.5, -46.5, 8), sky_offset=[120.0, 160.0] * u.mas),
 }
+#: The presets the registered instruments add (`kpifs.io.nirc2`: ``nirc2``).
+PRESETS.update(INSTRUMENTS.scenes())
 
 
 @dataclass
