@@ -30,13 +30,10 @@ from ..data import DetectionGrid
 from ..exceptions import KpifsError
 from ..model.kernel import MAS
 from ..model.window import ExtractionWindow
-from ._laws import norm_sf
 from ._signatures import _norm_chunks, _unit
-from ._laws import chi2_sf
-from .spectral import spectrum_shape
 from .channels import channel_shrinkage, whiten_weights
-from .spectral import spectral_basis, subspace_sign, subspace_weights
-from .stats import binary_pfa, binary_statistic
+from .spectral import spectral_basis, spectrum_shape, subspace_sign, subspace_weights
+from .statistics import get_test
 
 
 __all__ = ["DetectionModel"]
@@ -326,24 +323,13 @@ class DetectionModel:
     def _statistic(self, dot, form, spectrum):
         with np.errstate(invalid="ignore", divide="ignore"):
             z = dot / np.sqrt(self.norm2)
-        if form == "NP":
-            t = np.sum(self._mf_weights(spectrum) * z, axis=-3)
-        elif form == "S":
-            zz = np.nan_to_num(z)
-            g = np.sum(self.subspace * zz[..., None, :, :, :], axis=-3)        # (..., r, ny, nx)
-            t = np.sum(g ** 2, axis=-3) * (np.sum(self.subspace_sign * g, axis=-3) > 0)
-        else:
-            t = binary_statistic(np.moveaxis(z, -3, -1), form)
+        t = get_test(form).map_statistic(self, z, spectrum)
         return np.where(self.grid.valid, t, np.nan)
 
     def local_pfa(self, t, form="B"):
-        """False-alarm probability of a local statistic at a known position."""
-        if form == "NP":
-            return norm_sf(np.nan_to_num(t, nan=-np.inf))
-        if form == "S":       # one sign of the spectrum's mean: half the two-sided law
-            return np.where(np.nan_to_num(t) > 0,
-                            0.5 * chi2_sf(np.nan_to_num(t, nan=0.0), self.basis.shape[1]), 1.0)
-        return binary_pfa(np.nan_to_num(t, nan=0.0), len(self.wavelengths), form)
+        """False-alarm probability of a local statistic at a known position (the test's
+        own law, `~kpifs.detect.statistics.DetectionTest.local_pfa`)."""
+        return get_test(form).local_pfa(self, t)
 
     # --- what the Monte-Carlo null needs ------------------------------------------
     def key(self):
