@@ -496,8 +496,8 @@ class DetectionResult:
 
     @property
     def limit(self):
-        """The detection-limit map of the chosen test."""
-        return self.limits[self.test]
+        """The detection-limit map of the chosen test (None for a test without limits)."""
+        return self.limits.get(self.test)
 
 
 def _read_detection(path):

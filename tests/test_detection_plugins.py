@@ -177,3 +177,20 @@ def test_detect_with_options_is_detect_with_keywords():
         detect(kpd, SearchOptions(), seed=1)
     with pytest.raises(KpifsError, match="unknown option"):
         detect(kpd, n_draw=2000)
+
+
+def test_every_public_object_of_the_new_modules_has_an_example():
+    import importlib
+    import inspect
+    missing = []
+    for m in ("kpifs.detect.statistics", "kpifs.detect.statistics.neyman_pearson",
+              "kpifs.detect.statistics.energy", "kpifs.detect.statistics.binary",
+              "kpifs.detect.statistics.binary_paper", "kpifs.detect.statistics.subspace",
+              "kpifs.detect.options", "kpifs.detect.report", "kpifs.detect.known_position"):
+        mod = importlib.import_module(m)
+        for name in mod.__all__:
+            obj = getattr(mod, name)
+            if (inspect.isfunction(obj) or inspect.isclass(obj)) and \
+                    ">>>" not in (inspect.getdoc(obj) or ""):
+                missing.append(f"{m}.{name}")
+    assert not missing, missing

@@ -33,7 +33,7 @@ from ..model.window import ExtractionWindow
 from ._signatures import _norm_chunks, _unit
 from .channels import channel_shrinkage, whiten_weights
 from .spectral import spectral_basis, spectrum_shape, subspace_sign, subspace_weights
-from .statistics import get_test
+from .statistics import DEFAULT_TEST, get_test
 
 
 __all__ = ["DetectionModel"]
@@ -299,7 +299,7 @@ class DetectionModel:
             + f"|{self.channel_alpha!r}"
         return self._channel_corr
 
-    def local_statistic(self, y, form="B", spectrum=None):
+    def local_statistic(self, y, form=DEFAULT_TEST, spectrum=None):
         """Detection statistic at each grid position (NaN outside the searched area).
 
         ``'B'``/``'B-paper'``: the binary test; ``'NP'``: the matched filter for a
@@ -310,7 +310,7 @@ class DetectionModel:
         """
         return self._statistic(self.dot_maps(y), form, spectrum)
 
-    def maps(self, y, form="B", spectrum=None):
+    def maps(self, y, form=DEFAULT_TEST, spectrum=None):
         """Statistic, per-channel contrasts and their errors from one projection.
 
         Returns ``(statistic, contrast, contrast_err)`` as `local_statistic` and
@@ -326,7 +326,7 @@ class DetectionModel:
         t = get_test(form).map_statistic(self, z, spectrum)
         return np.where(self.grid.valid, t, np.nan)
 
-    def local_pfa(self, t, form="B"):
+    def local_pfa(self, t, form=DEFAULT_TEST):
         """False-alarm probability of a local statistic at a known position (the test's
         own law, `~kpifs.detect.statistics.DetectionTest.local_pfa`)."""
         return get_test(form).local_pfa(self, t)
@@ -418,7 +418,7 @@ class DetectionModel:
         return rows[half], True
 
     # --- candidates -------------------------------------------------------------
-    def candidates(self, y, *, threshold, form="B", null=None, min_distance=None,
+    def candidates(self, y, *, threshold, form=DEFAULT_TEST, null=None, min_distance=None,
                    spectrum=None):
         """Local maxima of the statistic above *threshold*, as a `~astropy.table.QTable`.
 

@@ -31,7 +31,7 @@ import numpy as np
 from .._utils import as_rng, thread_map
 from .._utils import progress as progress_bar
 from ..exceptions import KpifsError
-from .statistics import NullSetup, get_test
+from .statistics import DEFAULT_TEST, NullSetup, get_test, subspace_test
 from .stats import check_probability
 
 __all__ = ["NullCalibration", "CombinedNull", "search_null",
@@ -199,7 +199,7 @@ class NullCalibration:
     True
     """
 
-    def __init__(self, model, *, form="B", n_draws=DEFAULT_DRAWS, seed=0, spectrum=None,
+    def __init__(self, model, *, form=DEFAULT_TEST, n_draws=DEFAULT_DRAWS, seed=0, spectrum=None,
                  noise_rows=None, coefficients="gaussian", progress=False, also=()):
         if get_test(form).map_name != form:
             raise KpifsError(f"test {form!r} has no map: its search uses "
@@ -301,8 +301,9 @@ class NullCalibration:
         test's projections (``'G2'``, drawn with the binary forms)."""
         key = self._key(kind)
         if key not in _CACHE:
-            if kind == "G2" and "S" not in (self.form,) + self.also:
-                self.also += ("S",)         # the subspace projections make them
+            sub = subspace_test()
+            if kind == "G2" and sub is not None and sub.name not in (self.form,) + self.also:
+                self.also += (sub.name,)        # the subspace projections make them
             _CACHE.pop(self._key(), None)
             self.draws
         return _CACHE[key]

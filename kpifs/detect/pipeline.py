@@ -35,7 +35,8 @@ from .search import _chi2_red, _sequential_search
 from .sky import add_sky_columns, data_angles, pa_bins, search_frame, sky_search_columns
 from .skyfit import refit_on_sky
 from .spectral import spectral_basis, spectrum_shape
-from .statistics import REGISTRY, DetectionTest, LimitInputs, auto_test, get_test
+from .statistics import (REGISTRY, DetectionTest, LimitInputs, auto_test, get_test,
+                         subspace_test)
 from .stats import check_probability, energy_threshold
 
 
@@ -570,7 +571,7 @@ def _limits_stage(prep, white, null, found, maps, opts):
     raw = {t.name: t.limit(inputs) for t in tests}
     judge, scales = found.judge, {}
     # the subspace map's null draws come with the subspace test's null
-    g2 = (lambda: null.for_test(next(t.name for t in tests if t.subspace_map)).noise_draws("G2"))
+    g2 = (lambda: null.for_test(subspace_test().name).noise_draws("G2"))
     maps_noise = {s: np.nan_to_num(judge.ring(judge.residual, None, subspace=s), nan=0.0)
                   for s in (False, True)}
     out = {}
@@ -599,7 +600,7 @@ def _report(prep, white, null, found, maps, limits, opts):
         None if white.search_poses is None
         else [np.asarray(p).tolist() for p in white.search_poses])
     report = DetectionReport(
-        prep.test.name, opts.pfa, opts.pd, opts.n_draws, opts.seed, white.frame,
+        prep.test.name, prep.test.map_name, opts.pfa, opts.pd, opts.n_draws, opts.seed, white.frame,
         found.chi2_red, found.scale, null.report, prep.static_info,
         None if white.stack is None else white.stack.info, _aliased(kpd).tolist(),
         list(kpd.meta.get("channels") or range(1, kpd.n_wave + 1)),

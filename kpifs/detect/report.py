@@ -17,6 +17,12 @@ class NullReport:
     by '+'), *threshold* is the one applied, *thresholds* each null's by name;
     *n_blocks* and *block_energy* describe the empirical null's time blocks,
     *empirical_draws* its number of sign patterns.
+
+    Examples
+    --------
+    >>> from kpifs.detect.report import NullReport
+    >>> NullReport("gaussian", 12.5, {"gaussian": 12.5}).as_meta()["threshold_gaussian"]
+    12.5
     """
 
     method: str
@@ -39,7 +45,15 @@ class LimitsReport:
     """What the limits were computed with: the noise scales (the common one and the
     subspace test's), the error model, the null's spread and map floor, the
     calibrators and source, the spectrum shape, the energy's non-centrality, the
-    null's channels ('covariance rows' or 'independent') and the PA bins."""
+    null's channels ('covariance rows' or 'independent') and the PA bins.
+
+    Examples
+    --------
+    >>> from kpifs.detect.pipeline import _example_result
+    >>> lim = _example_result().report.limits
+    >>> lim.null_channels, lim.spectrum
+    ('independent', [1.0, 1.0])
+    """
 
     noise_scale_common: float
     noise_scale_subspace: float
@@ -70,6 +84,7 @@ class DetectionReport:
     """
 
     test: str
+    map_test: str
     pfa: float
     pd: float
     n_draws: int
@@ -83,13 +98,14 @@ class DetectionReport:
     aliased: list = field(default_factory=list)
     channels: list = field(default_factory=list)
     excluded_channels: list = field(default_factory=list)
-    field: dict = None
+    field_searched: dict = None
     limits: LimitsReport = None
 
     def as_meta(self):
         """The ``DetectionResult.meta`` dict (the keys products and printouts read)."""
-        meta = {"test": self.test, "pfa": self.pfa, "pd": self.pd, "n_draws": self.n_draws,
-                "seed": self.seed, "chi2_red": self.chi2_red, "noise_scale": self.noise_scale}
+        meta = {"test": self.test, "map_test": self.map_test, "pfa": self.pfa, "pd": self.pd,
+                "n_draws": self.n_draws, "seed": self.seed, "chi2_red": self.chi2_red,
+                "noise_scale": self.noise_scale}
         lim = self.limits
         if lim is not None:
             meta.update({"noise_scale_common": lim.noise_scale_common,
@@ -104,5 +120,5 @@ class DetectionReport:
             meta.update({"pa_bins": lim.pa_bins, "pa_bins_search": lim.pa_bins_search})
         meta.update({"blocks": self.blocks, "static": self.static, "aliased": self.aliased,
                      "channels": self.channels, "excluded_channels": self.excluded_channels,
-                     "field": self.field})
+                     "field": self.field_searched})
         return meta

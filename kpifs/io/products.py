@@ -99,8 +99,8 @@ def detection_hdulist(result, *, header=None, inputs=()):
     hdr = fits.Header() if header is None else _strip(header)
     hdr["KPIFSVER"] = (VERSION, "kpifs version")
     hdr["CONTENT"] = ("KPIFS-DETECTION", "kpifs detection products")
-    hdr["TEST"] = (result.test, "detection test (B, B-paper, NP, E)")
-    hdr["MAPTEST"] = ("B" if result.test == "E" else result.test, "test of the DETECTION map")
+    hdr["TEST"] = (result.test, "detection test (kpifs.detect.statistics)")
+    hdr["MAPTEST"] = (result.meta.get("map_test", result.test), "test of the DETECTION map")
     hdr["PFA"] = (result.pfa, "global false-alarm probability of the search")
     hdr["PD"] = (result.pd, "detection probability of the limits")
     hdr["THRESH"] = (result.threshold, "threshold of the map statistic at PFA")
@@ -188,8 +188,9 @@ def detection_hdulist(result, *, header=None, inputs=()):
                        comment="residual map the search stopped on")]),
             _image(result.contrast, "CONTRAST", wcs3, comment=f"{q} channels"),
             _image(result.contrast_err, "CONTRAST_ERR", wcs3, comment="1-sigma"),
-            _image(result.limit, "LIMIT", wcs_hdr,
-                   comment=f"{result.test} limit at P_FA {result.pfa:g}, P_D {result.pd:g}")]
+            *([] if result.limit is None else [
+                _image(result.limit, "LIMIT", wcs_hdr,
+                       comment=f"{result.test} limit at P_FA {result.pfa:g}, P_D {result.pd:g}")])]
     for name, lim in result.limits.items():
         hdu = _image(lim, f"LIMIT_{name.upper().replace('-', '_')}", wcs_hdr)
         hdu.header["LIMTEST"] = (name, "test of this limit map")
@@ -336,7 +337,8 @@ def detection_header_meta(hdr, path):
                       ("subspace_noise", "SUBNOISE")):
         if name in hdr:
             energy[key] = hdr[name]
-    meta = {"test": hdr["TEST"], "pfa": hdr["PFA"], "pd": hdr["PD"], "n_draws": hdr["NDRAWS"],
+    meta = {"test": hdr["TEST"], "map_test": hdr.get("MAPTEST", hdr["TEST"]), "pfa": hdr["PFA"],
+            "pd": hdr["PD"], "n_draws": hdr["NDRAWS"],
             "seed": hdr["MCSEED"], "null_channels": hdr["NULLCHAN"],
             "calibrators": [hdr[k] for k in hdr if k.startswith("KPCAL") and k[5:].isdigit()],
             "spectrum": [hdr[f"SPEC{i}"] for i in range(1, nwave + 1) if f"SPEC{i}" in hdr],

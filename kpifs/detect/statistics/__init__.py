@@ -5,8 +5,9 @@
 registers it. Adding a test touches its module and one registry line.
 """
 from .base import DetectionTest, KnownPositionDraws, LimitInputs, NullSetup  # noqa: F401
-from .registry import (REGISTRY, auto_test, get_test, register_test, registered_names,  # noqa: F401
-                       unregister_test)
+from .registry import (DEFAULT_TEST, REGISTRY, auto_test, get_test, reference_test,  # noqa
+                       register_test, registered_names, subspace_test, unregister_test)
 
-__all__ = ["DetectionTest", "NullSetup", "LimitInputs", "KnownPositionDraws", "REGISTRY",
-           "auto_test", "get_test", "register_test", "unregister_test", "registered_names"]
+__all__ = ["DEFAULT_TEST", "subspace_test", "DetectionTest", "NullSetup", "LimitInputs",
+           "KnownPositionDraws", "REGISTRY", "auto_test", "get_test", "reference_test",
+           "register_test", "unregister_test", "registered_names"]

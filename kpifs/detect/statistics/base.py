@@ -22,7 +22,17 @@ class KnownPositionDraws:
     *ex* ``sum_i e_i . x_i`` (plus ``||x||^2`` under H1), *ee* the energy
     ``sum_i ||e_i + x_i||^2``, *z* (n, q) the normalised projections on the
     signal's direction, *norms* (q,) the signal's norm per channel
-    (`kpifs.detect.roc.monte_carlo_roc`)."""
+    (`kpifs.detect.known_position.monte_carlo_roc`).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.statistics import KnownPositionDraws, get_test
+    >>> z = np.array([[1.0, -2.0]])
+    >>> draws = KnownPositionDraws((None, None), (None, None), (z, z + 1), np.ones(2))
+    >>> [float(t[0]) for t in get_test("B").known_position(draws)]
+    [1.0, 4.0]
+    """
 
     ex: tuple
     ee: tuple
@@ -37,6 +47,23 @@ class NullSetup:
     *positions* are the flat grid positions projected (half the grid when
     *mirrored*: a signature at ``-pos`` is minus that at ``pos``), *spectrum*
     the matched filter's spectrum shape.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.data import DetectionGrid
+    >>> from kpifs.detect import DetectionModel
+    >>> from kpifs.detect.statistics import NullSetup, get_test
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> grid = DetectionGrid.from_separation(60 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    >>> dm = DetectionModel(km, [1.6, 1.7] * u.um, np.eye(km.n_kp)[None].repeat(2, 0), grid)
+    >>> setup = NullSetup(dm, *dm.half_positions(), names=("B",))
+    >>> part = get_test("B").null_reducer(setup).batch(4)
+    >>> z = np.ones((4, len(setup.positions)), np.float32)
+    >>> part.add(0, z); part.add(1, -z)
+    >>> part.finish(None)["B"].tolist()           # 1 at +pos, 1 at the mirror
+    [1.0, 1.0, 1.0, 1.0]
     """
 
     model: object
@@ -65,6 +92,21 @@ class LimitInputs:
     (`~kpifs.detect.channels.energy_null`) and *energy_threshold* its threshold.
     *shared* holds what several tests compute once (the binary forms'
     correlated draws).
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.data import DetectionGrid
+    >>> from kpifs.detect import DetectionModel
+    >>> from kpifs.detect.statistics import LimitInputs, get_test
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> grid = DetectionGrid.from_separation(60 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    >>> dm = DetectionModel(km, [1.6] * u.um, np.eye(km.n_kp)[None] * 1e3, grid)
+    >>> inputs = LimitInputs(dm, 1e-3, 0.5, np.ones(1), km.n_kp, 0, None, "NP", 4.0)
+    >>> lim = get_test("NP").limit(inputs)           # (4 - Q^-1(0.5)) / ||s||
+    >>> bool(np.allclose(lim[grid.valid], 4.0 / np.sqrt(dm.norm2[0][grid.valid])))
+    True
     """
 
     model: object
@@ -182,6 +224,18 @@ class DetectionTest:
         return common
 
     def known_position(self, draws):
-        """Statistics under H0 and H1 at a known position (`kpifs.detect.stats.monte_carlo_roc`),
-        or None when the test has none."""
+        """Statistics under H0 and H1 at a known position
+        (`kpifs.detect.known_position.monte_carlo_roc`), or None when the test has none."""
         return None
+
+    def theory_pd(self, x, dof, pfa):
+        """Theoretical ``P_D(P_FA)`` at a known position for the whitened signal *x* (q, p)
+        with *dof* noise dimensions, or None when there is no closed form."""
+        return None
+
+    def theory_auc(self, x, dof):
+        """Theoretical area under the ROC curve (`theory_pd` integrated), or None."""
+        if self.theory_pd(x, dof, 0.5) is None:
+            return None
+        grid = np.concatenate([np.logspace(-12, -3, 400), np.linspace(1e-3, 1, 4000)[1:]])
+        return float(np.trapezoid(self.theory_pd(x, dof, grid), grid))

@@ -6,11 +6,16 @@ the search's candidates come from B's map. Its limit is the contrast whose
 non-centrality ``||x||^2`` reaches ``lambda`` with ``ncx2.sf(chi2.isf(P_FA,
 dof), dof, lambda) = P_D``.
 """
+import numpy as np
+
+from ..._lazy import lazy_module
 from ..channels import correlated_energy_limit
 from ..limits import limit_energy, mirror_half_map
 from .base import DetectionTest
 
 __all__ = ["EnergyTest"]
+
+stats = lazy_module("scipy.stats")
 
 
 class EnergyTest(DetectionTest):
@@ -42,3 +47,8 @@ class EnergyTest(DetectionTest):
 
     def known_position(self, draws):
         return draws.ee
+
+    def theory_pd(self, x, dof, pfa):
+        """``ncx2.sf(chi2.isf(P_FA, dof), dof, ||x||^2)``."""
+        norm = float(np.linalg.norm(x))
+        return stats.ncx2.sf(stats.chi2.isf(np.asarray(pfa, float), dof), dof, norm ** 2)

@@ -7,12 +7,15 @@ reference: it needs the companion's spectrum.
 """
 import numpy as np
 
+from ..._lazy import lazy_module
 from .._laws import norm_isf, norm_sf
 from ..channels import np_correlated
 from ..limits import limit_np
 from .base import DetectionTest
 
 __all__ = ["NeymanPearsonTest"]
+
+stats = lazy_module("scipy.stats")
 
 
 class _Reducer:
@@ -74,11 +77,20 @@ class NeymanPearsonTest(DetectionTest):
         a, norm2 = inputs.spectrum, inputs.norm2
         if inputs.search == self.name:
             # the search's own (global) threshold, not the local one
-            return (inputs.search_threshold - norm_isf(inputs.pd)) / np.sqrt(
-                np.tensordot(a ** 2, norm2, axes=(0, 0)))
+            with np.errstate(divide="ignore"):      # no signal at the star
+                return (inputs.search_threshold - norm_isf(inputs.pd)) / np.sqrt(
+                    np.tensordot(a ** 2, norm2, axes=(0, 0)))
         if inputs.corr is not None:     # the known-spectrum reference with the correlation
             return np_correlated(norm2, inputs.corr, a, inputs.pfa, inputs.pd)
         return limit_np(norm2, inputs.pfa, inputs.pd, a)
 
     def known_position(self, draws):
         return draws.ex
+
+    def theory_pd(self, x, dof, pfa):
+        """``Q(Q^-1(P_FA) - ||x||)``."""
+        return stats.norm.sf(stats.norm.isf(np.asarray(pfa, float)) - float(np.linalg.norm(x)))
+
+    def theory_auc(self, x, dof):
+        """``Phi(||x|| / sqrt 2)``."""
+        return float(stats.norm.cdf(float(np.linalg.norm(x)) / np.sqrt(2)))

@@ -14,11 +14,14 @@ from .energy import EnergyTest
 from .neyman_pearson import NeymanPearsonTest
 from .subspace import SubspaceTest
 
-__all__ = ["get_test", "register_test", "unregister_test", "registered_names", "auto_test",
-           "REGISTRY"]
+__all__ = ["DEFAULT_TEST", "get_test", "register_test", "unregister_test", "registered_names",
+           "auto_test", "reference_test", "subspace_test", "REGISTRY"]
 
 #: Every test by name, in the order printouts, figures and products list them.
 REGISTRY = {}
+
+#: The map test of the projection's and the null's functions when none is named.
+DEFAULT_TEST = "B"
 
 
 def register_test(test):
@@ -44,7 +47,19 @@ def register_test(test):
 
 
 def unregister_test(name):
-    """Remove the test *name* from the registry (a toy's clean-up)."""
+    """Remove the test *name* from the registry (a toy's clean-up).
+
+    Examples
+    --------
+    >>> from kpifs.detect.statistics import register_test, registered_names, unregister_test
+    >>> from kpifs.detect.statistics.energy import EnergyTest
+    >>> class Twice(EnergyTest):
+    ...     name = "E2"
+    >>> _ = register_test(Twice)
+    >>> unregister_test("E2")
+    >>> "E2" in registered_names()
+    False
+    """
     REGISTRY.pop(name, None)
 
 
@@ -61,7 +76,14 @@ def registered_names():
 
 
 def get_test(name):
-    """The registered test *name* (a `DetectionTest` given is returned as it is)."""
+    """The registered test *name* (a `DetectionTest` given is returned as it is).
+
+    Examples
+    --------
+    >>> from kpifs.detect.statistics import get_test
+    >>> get_test("S").description[:26]
+    'the spectral-model test (a'
+    """
     if isinstance(name, DetectionTest):
         return name
     try:
@@ -84,6 +106,32 @@ def auto_test(n_basis, n_channels):
     ('S', 'B')
     """
     return get_test("S" if n_basis < n_channels else "B")
+
+
+def subspace_test():
+    """The test whose map is the spectral model's projections (its null draws their mean
+    square, ``'G2'``), or None.
+
+    Examples
+    --------
+    >>> from kpifs.detect.statistics import subspace_test
+    >>> subspace_test().name
+    'S'
+    """
+    return next((t for t in REGISTRY.values() if t.subspace_map), None)
+
+
+def reference_test():
+    """The optimal reference, the matched filter (its theory is exact): the ROC
+    figure compares channel sets with it.
+
+    Examples
+    --------
+    >>> from kpifs.detect.statistics import reference_test
+    >>> reference_test().name
+    'NP'
+    """
+    return get_test("NP")
 
 
 for _test in (NeymanPearsonTest, EnergyTest, BinaryTest, BinaryPaperTest, SubspaceTest):

@@ -9,6 +9,7 @@ static aberration's is, concentrates in its projections.
 """
 import numpy as np
 
+from ..._lazy import lazy_module
 from .._laws import chi2_sf
 from ..channels import subspace_scale
 from ..limits import mirror_half_map
@@ -16,7 +17,73 @@ from ..spectral import limit_subspace
 from ..stats import known_position_subspace
 from .base import DetectionTest
 
-__all__ = ["SubspaceTest"]
+__all__ = ["SubspaceTest", "subspace_mean", "theory_roc_subspace"]
+
+stats = lazy_module("scipy.stats")
+
+
+def subspace_mean(norms):
+    """Mean ``(mu_h, lambda_perp, r)`` of the subspace statistic's projections at a known
+    position: ``gamma = W z ~ N(mu, I_r)``, ``mu_h`` its part along the sign vector ``h``
+    and ``lambda_perp`` the squared rest (as `~kpifs.detect.known_position.monte_carlo_roc`
+    builds ``W`` and ``h`` from the channels' signal norms *norms*).
+
+    Examples
+    --------
+    >>> from kpifs.detect.roc import subspace_mean
+    >>> mu_h, lam, r = subspace_mean([2.0, 2.0, 2.0, 2.0])   # flat: all along h
+    >>> round(mu_h, 4), round(lam, 6), r
+    (4.0, 0.0, 3)
+    """
+    norms = np.asarray(norms, float)
+    w, h = known_position_subspace(norms)
+    mu = w @ norms
+    mu_h = float(mu @ h / np.linalg.norm(h))
+    return mu_h, float(max(mu @ mu - mu_h ** 2, 0.0)), len(w)
+
+
+def theory_roc_subspace(mu_h, lam_perp, r, pfa):
+    """Theoretical ``P_D(P_FA)`` of the subspace test at a known position.
+
+    ``S = |gamma|^2`` when ``h . gamma > 0`` (else 0), ``gamma ~ N(mu, I_r)``: with
+    ``g`` the part along ``h``, ``P(S > t) = int_0^inf phi(g - mu_h)
+    P(chi2'_{r-1}(lambda_perp) > t - g^2) dg``; under H0 that is half the chi2 law
+    with r degrees of freedom, so the threshold at *pfa* (< 0.5) is
+    ``chi2.isf(2 pfa, r)``.
+
+    Examples
+    --------
+    >>> from kpifs.detect.roc import theory_roc_subspace
+    >>> round(float(theory_roc_subspace(0.0, 0.0, 3, 0.01)), 4)     # H1 = H0
+    0.01
+    """
+    pfa = np.atleast_1d(np.asarray(pfa, float))
+    out = np.empty(pfa.shape)
+    g = np.linspace(0.0, mu_h + 12.0, 4001)[1:] if mu_h > 0 else np.linspace(0, 12, 4001)[1:]
+    dens = stats.norm.pdf(g - mu_h)
+    for k, pf in enumerate(pfa):
+        if pf >= 0.5:
+            out[k] = np.nan
+            continue
+        t = stats.chi2.isf(2 * pf, r)
+        rest = t - g ** 2
+        if r == 1:
+            tail = (rest <= 0).astype(float)
+        elif lam_perp > 0:
+            tail = np.where(rest <= 0, 1.0, stats.ncx2.sf(np.maximum(rest, 0), r - 1, lam_perp))
+        else:
+            tail = np.where(rest <= 0, 1.0, stats.chi2.sf(np.maximum(rest, 0), r - 1))
+        out[k] = np.trapezoid(dens * tail, g)
+    return out if out.size > 1 else out[0]
+
+
+def _theory_auc_subspace(mu_h, lam_perp, r):
+    # continuous part (P_FA < 0.5), then the atom at 0: H0 half the time, H1 when
+    # h . gamma <= 0 (probability Phi(-mu_h)); ties count half, as in `auc`
+    grid = np.concatenate([np.logspace(-10, -3, 200), np.linspace(1e-3, 0.5, 800)[1:-1]])
+    cont = np.trapezoid(theory_roc_subspace(mu_h, lam_perp, r, grid), grid)
+    q1 = stats.norm.cdf(-mu_h)
+    return float(cont + 0.5 * ((1 - q1) + 0.5 * q1))
 
 
 class _Reducer:
@@ -36,10 +103,12 @@ class _Batch:
     def __init__(self, reducer, n):
         self.red = reducer
         self.proj = np.zeros((reducer.r, n, reducer.npos), np.float32)
+        self.tmp = np.empty((n, reducer.npos), np.float32)
 
     def add(self, i, z):
         for j in range(self.red.r):
-            self.proj[j] += self.red.sub[j, i] * z
+            np.multiply(self.red.sub[j, i], z, out=self.tmp)
+            self.proj[j] += self.tmp
 
     def finish(self, channel_sum):
         red, proj = self.red, self.proj
@@ -97,3 +166,10 @@ class SubspaceTest(DetectionTest):
     def known_position(self, draws):
         w, h = known_position_subspace(draws.norms)
         return tuple(np.sum((z @ w.T) ** 2, axis=1) * ((z @ w.T) @ h > 0) for z in draws.z)
+
+    def theory_pd(self, x, dof, pfa):
+        """`theory_roc_subspace` of the signal's `subspace_mean`."""
+        return theory_roc_subspace(*subspace_mean(np.linalg.norm(x, axis=1)), pfa)
+
+    def theory_auc(self, x, dof):
+        return _theory_auc_subspace(*subspace_mean(np.linalg.norm(x, axis=1)))
