@@ -15,8 +15,10 @@ gives it. Then, alternately and ``--repeat`` times each, whole processes:
 Then, in this process, the run's Gaussian and empirical nulls (the test the run
 chose, with the tests its limits read) against their bare matrix products: the
 same ``(draws, rows) @ (rows, positions)`` products per channel and batch of 256
-draws, nothing else. Prints medians, their ratios and the load average (the
-machine is shared: ratios measured in one run are what the targets are about).
+draws, nothing else. Prints medians of wall and CPU time (user + system: the
+steadier figure on a shared machine), their ratios and the load average.
+``--threads N`` sets KPIFS_THREADS and OPENBLAS_NUM_THREADS for every process
+(1 by default: on a loaded machine, threads only add contention).
 """
 import argparse
 import os
@@ -30,10 +32,30 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_detect_process import prepare  # noqa: E402
-from bench_process import ROOT, print_medians, time_commands  # noqa: E402
+from bench_process import ROOT  # noqa: E402
 
 NO_LIMITS = ("import sys; from kpifs.data import KernelPhaseData; from kpifs.detect import "
              "detect; detect(KernelPhaseData.read(sys.argv[1]), limits=False)")
+
+
+def run_once(cmd, env):
+    """Wall time, CPU time (user + system) in s and peak memory (MiB) of one process."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, cwd=tempfile.gettempdir())
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    if os.waitstatus_to_exitcode(status):
+        raise SystemExit(f"{' '.join(cmd)} failed")
+    return wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024
+
+
+def time_commands(commands, repeat, env):
+    """Medians of `run_once` of each command, run in turn (A B C D A B C D ...)."""
+    runs = {name: [] for name in commands}
+    for _ in range(repeat):
+        for name, (cmd, extra) in commands.items():
+            runs[name].append(run_once(cmd, dict(env, **(extra or {}))))
+    return {k: np.median(np.array(v), axis=0) for k, v in runs.items()}
 
 
 def export_base(commit):
@@ -90,13 +112,15 @@ def null_versus_products(cal, repeat=3):
     t_null, t_bare = [], []
     for _ in range(repeat):
         _CACHE.clear()
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         # the run's search (auto: S) and the nulls its limits read, from the same draws
         null, _ = search_null(model, form="S", noise_rows=rows, block_rows=blocks,
                               also=("B", "B-paper", "S"))
         null.threshold(1e-3)
-        t_null.append(time.perf_counter() - t0)
-        t_bare.append(_bare_products(model, [(rows, 5000), (blocks, n_emp)]))
+        t_null.append(time.process_time() - t0)
+        t0 = time.process_time()
+        _bare_products(model, [(rows, 5000), (blocks, n_emp)])
+        t_bare.append(time.process_time() - t0)
     return float(np.median(t_null)), float(np.median(t_bare))
 
 
@@ -107,11 +131,13 @@ def main(argv=None):
     ap.add_argument("--cal", help="an existing calibrated CHARIS file")
     ap.add_argument("--base", default="4cb53d9", help="starting commit (default %(default)s)")
     ap.add_argument("--baseline-path", help="a checkout to time instead of --base")
+    ap.add_argument("--threads", default="1", help="threads of every process (default 1)")
     args = ap.parse_args(argv)
     tmp = Path(tempfile.mkdtemp())
     cal = Path(args.cal) if args.cal else prepare(tmp)
     base = args.baseline_path or str(export_base(args.base))
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env = dict(os.environ, PYTHONPATH=str(ROOT), KPIFS_THREADS=args.threads,
+               OPENBLAS_NUM_THREADS=args.threads, OMP_NUM_THREADS=args.threads)
     cmd = [sys.executable, "-m", "kpifs", "detect", str(cal), "-o", str(tmp / "det.fits"),
            "--overwrite", "-q"]
     quick = [sys.executable, "-c", NO_LIMITS, str(cal)]
@@ -121,14 +147,18 @@ def main(argv=None):
                 "detect(limits=False)": (quick, None),
                 "detect(limits=False) (start of issue 38)": (quick, {"PYTHONPATH": base})}
     med = time_commands(commands, args.repeat, env)
-    print_medians(med, args.repeat)
-    names = list(med)
-    print(f"kpifs detect / start: {med[names[0]][0] / med[names[1]][0]:.2f} (target <= 0.5); "
-          f"without limits: {med[names[2]][0] / med[names[3]][0]:.2f}")
+    print(f"{'whole process (median of %d)' % args.repeat:44s} {'wall (s)':>9s} "
+          f"{'CPU (s)':>8s} {'peak MiB':>9s}")
+    for name, (wall, cpu, peak) in med.items():
+        print(f"{name:44s} {wall:9.2f} {cpu:8.2f} {peak:9.0f}")
+    a, b, c, d = (med[n] for n in commands)
+    print(f"kpifs detect / start: wall {a[0] / b[0]:.2f}, CPU {a[1] / b[1]:.2f} (target <= 0.5); "
+          f"without limits: wall {c[0] / d[0]:.2f}, CPU {c[1] / d[1]:.2f}")
+    os.environ.update(KPIFS_THREADS=args.threads)
     t_null, t_bare = null_versus_products(cal)
-    print(f"the run's nulls (Gaussian 5000 + empirical draws; S, B, B-paper): {t_null:.2f} s; "
-          f"their bare matrix products {t_bare:.2f} s (ratio {t_null / t_bare:.1f}); "
-          f"kpifs detect / bare products {med[names[0]][0] / t_bare:.1f} (target <= 2)")
+    print(f"the run's nulls (Gaussian 5000 + empirical draws; S, B, B-paper), CPU: {t_null:.2f} "
+          f"s; their bare matrix products {t_bare:.2f} s (ratio {t_null / t_bare:.1f}); "
+          f"kpifs detect's CPU / bare products {a[1] / t_bare:.1f} (target <= 2)")
     print(f"load average (1, 5, 15 min) before: {load0}, after: {os.getloadavg()} on "
           f"{os.cpu_count()} cores")
     return 0

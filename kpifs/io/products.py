@@ -81,24 +81,10 @@ def _image(data, name, wcs_header, bunit=None, comment=None):
     return hdu
 
 
-def detection_hdulist(result, *, header=None, inputs=()):
-    """Build the products of a `~kpifs.data.DetectionResult` as an HDUList.
-
-    *header* (default ``result.header``): the searched data's header, whose
-    cards the primary header keeps.
-
-    Examples
-    --------
-    >>> from kpifs.detect.pipeline import _example_result
-    >>> from kpifs.io.products import detection_hdulist
-    >>> hdul = detection_hdulist(_example_result())
-    >>> hdul[0].header["CONTENT"], "CANDIDATES" in hdul
-    ('KPIFS-DETECTION', True)
-    """
-    header = result.header if header is None else header
-    hdr = fits.Header() if header is None else _strip(header)
-    hdr["KPIFSVER"] = (VERSION, "kpifs version")
-    hdr["CONTENT"] = ("KPIFS-DETECTION", "kpifs detection products")
+def _report_cards(result, hdr, inputs):
+    """The cards of the search's report (test, probabilities, null, energy test, noise
+    scale, grid, channels, spectrum, calibrators, inputs), written into *hdr*;
+    `detection_header_meta` reads them back."""
     hdr["TEST"] = (result.test, "detection test (kpifs.detect.statistics)")
     hdr["MAPTEST"] = (result.meta.get("map_test", result.test), "test of the DETECTION map")
     hdr["PFA"] = (result.pfa, "global false-alarm probability of the search")
@@ -123,6 +109,11 @@ def detection_hdulist(result, *, header=None, inputs=()):
     hdr["EPFA"] = (result.energy.get("pfa", np.nan), "energy-detector P_FA of the data")
     hdr["ETHRESH"] = (result.energy.get("threshold", np.nan),
                       "energy-detector threshold at PFA")
+    _channel_cards(result, hdr, inputs)
+
+
+def _channel_cards(result, hdr, inputs):
+    """The grid's, channels', null's, noise's and provenance cards of `_report_cards`."""
     hdr["GRIDFRM"] = (result.grid.frame, "maps on the sky (dRA, dDec) or the detector")
     hdr["GRIDMIN"] = (float(result.grid.min_sep), "[mas] smallest separation searched")
     hdr["GRIDMAX"] = (float(result.grid.max_sep) if np.isfinite(result.grid.max_sep) else -1.0,
@@ -173,6 +164,27 @@ def detection_hdulist(result, *, header=None, inputs=()):
     if "detpa" in result.candidates.meta:
         hdr["DETPA"] = (float(result.candidates.meta["detpa"]),
                         "[deg] detector +y position angle, East of North")
+
+
+def detection_hdulist(result, *, header=None, inputs=()):
+    """Build the products of a `~kpifs.data.DetectionResult` as an HDUList.
+
+    *header* (default ``result.header``): the searched data's header, whose
+    cards the primary header keeps.
+
+    Examples
+    --------
+    >>> from kpifs.detect.pipeline import _example_result
+    >>> from kpifs.io.products import detection_hdulist
+    >>> hdul = detection_hdulist(_example_result())
+    >>> hdul[0].header["CONTENT"], "CANDIDATES" in hdul
+    ('KPIFS-DETECTION', True)
+    """
+    header = result.header if header is None else header
+    hdr = fits.Header() if header is None else _strip(header)
+    hdr["KPIFSVER"] = (VERSION, "kpifs version")
+    hdr["CONTENT"] = ("KPIFS-DETECTION", "kpifs detection products")
+    _report_cards(result, hdr, inputs)
     wcs_hdr = result.grid.wcs().to_header()
     q = len(result.wavelengths)
     wcs3 = wcs_hdr.copy()
