@@ -13,7 +13,7 @@ import numpy as np
 
 from ..limits import limit_binary, limit_binary_correlated_forms, mirror_half_map
 from ..stats import binary_pfa, binary_statistic
-from .base import DetectionTest
+from .base import TILE, DetectionTest
 
 __all__ = ["BinaryTest"]
 
@@ -33,24 +33,31 @@ class _Batch:
         self.r = reducer
         shape = (n, reducer.npos)
         self.acc = {f: np.zeros(shape, np.float32) for f in reducer.forms}
-        self.w = np.empty(shape, np.float32)
+        self.w = np.empty((TILE, reducer.npos), np.float32)
         # mirrored positions: sum max(-z, 0)^2 = sum min(z, 0)^2 (B), and
         # sum max(-z, 0) = sum max(z, 0) - sum z (B-paper: one product for the channel sum)
         self.neg = np.zeros(shape, np.float32) if reducer.mirrored and "B" in self.acc else None
-        self.v = np.empty(shape, np.float32) if self.neg is not None else None
+        self.v = np.empty_like(self.w) if self.neg is not None else None
+        self.paper, self.square = self.acc.get("B-paper"), self.acc.get("B")
 
     def add(self, i, z):
-        w, acc = self.w, self.acc
-        np.maximum(z, 0, out=w)
-        if "B-paper" in acc:
-            acc["B-paper"] += w
-        if "B" in acc:
-            w *= w
-            acc["B"] += w
-        if self.neg is not None:
-            np.minimum(z, 0, out=self.v)
-            self.v *= self.v
-            self.neg += self.v
+        # by tiles of draws, whose work arrays stay in the cache (the same operations,
+        # element by element, as over the whole batch)
+        for a in range(0, len(z), TILE):
+            zt = z[a:a + TILE]
+            b = a + len(zt)
+            w = self.w[:len(zt)]
+            np.maximum(zt, 0, out=w)
+            if self.paper is not None:
+                self.paper[a:b] += w
+            if self.square is not None:
+                w *= w
+                self.square[a:b] += w
+            if self.neg is not None:
+                v = self.v[:len(zt)]
+                np.minimum(zt, 0, out=v)
+                v *= v
+                self.neg[a:b] += v
 
     def finish(self, channel_sum):
         out = {}

@@ -15,7 +15,7 @@ from ..channels import subspace_scale
 from ..limits import mirror_half_map
 from ..spectral import limit_subspace
 from ..stats import known_position_subspace
-from .base import DetectionTest
+from .base import TILE, DetectionTest
 
 __all__ = ["SubspaceTest", "subspace_mean", "theory_roc_subspace"]
 
@@ -103,12 +103,17 @@ class _Batch:
     def __init__(self, reducer, n):
         self.red = reducer
         self.proj = np.zeros((reducer.r, n, reducer.npos), np.float32)
-        self.tmp = np.empty((n, reducer.npos), np.float32)
+        self.tmp = np.empty((TILE, reducer.npos), np.float32)
 
     def add(self, i, z):
-        for j in range(self.red.r):
-            np.multiply(self.red.sub[j, i], z, out=self.tmp)
-            self.proj[j] += self.tmp
+        # by tiles of draws: z's tile and the product stay in the cache for every j
+        # (the same operations, element by element, as over the whole batch)
+        for a in range(0, len(z), TILE):
+            zt = z[a:a + TILE]
+            tmp = self.tmp[:len(zt)]
+            for j in range(self.red.r):
+                np.multiply(self.red.sub[j, i], zt, out=tmp)
+                self.proj[j, a:a + TILE] += tmp
 
     def finish(self, channel_sum):
         red, proj = self.red, self.proj
