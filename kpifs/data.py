@@ -483,14 +483,21 @@ class DetectionResult:
     #: are subtracted, at the noise scale they were judged with (the SEARCH extension;
     #: None in products written before it).
     search_map: np.ndarray = None
+    #: The typed report of the search (`kpifs.detect.report.DetectionReport`) that made
+    #: it; *meta* is generated from it (None when read from products).
+    report: object = None
 
     _io_format = "kpifs-detection"
     read, write = io_methods("DetectionResult")
 
+    def __post_init__(self):
+        if self.report is not None and not self.meta:
+            self.meta = self.report.as_meta()
+
     @property
     def limit(self):
-        """The detection-limit map of the chosen test."""
-        return self.limits[self.test]
+        """The detection-limit map of the chosen test (None for a test without limits)."""
+        return self.limits.get(self.test)
 
 
 def _read_detection(path):

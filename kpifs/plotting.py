@@ -11,7 +11,7 @@ import numpy as np
 from astropy import units as u
 
 from ._utils import atomic_write
-from .detect.stats import TESTS
+from .detect.statistics import REGISTRY, reference_test
 from .inject import injection_brackets
 
 __all__ = ["plot_detection_map", "plot_contrast_curves", "plot_candidate_spectrum",
@@ -36,19 +36,15 @@ def _axes(ax, figsize=(5.5, 4.5)):
     return ax.figure, ax
 
 
-#: What each test's name means, for legends.
-TEST_LABELS = {"NP": r"NP: matched filter, known spectrum (reference)",
-               "B": r"B: GLR, $\Sigma_i \max(z_i, 0)^2$",
-               "B-paper": r"B-paper: the paper's $\Sigma_i \max(z_i, 0)$",
-               "S": r"S: spectral model, GLR over a low-rank spectrum",
-               "E": r"E: energy, $\|y\|^2$"}
-
 PFA = r"$P_\mathrm{FA}$"
 PD = r"$P_\mathrm{D}$"
 
 
 def _test_label(name):
-    return TEST_LABELS.get(name, name)
+    """What a test's name means, for legends (`DetectionTest.label
+    <kpifs.detect.statistics.DetectionTest>`; the name of one not registered)."""
+    test = REGISTRY.get(name)
+    return test.label if test is not None else name
 
 
 def _candidate_xy(row, sky):
@@ -85,7 +81,7 @@ def plot_detection_map(result, *, ax=None, truth=None):
     fig, ax = _axes(ax, figsize=(6.4, 5.0))
     g = result.grid
     ext = [g.x[0], g.x[-1], g.y[0], g.y[-1]]
-    test = "B" if result.test == "E" else result.test
+    test = result.meta.get("map_test", result.test)      # the energy test's map is B's
     residual = getattr(result, "search_map", None) is not None
     shown = result.search_map if residual else result.statistic
     ratio = np.asarray(shown, float) / result.threshold
@@ -143,7 +139,7 @@ def plot_contrast_curves(result, *, ax=None):
     from matplotlib.patches import Patch
     fig, ax = _axes(ax, figsize=(6.4, 4.8))
     sep = result.curves["separation"].to_value(u.mas)
-    order = [result.test] + [t for t in TESTS if t != result.test]
+    order = [result.test] + [t for t in REGISTRY if t != result.test]
     for name in order:
         if f"{name}_median" not in result.curves.colnames:
             continue
@@ -165,11 +161,11 @@ def plot_contrast_curves(result, *, ax=None):
 
 
 def analytic_column(result):
-    """The curve of *result*'s own test (``'<test>_median'``; the energy test's map is B's)."""
-    test = "B" if result.test == "E" else result.test
-    for col in (f"{test}_median", "B_median"):
-        if col in result.curves.colnames:
-            return col
+    """The curve (``'<test>_median'``) of the test whose map *result*'s search used (the
+    energy test's is B's: its candidates come from B's map), else None."""
+    for test in (result.meta.get("map_test", result.test), result.test):
+        if f"{test}_median" in result.curves.colnames:
+            return f"{test}_median"
     return None
 
 
@@ -370,8 +366,9 @@ def save_roc_plots(curves, outdir):
                  title=f"channels: {_channels(name)}")
     paths = [_save(fig, outdir / "roc.png", dpi=90)]
     fig, ax = plt.subplots(figsize=(5, 4))
-    plot_roc({_channels(n): curves[n]["NP"] for n in names}, ax=ax,
-             theory={_channels(n): curves[n]["NP theory"] for n in names},
-             title=f"{TEST_LABELS['NP']}: channel sets")
+    ref = reference_test()
+    plot_roc({_channels(n): curves[n][ref.name] for n in names}, ax=ax,
+             theory={_channels(n): curves[n][f"{ref.name} theory"] for n in names},
+             title=f"{ref.label}: channel sets")
     paths.append(_save(fig, outdir / "roc_np_channels.png", dpi=90))
     return paths

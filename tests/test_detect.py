@@ -10,8 +10,9 @@ from kpifs.data import DetectionGrid
 from kpifs.detect import DetectionModel, NullCalibration, detect
 from kpifs.detect.limits import (chi2_ratio_sigma, energy_lambda, limit_binary, limit_energy,
                                  limit_np, pfa_to_sigma, sigma_to_pfa)
+from kpifs.detect.known_position import monte_carlo_roc
 from kpifs.detect.stats import (auc, binary_pfa, binary_threshold, energy_pd, energy_threshold,
-                                monte_carlo_roc, np_pd, np_threshold)
+                                np_pd, np_threshold)
 
 WL3 = [1.52, 1.60, 1.68] * u.um
 

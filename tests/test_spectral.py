@@ -16,7 +16,8 @@ from kpifs.detect.spectral import spectrum_shape
 from kpifs.detect.spectral import (blackbody_contrasts, limit_subspace, smooth_basis,
                                    spectral_basis, subspace_spectrum, subspace_weights,
                                    template_basis)
-from kpifs.detect.stats import auc, monte_carlo_roc
+from kpifs.detect.known_position import monte_carlo_roc
+from kpifs.detect.stats import auc
 from kpifs.exceptions import KpifsError
 
 WL = np.linspace(1.16, 2.37, 10) * u.um

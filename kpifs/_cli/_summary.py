@@ -10,17 +10,17 @@ import numpy as np
 from astropy import units as u
 
 from ..detect.null import PFA_FLOOR
+from ..detect.statistics import REGISTRY
 from ..io.angles import data_angles
 
 __all__ = []
 
-#: What each test is, for the first line.
-TEST_WORDS = {"B": "the binary GLR test (a free contrast in every channel)",
-              "B-paper": "the seed paper's binary test (a free contrast in every channel)",
-              "S": "the spectral-model test (a contrast spectrum in a low-rank model, the "
-                   "channels' shared noise weighed)",
-              "NP": "the matched filter (the given spectrum shape)",
-              "E": "the energy test (anything beyond the noise; candidates from B's map)"}
+
+def _words(name):
+    """What the test *name* is (`DetectionTest.description
+    <kpifs.detect.statistics.DetectionTest>`), for the first line."""
+    test = REGISTRY.get(name)
+    return test.description if test is not None else name
 
 
 def pfa_text(pfa, tail, floors):
@@ -104,7 +104,7 @@ def print_summary(res, kpd, *, chosen):
     """Print the summary of a search *res* of data *kpd* (*chosen*: the ``--test``
     given); `products_line` ends it."""
     how = " (--test auto)" if chosen == "auto" else ""
-    print(f"test: {res.test}{how}, {TEST_WORDS.get(res.test, res.test)}")
+    print(f"test: {res.test}{how}, {_words(res.test)}")
     print(_threshold_line(res))
     sky_known = res.meta.get("frame") == "sky" or data_angles(kpd) is not None
     floors = [res.meta.get("n_draws"), (res.meta.get("null") or {}).get("empirical_draws")]

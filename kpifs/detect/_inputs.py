@@ -81,7 +81,8 @@ def _drop_aliased(kpd, aliased):
 
 def _check_closure_dof(kpd, test, rank, n_basis, kp, w):
     """Refuse a search of closure phases with fewer independent values than a companion
-    has parameters (its offset and its contrasts: one for NP and E, the spectral
+    has parameters (its offset and its contrasts, `DetectionTest.n_params
+    <kpifs.detect.statistics.DetectionTest.n_params>`: one for NP and E, the spectral
     model's for S, one per channel for B): the grid maximum then fits noise exactly
     (3 telescopes: one closure phase per channel gave candidates at P_FA 1e-15 on
     noise). The refusal answers with the energy test alone (the whitened chi-square
@@ -89,7 +90,7 @@ def _check_closure_dof(kpd, test, rank, n_basis, kp, w):
     if not kpd.meta.get("closure_phases"):
         return
     q = kpd.n_wave
-    params = 2 + {"NP": 1, "E": 1, "S": int(n_basis)}.get(test, q)
+    params = test.n_params(q, n_basis)
     n = int(np.sum(rank))
     if n >= params:
         return
@@ -97,5 +98,5 @@ def _check_closure_dof(kpd, test, rank, n_basis, kp, w):
     pfa = float(stats.chi2.sf(energy, n))
     raise KpifsError(f"{kpd.name}: {n} independent closure phase(s) ({kpd.n_kp} per channel "
                      f"x {q} channel(s)) for the {params} parameters of a companion in test "
-                     f"{test} (its offset and contrasts): no position search is meaningful; "
+                     f"{test.name} (its offset and contrasts): no position search is meaningful; "
                      f"the energy test alone: chi2 {energy:.3g} for {n} dof, P_FA {pfa:.2g}")

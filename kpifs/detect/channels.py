@@ -19,7 +19,7 @@ __all__ = ["whiten_weights", "channel_shrinkage", "SHRINKAGE_GRID", "np_correlat
            "energy_spread", "noise_scale", "map_noise", "combined_scale",
            "subspace_scale", "annulus_noise", "ring_noise", "grid_rings", "NOISE_CONFIDENCE",
            "MIN_SCALE",
-           "energy_null", "correlated_inputs", "scale_block_rows"]
+           "energy_null", "channel_correlation", "correlated_energy_limit", "scale_block_rows"]
 
 #: One-sided confidence of the upper bound a conservative error model is scaled down to.
 NOISE_CONFIDENCE = 0.023
@@ -383,22 +383,32 @@ def combined_scale(kappa, spread, kappa_map, map_low):
     return float(max(s, MIN_SCALE))
 
 
-def correlated_inputs(model, rows, a, energy, te, seed):
-    """Per-position z covariance (for the binary limit) and the energy limit, both
-    with the channel correlations carried by the covariance rows; on a symmetric grid
-    for half the positions (NaN elsewhere: see `~kpifs.detect.limits.mirror_half_map`)."""
+def channel_correlation(model, rows):
+    """Per-position covariance of the ``z_i`` (ny, nx, q, q) carried by the whitened
+    covariance *rows* (for the limits); on a symmetric grid for half the positions
+    (NaN elsewhere: see `~kpifs.detect.limits.mirror_half_map`)."""
     shape = model.grid.shape
     q = len(model.wavelengths)
     idx, z = model.row_projections(rows)                              # (npos, nrow, q)
     corr = np.full((shape[0] * shape[1], q, q), np.nan)
     corr[idx] = np.matmul(z.transpose(0, 2, 1), z)
+    return corr.reshape(shape + (q, q))
+
+
+def correlated_energy_limit(model, rows, a, threshold, pd, te):
+    """The energy detector's limit map with the channel correlations of the whitened
+    covariance *rows*, from its correlated null *te* (`energy_null`) and *threshold*;
+    on a symmetric grid for half the positions (NaN elsewhere)."""
+    shape = model.grid.shape
+    q = len(model.wavelengths)
+    idx, z = model.row_projections(rows)                              # (npos, nrow, q)
     amp = a[None, :] * np.sqrt(model.norm2.reshape(q, -1)[:, idx].T)     # (npos, q)
     n = min(4096, len(te["energy"]))      # enough draws for P_D, far from the tail
     proj = te["coef"][:n] @ np.einsum("kri,ki->rk", z, amp)             # (N, npos)
     lim = np.full(shape[0] * shape[1], np.nan)
     lim[idx] = limit_energy_correlated(proj, np.sum(amp ** 2, axis=1), te["energy"][:n],
-                                       energy["threshold"], energy["pd"])
-    return corr.reshape(shape + (q, q)), lim.reshape(shape)
+                                       threshold, pd)
+    return lim.reshape(shape)
 
 
 def energy_null(rows, n_draws, seed):

@@ -21,6 +21,108 @@ optimize = lazy_module("scipy.optimize")
 __all__ = ["fit_binary", "fit_errors", "refine_candidates"]
 
 
+class _BinaryModel:
+    """The binary model of `fit_binary`, its whitened residuals and their Jacobian."""
+
+    def __init__(self, kp, whitening, kernel_model, wavelengths, pixscale, window, detpa,
+                 detpa_weights):
+        self.kp, self.whitening, self.km, self.window = kp, whitening, kernel_model, window
+        self.lam = np.atleast_1d(u.Quantity(wavelengths, u.um)).to_value(u.m)
+        self.uv, self.kern = kernel_model.uv.value, kernel_model.kernel
+        self.ps = None if pixscale is None else u.Quantity(pixscale, u.mas).value
+        if detpa is None:
+            self.rot = None
+        else:
+            ang = np.atleast_1d(np.asarray(u.Quantity(detpa, u.deg).value, float))
+            rw = np.ones(ang.size) if detpa_weights is None else np.asarray(detpa_weights, float)
+            self.rot = (ang, rw / rw.sum())
+        self.corr = None
+
+    def wfac(self, a, b):
+        if self.ps is None or self.window is None:
+            return 1.0
+        return float(self.window.at(np.hypot(a, b), self.ps))
+
+    def poses(self, a, b):
+        if self.rot is None:
+            return np.array([a]), np.array([b]), np.ones(1)
+        xs, ys = sky_to_detector(a, b, self.rot[0])
+        return np.atleast_1d(xs), np.atleast_1d(ys), self.rot[1]
+
+    def set_correction(self, a, b, window_correction):
+        """Per-pose complex correction g(u) / w(r0) of the window's gain
+        (`kpifs.detect.gain`), computed at a reference position and held fixed while
+        the optimiser moves: it varies on the window's scale, not the fringes'."""
+        xs, ys, _ = self.poses(a, b)
+        if self.ps is None or self.window is None or not window_correction:
+            self.corr = [1.0] * len(xs)
+            return
+        self.corr = [window_gain(self.km, self.window, self.ps * u.mas, self.lam * u.m,
+                                 (xf, yf)) / max(self.wfac(xf, yf), 1e-12)
+                     for xf, yf in zip(xs, ys)]
+
+    def model(self, params):
+        a, b = params[:2]
+        c = params[2:]
+        xs, ys, ws = self.poses(a, b)
+        cw = (c * self.wfac(a, b))[:, None]
+        uv, lam = self.uv, self.lam
+        out = 0.0
+        for xf, yf, wf, cr in zip(xs, ys, ws, self.corr):
+            theta = 2 * np.pi * (xf * MAS * uv[:, 0] + yf * MAS * uv[:, 1])[None, :] / lam[:, None]
+            out = out + wf * np.angle(1 + cw * cr * np.exp(-1j * theta))
+        return out @ self.kern.T
+
+    def resid(self, params):
+        r = self.kp - self.model(params)
+        return np.einsum("wij,wj->wi", self.whitening, r).ravel()
+
+    def _window_slope(self, a, b):
+        if self.ps is None or self.window is None:
+            return (0.0, 0.0)
+        h = 1e-4
+        return ((self.wfac(a + h, b) - self.wfac(a - h, b)) / (2 * h),
+                (self.wfac(a, b + h) - self.wfac(a, b - h)) / (2 * h))
+
+    def jac(self, params):
+        # phi = arg(1 + c w h), h = corr e^{-i theta}, z = 1 + c w h:
+        # d phi / d(c w) = Im(h / z), d phi / d theta = -Re(c w h / z)
+        a, b = params[:2]
+        c = params[2:]
+        q, uv, lam, rot, whitening = len(c), self.uv, self.lam, self.rot, self.whitening
+        wf = self.wfac(a, b)
+        dw = self._window_slope(a, b)
+        xs, ys, ws = self.poses(a, b)
+        if rot is None:
+            cs, sn = np.array([-1.0]), np.array([0.0])
+        else:
+            cs, sn = -np.cos(np.deg2rad(rot[0])), np.sin(np.deg2rad(rot[0]))
+        # d(x, y)/d(a, b) = [[cs, sn], [sn, -cs]] (detector frame: identity)
+        g = (c * wf)[:, None]
+        k = 2 * np.pi * MAS / lam[:, None]
+        dphi = np.zeros((q + 2, q, uv.shape[0]))
+        for xf, yf, wt, cf, sf, cr in zip(xs, ys, ws, cs, sn, self.corr):
+            theta = k * (xf * uv[:, 0] + yf * uv[:, 1])[None, :]
+            hh = cr * np.exp(-1j * theta)
+            ratio = hh / (1 + g * hh)
+            dg = ratio.imag
+            dth = -(g * ratio).real
+            if rot is None:
+                dxa, dya, dxb, dyb = 1.0, 0.0, 0.0, 1.0
+            else:
+                dxa, dya, dxb, dyb = cf, sf, sf, -cf
+            dphi[0] += wt * (dth * k * (dxa * uv[:, 0] + dya * uv[:, 1]) + dg * c[:, None] * dw[0])
+            dphi[1] += wt * (dth * k * (dxb * uv[:, 0] + dyb * uv[:, 1]) + dg * c[:, None] * dw[1])
+            dphi[2 + np.arange(q), np.arange(q)] += wt * dg * wf
+        p = self.kp.shape[1]
+        out = np.zeros((q, p, q + 2))
+        # position: every channel; contrast j: channel j only
+        out[:, :, :2] = np.einsum("wij,nwj->win", whitening, dphi[:2] @ self.kern.T)
+        dc = dphi[2 + np.arange(q), np.arange(q)] @ self.kern.T            # (q, p)
+        out[np.arange(q), :, 2 + np.arange(q)] = np.einsum("wij,wj->wi", whitening, dc)
+        return -out.reshape(q * p, q + 2)
+
+
 def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pixscale=None,
                window=None, bounds_mas=None, noise_rows=None, detpa=None,
                detpa_weights=None, jacobian="analytic", window_correction=True):
@@ -87,98 +189,8 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
     """
     kp = np.asarray(kp, float)
     q, p = kp.shape
-    lam = np.atleast_1d(u.Quantity(wavelengths, u.um)).to_value(u.m)
-    uv = kernel_model.uv.value
-    kern = kernel_model.kernel
-    ps = None if pixscale is None else u.Quantity(pixscale, u.mas).value
-
-    def wfac(a, b):
-        if ps is None or window is None:
-            return 1.0
-        return float(window.at(np.hypot(a, b), ps))
-
-    if detpa is None:
-        rot = None
-    else:
-        ang = np.atleast_1d(np.asarray(u.Quantity(detpa, u.deg).value, float))
-        rw = np.ones(ang.size) if detpa_weights is None else np.asarray(detpa_weights, float)
-        rot = (ang, rw / rw.sum())
-
-    def poses(a, b):
-        if rot is None:
-            return np.array([a]), np.array([b]), np.ones(1)
-        xs, ys = sky_to_detector(a, b, rot[0])
-        return np.atleast_1d(xs), np.atleast_1d(ys), rot[1]
-
-    # Per-pose complex correction g(u) / w(r0) of the window's gain
-    # (`kpifs.detect.gain`), computed at a reference position and held fixed while
-    # the optimiser moves: it varies on the window's scale, not the fringes'.
-    corr = [None]
-
-    def set_correction(a, b):
-        xs, ys, _ = poses(a, b)
-        if ps is None or window is None or not window_correction:
-            corr[0] = [1.0] * len(xs)
-            return
-        corr[0] = [window_gain(kernel_model, window, ps * u.mas, lam * u.m, (xf, yf))
-                   / max(wfac(xf, yf), 1e-12) for xf, yf in zip(xs, ys)]
-
-    def model(params):
-        a, b = params[:2]
-        c = params[2:]
-        xs, ys, ws = poses(a, b)
-        cw = (c * wfac(a, b))[:, None]
-        out = 0.0
-        for xf, yf, wf, cr in zip(xs, ys, ws, corr[0]):
-            theta = 2 * np.pi * (xf * MAS * uv[:, 0] + yf * MAS * uv[:, 1])[None, :] / lam[:, None]
-            out = out + wf * np.angle(1 + cw * cr * np.exp(-1j * theta))
-        return out @ kern.T
-
-    def resid(params):
-        r = kp - model(params)
-        return np.einsum("wij,wj->wi", whitening, r).ravel()
-
-    def jac(params):
-        # phi = arg(1 + c w h), h = corr e^{-i theta}, z = 1 + c w h:
-        # d phi / d(c w) = Im(h / z), d phi / d theta = -Re(c w h / z)
-        a, b = params[:2]
-        c = params[2:]
-        wf = wfac(a, b)
-        if ps is None or window is None:
-            dw = (0.0, 0.0)
-        else:
-            h = 1e-4
-            dw = ((wfac(a + h, b) - wfac(a - h, b)) / (2 * h),
-                  (wfac(a, b + h) - wfac(a, b - h)) / (2 * h))
-        xs, ys, ws = poses(a, b)
-        if rot is None:
-            cs, sn = np.array([-1.0]), np.array([0.0])
-        else:
-            cs, sn = -np.cos(np.deg2rad(rot[0])), np.sin(np.deg2rad(rot[0]))
-        # d(x, y)/d(a, b) = [[cs, sn], [sn, -cs]] (detector frame: identity)
-        g = (c * wf)[:, None]
-        k = 2 * np.pi * MAS / lam[:, None]
-        dphi = np.zeros((q + 2, q, uv.shape[0]))
-        for xf, yf, wt, cf, sf, cr in zip(xs, ys, ws, cs, sn, corr[0]):
-            theta = k * (xf * uv[:, 0] + yf * uv[:, 1])[None, :]
-            hh = cr * np.exp(-1j * theta)
-            ratio = hh / (1 + g * hh)
-            dg = ratio.imag
-            dth = -(g * ratio).real
-            if rot is None:
-                dxa, dya, dxb, dyb = 1.0, 0.0, 0.0, 1.0
-            else:
-                dxa, dya, dxb, dyb = cf, sf, sf, -cf
-            dphi[0] += wt * (dth * k * (dxa * uv[:, 0] + dya * uv[:, 1]) + dg * c[:, None] * dw[0])
-            dphi[1] += wt * (dth * k * (dxb * uv[:, 0] + dyb * uv[:, 1]) + dg * c[:, None] * dw[1])
-            dphi[2 + np.arange(q), np.arange(q)] += wt * dg * wf
-        out = np.zeros((q, p, q + 2))
-        # position: every channel; contrast j: channel j only
-        out[:, :, :2] = np.einsum("wij,nwj->win", whitening, dphi[:2] @ kern.T)
-        dc = dphi[2 + np.arange(q), np.arange(q)] @ kern.T            # (q, p)
-        out[np.arange(q), :, 2 + np.arange(q)] = np.einsum("wij,wj->wi", whitening, dc)
-        return -out.reshape(q * p, q + 2)
-
+    bm = _BinaryModel(kp, whitening, kernel_model, wavelengths, pixscale, window, detpa,
+                      detpa_weights)
     x0 = np.concatenate([np.asarray(start, float), np.asarray(contrast0, float)])
     if x0.size != q + 2:
         raise KpifsError(f"need {q} starting contrasts, got {np.size(contrast0)}")
@@ -189,21 +201,21 @@ def fit_binary(kp, whitening, kernel_model, wavelengths, start, contrast0, *, pi
     scale = np.concatenate([[1.0, 1.0], np.maximum(np.abs(x0[2:]), 1e-5)])
     if jacobian not in ("analytic", "2-point", "3-point"):
         raise KpifsError(f"jacobian must be 'analytic', '2-point' or '3-point', got {jacobian!r}")
-    kw = dict(jac=jac if jacobian == "analytic" else jacobian, bounds=(lo, hi),
+    kw = dict(jac=bm.jac if jacobian == "analytic" else jacobian, bounds=(lo, hi),
               x_scale=scale, method="trf")
-    set_correction(*x0[:2])
-    res = optimize.least_squares(resid, x0, **kw)
-    if window_correction and ps is not None and window is not None:
+    bm.set_correction(*x0[:2], window_correction)
+    res = optimize.least_squares(bm.resid, x0, **kw)
+    if window_correction and bm.ps is not None and window is not None:
         # once more with the correction at the fitted position
-        set_correction(*res.x[:2])
-        res = optimize.least_squares(resid, np.clip(res.x, lo + 1e-12, hi - 1e-12), **kw)
+        bm.set_correction(*res.x[:2], window_correction)
+        res = optimize.least_squares(bm.resid, np.clip(res.x, lo + 1e-12, hi - 1e-12), **kw)
     jac = res.jac
     err = fit_errors(jac, noise_rows)
     dof = int(np.count_nonzero(np.abs(whitening).sum(axis=2))) - (q + 2)
     return {"x": res.x[0], "y": res.x[1], "x_err": err[0], "y_err": err[1],
             "contrast": res.x[2:], "contrast_err": err[2:], "chi2": float(2 * res.cost),
             "dof": dof, "success": bool(res.success),
-            "frame": "detector" if rot is None else "sky", "model": model(res.x)}
+            "frame": "detector" if bm.rot is None else "sky", "model": bm.model(res.x)}
 
 
 def fit_errors(jac, noise_rows=None):

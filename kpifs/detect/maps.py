@@ -30,13 +30,10 @@ from ..data import DetectionGrid
 from ..exceptions import KpifsError
 from ..model.kernel import MAS
 from ..model.window import ExtractionWindow
-from ._laws import norm_sf
 from ._signatures import _norm_chunks, _unit
-from ._laws import chi2_sf
-from .spectral import spectrum_shape
 from .channels import channel_shrinkage, whiten_weights
-from .spectral import spectral_basis, subspace_sign, subspace_weights
-from .stats import binary_pfa, binary_statistic
+from .spectral import spectral_basis, spectrum_shape, subspace_sign, subspace_weights
+from .statistics import DEFAULT_TEST, get_test
 
 
 __all__ = ["DetectionModel"]
@@ -302,7 +299,7 @@ class DetectionModel:
             + f"|{self.channel_alpha!r}"
         return self._channel_corr
 
-    def local_statistic(self, y, form="B", spectrum=None):
+    def local_statistic(self, y, form=DEFAULT_TEST, spectrum=None):
         """Detection statistic at each grid position (NaN outside the searched area).
 
         ``'B'``/``'B-paper'``: the binary test; ``'NP'``: the matched filter for a
@@ -313,7 +310,7 @@ class DetectionModel:
         """
         return self._statistic(self.dot_maps(y), form, spectrum)
 
-    def maps(self, y, form="B", spectrum=None):
+    def maps(self, y, form=DEFAULT_TEST, spectrum=None):
         """Statistic, per-channel contrasts and their errors from one projection.
 
         Returns ``(statistic, contrast, contrast_err)`` as `local_statistic` and
@@ -326,24 +323,13 @@ class DetectionModel:
     def _statistic(self, dot, form, spectrum):
         with np.errstate(invalid="ignore", divide="ignore"):
             z = dot / np.sqrt(self.norm2)
-        if form == "NP":
-            t = np.sum(self._mf_weights(spectrum) * z, axis=-3)
-        elif form == "S":
-            zz = np.nan_to_num(z)
-            g = np.sum(self.subspace * zz[..., None, :, :, :], axis=-3)        # (..., r, ny, nx)
-            t = np.sum(g ** 2, axis=-3) * (np.sum(self.subspace_sign * g, axis=-3) > 0)
-        else:
-            t = binary_statistic(np.moveaxis(z, -3, -1), form)
+        t = get_test(form).map_statistic(self, z, spectrum)
         return np.where(self.grid.valid, t, np.nan)
 
-    def local_pfa(self, t, form="B"):
-        """False-alarm probability of a local statistic at a known position."""
-        if form == "NP":
-            return norm_sf(np.nan_to_num(t, nan=-np.inf))
-        if form == "S":       # one sign of the spectrum's mean: half the two-sided law
-            return np.where(np.nan_to_num(t) > 0,
-                            0.5 * chi2_sf(np.nan_to_num(t, nan=0.0), self.basis.shape[1]), 1.0)
-        return binary_pfa(np.nan_to_num(t, nan=0.0), len(self.wavelengths), form)
+    def local_pfa(self, t, form=DEFAULT_TEST):
+        """False-alarm probability of a local statistic at a known position (the test's
+        own law, `~kpifs.detect.statistics.DetectionTest.local_pfa`)."""
+        return get_test(form).local_pfa(self, t)
 
     # --- what the Monte-Carlo null needs ------------------------------------------
     def key(self):
@@ -432,7 +418,7 @@ class DetectionModel:
         return rows[half], True
 
     # --- candidates -------------------------------------------------------------
-    def candidates(self, y, *, threshold, form="B", null=None, min_distance=None,
+    def candidates(self, y, *, threshold, form=DEFAULT_TEST, null=None, min_distance=None,
                    spectrum=None):
         """Local maxima of the statistic above *threshold*, as a `~astropy.table.QTable`.
 

@@ -31,6 +31,7 @@ import numpy as np
 from .._utils import as_rng, thread_map
 from .._utils import progress as progress_bar
 from ..exceptions import KpifsError
+from .statistics import DEFAULT_TEST, NullSetup, get_test, subspace_test
 from .stats import check_probability
 
 __all__ = ["NullCalibration", "CombinedNull", "search_null",
@@ -98,6 +99,65 @@ def _via_rows(rows, n_kp):
     return rows is not None and len(rows) < n_kp
 
 
+class _Projections:
+    """How a null's draws become projections on the unit signatures, channel by channel:
+    through the rows' projections when there are fewer rows than kernel phases, else
+    through the signatures themselves."""
+
+    def __init__(self, null):
+        model, rows = null.model, null.noise_rows
+        self.null, self.rows = null, rows
+        self.q, p = len(model.wavelengths), getattr(model, "dim", model.kernel_model.n_kp)
+        self.p = p
+        self.positions, self.mirrored = model.half_positions()
+        self.npos = len(self.positions)
+        # z = eps @ unit^T with eps = coef @ rows: project the rows once when they are few
+        self.via_rows = _via_rows(rows, p)
+        if self.via_rows:
+            # the rows' projections on every valid position (the limits use them too)
+            valid, z = model.row_projections(rows)                        # (nvalid, nrow, q)
+            self.proj = np.ascontiguousarray(
+                z[np.searchsorted(valid, self.positions)].transpose(2, 1, 0), np.float32)
+            # the sum of z over channels is one product: coef @ sum_i proj_i
+            self.sum_weights = self.proj.sum(axis=0)
+        else:
+            self.unit = model._unit_signatures(self.positions)            # (q, npos, p)
+            self.flat_rows = None if rows is None else \
+                rows.reshape(len(rows), -1).astype(np.float32)
+            # ... or eps (all channels) @ the stacked signatures
+            self.sum_weights = self.unit.transpose(0, 2, 1).reshape(self.q * p, -1) \
+                if self.mirrored else None
+
+    def draw(self, rng, a, b):
+        """The draws ``a:b``: an object whose ``channel(i, out)`` projects channel ``i``
+        and whose ``channel_sum()`` is the sum over channels (computed once)."""
+        return _Draw(self, rng, a, b)
+
+
+class _Draw:
+    def __init__(self, proj, rng, a, b):
+        self.p, n = proj, b - a
+        self._sum = None
+        if proj.via_rows:
+            self.coef = proj.null._coefficients(rng, a, b)
+        elif proj.rows is None:
+            self.joint = rng.standard_normal((n, proj.q, proj.p), dtype=np.float32)
+        else:
+            self.joint = (proj.null._coefficients(rng, a, b) @ proj.flat_rows).reshape(
+                n, proj.q, proj.p)
+
+    def channel(self, i, out):
+        if self.p.via_rows:
+            return np.matmul(self.coef, self.p.proj[i], out=out)
+        return np.matmul(self.joint[:, i], self.p.unit[i].T, out=out)
+
+    def channel_sum(self):
+        if self._sum is None:
+            lhs = self.coef if self.p.via_rows else self.joint.reshape(len(self.joint), -1)
+            self._sum = lhs @ self.p.sum_weights
+        return self._sum
+
+
 class NullCalibration:
     """Monte-Carlo law of the grid maximum of a map statistic under H0.
 
@@ -105,8 +165,9 @@ class NullCalibration:
     ----------
     model : `~kpifs.detect.maps.DetectionModel`
         The projection (signatures and grid).
-    form : {'B', 'B-paper', 'NP'}
-        Map statistic.
+    form : str
+        The test whose map statistic's maximum is drawn (a name of the registry
+        `kpifs.detect.statistics`, with a map: 'B', 'B-paper', 'S', 'NP').
     n_draws, seed : int
         Monte-Carlo draws and their seed.
     spectrum : array-like, optional
@@ -120,6 +181,9 @@ class NullCalibration:
         *n_draws* allows).
     progress : bool
         Progress bar while drawing (on a terminal).
+    also : tuple of str
+        Other tests whose maxima are drawn in the same pass (and cached): the
+        limits' thresholds. Only what is asked for is reduced.
 
     Examples
     --------
@@ -135,10 +199,11 @@ class NullCalibration:
     True
     """
 
-    def __init__(self, model, *, form="B", n_draws=DEFAULT_DRAWS, seed=0, spectrum=None,
-                 noise_rows=None, coefficients="gaussian", progress=False):
-        if form not in ("B", "B-paper", "NP", "S"):
-            raise KpifsError(f"unknown map test {form!r}: 'B', 'B-paper', 'NP' or 'S'")
+    def __init__(self, model, *, form=DEFAULT_TEST, n_draws=DEFAULT_DRAWS, seed=0, spectrum=None,
+                 noise_rows=None, coefficients="gaussian", progress=False, also=()):
+        if get_test(form).map_name != form:
+            raise KpifsError(f"test {form!r} has no map: its search uses "
+                             f"{get_test(form).map_name!r}'s null")
         if coefficients not in COEFFICIENTS:
             raise KpifsError(f"unknown null coefficients {coefficients!r}: use one of "
                              f"{COEFFICIENTS}")
@@ -157,6 +222,7 @@ class NullCalibration:
         self.coefficients, self.model, self.form = coefficients, model, form
         self.n_draws, self.seed, self.spectrum = n_draws, seed, spectrum
         self.noise_rows, self.progress = noise_rows, progress
+        self.also = tuple(f for f in also if f != form)
 
     def _key(self, form=None):
         keys, form = self.__dict__.setdefault("_keys", {}), form or self.form
@@ -184,105 +250,43 @@ class NullCalibration:
         return _CACHE[key]
 
     def _draw(self, batch=256):
-        """The draws, by form: the two binary forms come from the same projections
-        (limits need both). A signature at ``-pos`` is minus that at ``pos``, so on a
-        symmetric grid only half the positions are projected; with fewer noise rows
-        than kernel phases the rows are projected once and the draws combine them.
-        Draws go in batches whose work arrays stay in the processor's cache."""
-        model, form, rows = self.model, self.form, self.noise_rows
-        q, p = len(model.wavelengths), getattr(model, "dim", model.kernel_model.n_kp)
-        positions, mirrored = model.half_positions()
-        # the binary forms and the subspace test come from the same projections
-        forms = (form,) if form == "NP" else ("B", "B-paper", "S")
-        if form == "NP":
-            mfw = model._mf_weights(self.spectrum).reshape(q, -1)[:, positions].astype(np.float32)
-        else:
-            sub = model.subspace
-            sub = sub.reshape(sub.shape[:2] + (-1,))[:, :, positions].astype(np.float32)
-            r = len(sub)
-            sgn = model.subspace_sign.reshape(r, -1)[:, positions].astype(np.float32)
-        # z = eps @ unit^T with eps = coef @ rows: project the rows once when they are few
-        via_rows = _via_rows(rows, p)
-        if via_rows:
-            # the rows' projections on every valid position (the limits use them too)
-            valid, z = model.row_projections(rows)                        # (nvalid, nrow, q)
-            proj = np.ascontiguousarray(
-                z[np.searchsorted(valid, positions)].transpose(2, 1, 0), np.float32)
-            # the sum of z over channels is one product: coef @ sum_i proj_i
-            channel_sum = proj.sum(axis=0)
-        else:
-            unit = model._unit_signatures(positions)                      # (q, npos, p)
-            flat_rows = None if rows is None else rows.reshape(len(rows), -1).astype(np.float32)
-            # ... or eps (all channels) @ the stacked signatures
-            channel_sum = unit.transpose(0, 2, 1).reshape(q * p, -1) if mirrored else None
-        extra = ("Z2", "G2") if "S" in forms else ("Z2",)
-        maxima = {f: np.empty(self.n_draws) for f in forms + extra}
-        npos = len(positions)
+        """The draws of this null's test and of those drawn with it (*also*), by name,
+        with the map's mean square (``'Z2'``) and what the tests' reductions add
+        (`~kpifs.detect.statistics.DetectionTest.null_reducer`). A signature at
+        ``-pos`` is minus that at ``pos``, so on a symmetric grid only half the
+        positions are projected; with fewer noise rows than kernel phases the rows
+        are projected once and the draws combine them. Draws go in batches whose
+        work arrays stay in the processor's cache; each batch its own random stream
+        (the same draws whatever the tests and the number of threads)."""
+        proj = _Projections(self)
+        names = tuple(dict.fromkeys((self.form,) + tuple(self.also)))
+        setup = NullSetup(self.model, proj.positions, proj.mirrored, self.spectrum, names)
+        reducers = [r for r in (get_test(n).null_reducer(setup) for n in names) if r is not None]
+        q = proj.q
 
         def one(job):
             (a, b), rng = job
-            n = b - a
-            acc = {f: np.zeros((n, npos), np.float32) for f in forms if f != "S"}
-            proj_s = np.zeros((r, n, npos), np.float32) if "S" in forms else None
-            # mirrored positions: sum max(-z, 0)^2 = sum min(z, 0)^2 and
-            # sum max(-z, 0) = sum max(z, 0) - sum z (one product for the sum over channels)
-            neg = np.zeros((n, npos), np.float32) if mirrored and form != "NP" else None
-            if via_rows:
-                coef = self._coefficients(rng, a, b)
-            elif rows is None:
-                joint = rng.standard_normal((n, q, p), dtype=np.float32)
-            else:
-                joint = (self._coefficients(rng, a, b) @ flat_rows).reshape(n, q, p)
-            z, w = np.empty((n, npos), np.float32), np.empty((n, npos), np.float32)
-            z2 = np.zeros(n)
+            draw = proj.draw(rng, a, b)
+            parts = [r.batch(b - a) for r in reducers]
+            z = np.empty((b - a, proj.npos), np.float32)
+            z2 = np.zeros(b - a)
             for i in range(q):
-                if via_rows:
-                    np.matmul(coef, proj[i], out=z)
-                else:
-                    np.matmul(joint[:, i], unit[i].T, out=z)
+                draw.channel(i, out=z)
                 z2 += np.einsum("nk,nk->n", z, z)
-                if form == "NP":
-                    acc["NP"] += mfw[i] * z
-                    continue
-                for j in range(r):
-                    proj_s[j] += sub[j, i] * z
-                np.maximum(z, 0, out=w)
-                acc["B-paper"] += w
-                w *= w
-                acc["B"] += w
-                if neg is not None:
-                    np.minimum(z, 0, out=z)
-                    z *= z
-                    neg += z
+                for part in parts:
+                    part.add(i, z)
             # the map's mean square (mirrored positions have the same): `noise_draws`
-            out = {"Z2": z2 / (q * npos)}
-            if proj_s is not None:
-                t_s = np.einsum("jnk,jnk->nk", proj_s, proj_s)
-                # the subspace map's mean square (per coefficient): `noise_draws('G2')`
-                out["G2"] = t_s.mean(axis=1) / r
-                if not mirrored:    # the mirror carries the other sign: max over both is t_s
-                    t_s *= np.einsum("jk,jnk->nk", sgn, proj_s) > 0
-                out["S"] = t_s.max(axis=1)
-            for f in forms:
-                if f == "S":
-                    continue
-                best = acc[f].max(axis=1)
-                if f == "NP" and mirrored:
-                    best = np.maximum(best, -acc[f].min(axis=1))
-                elif f == "B" and mirrored:
-                    best = np.maximum(best, neg.max(axis=1))
-                elif mirrored:
-                    total = (coef if via_rows else joint.reshape(n, -1)) @ channel_sum
-                    best = np.maximum(best, (acc[f] - total).max(axis=1))
-                out[f] = best
+            out = {"Z2": z2 / (q * proj.npos)}
+            for part in parts:
+                out.update(part.finish(draw.channel_sum))
             return out
 
-        # each batch its own random stream: the same draws whatever the number of threads
         spans = [(a, min(self.n_draws, a + batch)) for a in range(0, self.n_draws, batch)]
         jobs = list(zip(spans, as_rng(self.seed).spawn(len(spans))))
         done = thread_map(one, jobs, wrap=lambda it: progress_bar(
-            it, desc=f"calibrating sup-{form}", unit="batch", total=len(jobs),
+            it, desc=f"calibrating sup-{self.form}", unit="batch", total=len(jobs),
             enabled=self.progress))
+        maxima = {f: np.empty(self.n_draws) for f in done[0]}
         for (a, b), out in zip(spans, done):
             for f in maxima:
                 maxima[f][a:b] = out[f]
@@ -297,6 +301,9 @@ class NullCalibration:
         test's projections (``'G2'``, drawn with the binary forms)."""
         key = self._key(kind)
         if key not in _CACHE:
+            sub = subspace_test()
+            if kind == "G2" and sub is not None and sub.name not in (self.form,) + self.also:
+                self.also += (sub.name,)        # the subspace projections make them
             _CACHE.pop(self._key(), None)
             self.draws
         return _CACHE[key]
@@ -426,7 +433,8 @@ class CombinedNull:
 
 
 def search_null(model, *, form, noise_rows, block_rows=None, method="auto",
-                n_draws=DEFAULT_DRAWS, seed=0, spectrum=None, progress=False, source="data"):
+                n_draws=DEFAULT_DRAWS, seed=0, spectrum=None, progress=False, source="data",
+                also=()):
     """The null a search judges its maxima by, and how it was made.
 
     *method* ``'gaussian'``: the Monte-Carlo null of the error model
@@ -436,7 +444,8 @@ def search_null(model, *, form, noise_rows, block_rows=None, method="auto",
     (`CombinedNull`); ``'auto'``: 'both' when there are enough block rows, else
     'gaussian'. Fits take their errors from *noise_rows* whichever the method.
     Returns ``(null, parts)``, *parts* a dict of the nulls by name; *source*
-    names the data in errors.
+    names the data in errors; *also* the other tests drawn in the same pass
+    (`NullCalibration`).
 
     Examples
     --------
@@ -467,7 +476,7 @@ def search_null(model, *, form, noise_rows, block_rows=None, method="auto",
                          f"{method!r} null cannot be drawn; use null='gaussian' (--null gaussian)")
     if method == "gaussian":
         null = NullCalibration(model, form=form, n_draws=n_draws, seed=seed, spectrum=spectrum,
-                               noise_rows=noise_rows, progress=progress)
+                               noise_rows=noise_rows, progress=progress, also=also)
         return null, {"gaussian": null}
     parts = {}
     if method == "both":
@@ -475,8 +484,8 @@ def search_null(model, *, form, noise_rows, block_rows=None, method="auto",
             model.row_projections(noise_rows, also=(block_rows,))     # one pass for both
         parts["gaussian"] = NullCalibration(model, form=form, n_draws=n_draws, seed=seed,
                                             spectrum=spectrum, noise_rows=noise_rows,
-                                            progress=progress)
+                                            progress=progress, also=also)
     parts["empirical"] = NullCalibration(model, form=form, n_draws=EMPIRICAL_DRAWS, seed=seed,
                                          spectrum=spectrum, noise_rows=block_rows,
-                                         coefficients="sign")
+                                         coefficients="sign", also=also)
     return CombinedNull(list(parts.values()), noise_rows=noise_rows), parts

@@ -1,35 +1,43 @@
-"""`detect`: from calibrated kernel phases to maps, candidates, spectra and limits."""
+"""`detect`: from calibrated kernel phases to maps, candidates, spectra and limits.
+
+The search runs as stages, each a function of the previous stages' dataclasses:
+prepare -> whiten and error model -> null -> sequential search and fits -> maps
+and limits -> report (`detect`).
+"""
 import logging
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 from astropy import units as u
 
+from ..calibration.adi import inner_separation
 from ..covariance import empirical_covariance, rows_covariance, whiten, whitening_matrix
 from ..data import DetectionGrid, DetectionResult, KernelPhaseData
 from ..exceptions import KpifsError, KpifsWarning
-from ..model.kernel import MAS, KernelModel
-from ..simulation.aberrations import static_term
-from ..calibration.adi import inner_separation
-from ..model.pupil import make_pupil
-from ._inputs import _aliased, _check_closure_dof, _drop_aliased, _measured, _wants_static
-from ._laws import chi2_sf, norm_isf
-from .search import _POWER, _chi2_red, _sequential_search
-from .sky import (add_sky_columns, data_angles, pa_bins,
-                  search_frame, sky_search_columns)
-from .skyfit import refit_on_sky
-from .limits import (energy_lambda, limit_binary, limit_binary_correlated_forms, limit_energy,
-                     limit_np, mirror_half_map, radial_curves)
-from .blocks import block_stack
-from .maps import DetectionModel
-from .null import DEFAULT_DRAWS, check_draws, search_null
-from .channels import (MIN_SCALE, NOISE_CONFIDENCE, combined_scale, correlated_inputs,
-                       energy_null, energy_spread, map_noise, np_correlated, scale_block_rows,
-                       subspace_scale, annulus_noise, ring_noise)
-from .quality import add_spectrum_model, flag_candidates, resolution_mas
 from ..model.field import search_field
-from .spectral import limit_subspace, spectral_basis, spectrum_shape
-from .stats import TESTS, check_probability, energy_threshold
+from ..model.kernel import MAS, KernelModel
+from ..model.pupil import make_pupil
+from ..simulation.aberrations import static_term
+from ._inputs import _aliased, _check_closure_dof, _drop_aliased, _measured, _wants_static
+from ._laws import chi2_sf
+from .blocks import block_stack
+from .channels import (MIN_SCALE, NOISE_CONFIDENCE, annulus_noise, channel_correlation,
+                       combined_scale, energy_null, energy_spread, map_noise, ring_noise,
+                       scale_block_rows)
+from .limits import energy_lambda, radial_curves
+from .maps import DetectionModel
+from .null import check_draws, search_null
+from .options import SearchOptions
+from .quality import add_spectrum_model, flag_candidates, resolution_mas
+from .report import DetectionReport, LimitsReport, NullReport
+from .search import _chi2_red, _sequential_search
+from .sky import add_sky_columns, data_angles, pa_bins, search_frame, sky_search_columns
+from .skyfit import refit_on_sky
+from .spectral import spectral_basis, spectrum_shape
+from .statistics import (REGISTRY, DetectionTest, LimitInputs, auto_test, get_test,
+                         subspace_test)
+from .stats import check_probability, energy_threshold
 
 
 __all__ = ["detect", "default_grid"]
@@ -113,11 +121,15 @@ def _prepare(kpd, shrinkage, allow_uncalibrated):
     return kpd.kp[0], kpd.covariance, kpd
 
 
-def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basis=None,
-           n_draws=DEFAULT_DRAWS, seed=0, shrinkage="auto", fit=True, max_candidates=20,
-           allow_uncalibrated=False, frame="auto", limits=True, null="auto", progress=False,
-           blocks="auto", aliased="keep", static="auto"):
+def detect(kpd, options=None, /, **keywords):
     """Search calibrated kernel phases for a companion.
+
+    ``detect(kpd, options)`` with a `~kpifs.detect.options.SearchOptions`, or
+    ``detect(kpd, test=..., pfa=...)`` with its fields as keywords. The search
+    runs as stages: prepare the data (`_prepare_stage`), whiten them and take the
+    error model (`_whiten_stage`), draw the null (`_null_stage`), search and fit
+    the candidates one by one (`_search_stage`), make the maps and the limits
+    (`_maps_stage`, `_limits_stage`) and report (`_report`).
 
     Parameters
     ----------
@@ -211,6 +223,8 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     Returns
     -------
     `DetectionResult`
+        With its typed report (``result.report``, a
+        `~kpifs.detect.report.DetectionReport`; ``result.meta`` is made from it).
 
     Examples
     --------
@@ -219,230 +233,388 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     >>> len(res.candidates), res.test      # 'auto': two channels, B (see *test*)
     (1, 'B')
     """
-    if test not in TESTS + ("auto",):
-        raise KpifsError(f"unknown test {test!r}: use one of {TESTS} or 'auto'")
-    pfa = check_probability(pfa, "P_FA")
-    pd = check_probability(pd, "P_D")
-    check_draws(n_draws)
-    q0 = kpd.n_wave
-    kpd, kept = _drop_aliased(kpd, aliased)
+    if options is not None and keywords:
+        raise KpifsError("detect: give the options or keywords, not both")
+    opts = options if options is not None else SearchOptions.from_keywords(**keywords)
+    prep = _prepare_stage(kpd, opts)
+    white = _whiten_stage(prep, opts)
+    null = _null_stage(prep, white, opts)
+    found = _search_stage(prep, white, null, opts)
+    maps = _maps_stage(prep, white, null, found, opts)
+    limits = _limits_stage(prep, white, null, found, maps, opts) if opts.limits else None
+    log.info("detect: %d candidate(s) above the %s threshold %.3f (global P_FA %.1e)",
+             len(found.candidates), prep.test.map_name, null.threshold, opts.pfa)
+    return _report(prep, white, null, found, maps, limits, opts)
+
+
+# --- stage 1: prepare ----------------------------------------------------------------
+@dataclass
+class _Prepared:
+    """The data to search: aliased channels dropped (*spectrum* and *basis* following
+    the channels kept), frames averaged, the measured error model and the static
+    term (*static_rows*, *static_info*), the test chosen and the spectrum shape *a*."""
+
+    kpd: KernelPhaseData
+    kp: np.ndarray
+    cov: np.ndarray
+    spectrum: object
+    basis: object
+    n_basis: int
+    test: DetectionTest
+    a: np.ndarray
+    static_rows: np.ndarray = None
+    static_info: dict = None
+
+
+def _prepare_stage(kpd, opts):
+    if opts.test != "auto":
+        get_test(opts.test)
+    check_probability(opts.pfa, "P_FA")
+    check_probability(opts.pd, "P_D")
+    check_draws(opts.n_draws)
+    q0, spectrum, basis = kpd.n_wave, opts.spectrum, opts.basis
+    kpd, kept = _drop_aliased(kpd, opts.aliased)
     if kept is not None:     # a per-channel spectrum or basis follows the channels kept
         if spectrum is not None and np.size(spectrum) == q0:
             spectrum = np.asarray(spectrum, float).ravel()[kept]
         if isinstance(basis, np.ndarray) and basis.ndim == 2 and len(basis) == q0:
             basis = basis[kept]
-    kp, cov, kpd = _prepare(kpd, shrinkage, allow_uncalibrated)
+    kp, cov, kpd = _prepare(kpd, opts.shrinkage, opts.allow_uncalibrated)
     kp, cov = _measured(kpd, kp, cov)
     static_rows, static_info = None, None
-    if _wants_static(kpd, static):
+    if _wants_static(kpd, opts.static):
         cov, static_rows, static_info = static_term(
-            kpd, kp, cov, whitening_matrix(cov, source="covariance of the data"), seed=seed)
-    q, p = kp.shape
-    if test == "auto":     # measured: `docs/user/choosing_test.rst`
-        # S only constrains the spectrum when its model has fewer dimensions than the
-        # channels; with as many, B's all-positive contrasts are the stronger constraint
-        test = "S" if spectral_basis(basis, kpd.wavelengths).shape[1] < q else "B"
-    a = spectrum_shape(spectrum, q)
-    w, rank = whitening_matrix(cov, return_rank=True, source="covariance of the data")
+            kpd, kp, cov, whitening_matrix(cov, source="covariance of the data"),
+            seed=opts.seed)
+    q = kp.shape[0]
+    n_basis = spectral_basis(basis, kpd.wavelengths).shape[1]
+    test = auto_test(n_basis, q) if opts.test == "auto" else get_test(opts.test)
+    return _Prepared(kpd, kp, cov, spectrum, basis, n_basis, test, spectrum_shape(spectrum, q),
+                     static_rows, static_info)
+
+
+# --- stage 2: whiten, and the error model ----------------------------------------------
+@dataclass
+class _Whitened:
+    """The whitened data and what the error model gives the search: the whitening
+    *w* and its *rank*, the frame, PA bins of the search and of the fit (*poses*),
+    the grid, the time blocks' stack, the `DetectionModel`, the whitened covariance
+    *rows* and time *blocks*, and the characterisation's error model."""
+
+    kp: np.ndarray
+    w: np.ndarray
+    rank: np.ndarray
+    y: np.ndarray
+    frame: str
+    search_poses: object
+    poses: object
+    grid: DetectionGrid
+    stack: object
+    model: DetectionModel
+    rows: np.ndarray = None
+    blocks: np.ndarray = None
+    block_energy: float = None
+    characterise: tuple = None
+
+
+def _whiten_stage(prep, opts):
+    kpd, kp = prep.kpd, prep.kp
+    w, rank = whitening_matrix(prep.cov, return_rank=True, source="covariance of the data")
     rank = np.atleast_1d(rank)
-    _check_closure_dof(kpd, test, rank, spectral_basis(basis, kpd.wavelengths).shape[1], kp, w)
-    y = whiten(kp, w)
-    frame, search_poses, poses = _frame_and_poses(kpd, frame, grid)
-    own_grid = grid is None
-    if grid is None:
-        grid = default_grid(kpd, frame=frame)
-    window = kpd.window
-    # issue 29: a rotating sequence's time blocks, stacked (None: the one mean, as before)
-    stack = block_stack(kpd, kp, w, rank, frame=frame, mode=blocks)
+    _check_closure_dof(kpd, prep.test, rank, prep.n_basis, kp, w)
+    frame, search_poses, poses = _frame_and_poses(kpd, opts.frame, opts.grid)
     cov_rows, blk_rows, fit_rows = kpd.covariance_rows, kpd.block_rows, kpd.fit_covariance_rows
-    if static_rows is not None and cov_rows is not None:
-        cov_rows = np.concatenate([cov_rows, static_rows])
+    if prep.static_rows is not None and cov_rows is not None:
+        cov_rows = np.concatenate([cov_rows, prep.static_rows])
+    # issue 29: a rotating sequence's time blocks, stacked (None: the one mean, as before)
+    stack = block_stack(kpd, kp, w, rank, frame=frame, mode=opts.blocks)
     if stack is not None:
-        kp, w, rank, y = stack.kp, stack.whitening, stack.rank, stack.kp
+        kp, w, rank = stack.kp, stack.whitening, stack.rank
         cov_rows, blk_rows, fit_rows = stack.rows, stack.block_rows, None
-        model = stack.detection_model(grid, basis=basis)
-        inner = inner_separation(model) if stack.mode == "angular-differential" else np.nan
-        if own_grid and np.isfinite(inner) and inner > float(grid.min_sep):
-            # the angular-differential search starts where the rotation keeps half a
-            # companion's signal (`kpifs.calibration.adi.inner_separation`)
-            grid = default_grid(kpd, frame=frame, min_sep=inner * u.mas)
-            model = stack.detection_model(grid, basis=basis)
-            stack.info["inner_separation"] = inner
-    else:
-        model = DetectionModel(kpd.kernel_model, kpd.wavelengths, w, grid, pixscale=kpd.pixscale,
-                               window=window, dof=rank, detpa=search_poses, basis=basis)
-    form = "B" if test == "E" else test
-    rows = None
+    grid, model = _search_model(prep, opts, frame, search_poses, stack, w, rank)
+    out = _Whitened(kp, w, rank, kp if stack is not None else whiten(kp, w), frame,
+                    search_poses, poses, grid, stack, model)
     if cov_rows is not None:
-        rows = whiten(cov_rows, w)
-        model.correlate(rows)
+        out.rows = whiten(cov_rows, w)
+        model.correlate(out.rows)
     else:
         log.info("no covariance rows: channels taken as independent in the null model")
-    blocks, block_energy = None, None
     if blk_rows is not None:       # the empirical null: its scale from the error model
-        blocks, block_energy = scale_block_rows(whiten(blk_rows, w), rank)
-    null_method = null
-
-    def make_null(f):
-        return search_null(model, form=f, noise_rows=rows, block_rows=blocks, method=null_method,
-                           n_draws=n_draws, seed=seed, spectrum=spectrum if f == "NP" else None,
-                           progress=progress, source=kpd.name)
-    null, parts = make_null(form)
-    threshold = null.threshold(pfa)
-    null_info = {"method": "+".join(parts), "threshold": threshold,
-                 **{f"threshold_{k}": v.threshold(pfa) for k, v in parts.items()},
-                 "n_blocks": None if blocks is None else len(blocks),
-                 "block_energy": block_energy,
-                 "empirical_draws": parts["empirical"].n_draws if "empirical" in parts else None}
-    if len(parts) > 1:
-        log.info("null of the grid maximum at P_FA %.1e: Gaussian %.2f, empirical (sign flips "
-                 "of %d time blocks) %.2f", pfa, null_info["threshold_gaussian"], len(blocks),
-                 null_info["threshold_empirical"])
-    spread = energy_spread(rows, int(rank.sum()))
-    characterise = None
-    if fit and cov_rows is not None and fit_rows is not None:
+        out.blocks, out.block_energy = scale_block_rows(whiten(blk_rows, w), rank)
+    if opts.fit and cov_rows is not None and fit_rows is not None:
         # positions and contrasts from the error model with more modes (calibrate's
         # fit_modes), whose rows also carry its channel correlations
         fw, frank = whitening_matrix(rows_covariance(fit_rows), return_rank=True,
                                      source="characterisation covariance")
-        characterise = (fw, whiten(fit_rows, fw), int(np.sum(frank)))
-    map_low = float(np.quantile(null.noise_draws(), NOISE_CONFIDENCE))
-    last = {}
+        out.characterise = (fw, whiten(fit_rows, fw), int(np.sum(frank)))
+    return out
 
-    def scaler(res, n_par):
-        kappa = _chi2_red(res, w, int(rank.sum()), n_par)
-        last["res"] = res
+
+def _search_model(prep, opts, frame, search_poses, stack, w, rank):
+    """The search grid and its `DetectionModel` (a time-block stack's own, whose
+    angular-differential search starts where the rotation keeps half a companion's
+    signal, `kpifs.calibration.adi.inner_separation`)."""
+    kpd, grid = prep.kpd, opts.grid
+    if grid is None:
+        grid = default_grid(kpd, frame=frame)
+    if stack is None:
+        return grid, DetectionModel(kpd.kernel_model, kpd.wavelengths, w, grid,
+                                    pixscale=kpd.pixscale, window=kpd.window, dof=rank,
+                                    detpa=search_poses, basis=prep.basis)
+    model = stack.detection_model(grid, basis=prep.basis)
+    inner = inner_separation(model) if stack.mode == "angular-differential" else np.nan
+    if opts.grid is None and np.isfinite(inner) and inner > float(grid.min_sep):
+        grid = default_grid(kpd, frame=frame, min_sep=inner * u.mas)
+        model = stack.detection_model(grid, basis=prep.basis)
+        stack.info["inner_separation"] = inner
+    return grid, model
+
+
+# --- stage 3: the null ---------------------------------------------------------------
+@dataclass
+class _Null:
+    """The search's null (*null*, its *parts* by name) and threshold, its report, the
+    noise model's spread and map floor; `for_test` gives another test's null from
+    the same draws (the limits')."""
+
+    null: object
+    parts: dict
+    threshold: float
+    report: NullReport
+    spread: float
+    map_low: float
+    make: object
+
+    def for_test(self, name):
+        return self.null if name == self.null.form else self.make(name)[0]
+
+
+def _null_stage(prep, white, opts):
+    form = prep.test.map_name
+    # only what is needed is reduced: the search's test, and the limits' nulls (drawn
+    # together; a null that depends on the spectrum shape is drawn on its own)
+    shared = tuple(t.name for t in REGISTRY.values()
+                   if _has_null(t) and not t.spectral_null) if opts.limits else ()
+
+    def make(name):
+        own = get_test(name).spectral_null
+        return search_null(white.model, form=name, noise_rows=white.rows,
+                           block_rows=white.blocks, method=opts.null, n_draws=opts.n_draws,
+                           seed=opts.seed, spectrum=prep.spectrum if own else None,
+                           progress=opts.progress, source=prep.kpd.name,
+                           also=() if own else shared)
+    null, parts = make(form)
+    threshold = null.threshold(opts.pfa)
+    blocks = white.blocks
+    report = NullReport("+".join(parts), threshold,
+                        {k: v.threshold(opts.pfa) for k, v in parts.items()},
+                        None if blocks is None else len(blocks), white.block_energy,
+                        parts["empirical"].n_draws if "empirical" in parts else None)
+    if len(parts) > 1:
+        log.info("null of the grid maximum at P_FA %.1e: Gaussian %.2f, empirical (sign flips "
+                 "of %d time blocks) %.2f", opts.pfa, report.thresholds["gaussian"],
+                 len(blocks), report.thresholds["empirical"])
+    return _Null(null, parts, threshold, report, energy_spread(white.rows, int(white.rank.sum())),
+                 float(np.quantile(null.noise_draws(), NOISE_CONFIDENCE)), make)
+
+
+def _has_null(test):
+    """Whether a test draws its own null (a map test with a reduction of the draws)."""
+    return test.map_name == test.name and type(test).null_reducer is not DetectionTest.null_reducer
+
+
+# --- stage 4: the sequential search and the fits ---------------------------------------
+class _NoiseJudge:
+    """How a residual is judged: its reduced chi-square and noise scale (`scale`), and
+    the noise of its annulus (`ring`); the last residual judged and its measures are
+    kept (the maps and limits use those of the search's final residual)."""
+
+    def __init__(self, prep, white, null):
+        self.test, self.white, self.null = prep.test, white, null
+        self.ring_width = resolution_mas(prep.kpd.kernel_model, prep.kpd.wavelengths)
+        self.residual = self.map = self.common = self.subspace = None
+
+    def scale(self, res, n_par):
+        w, model = self.white.w, self.white.model
+        kappa = _chi2_red(res, w, int(self.white.rank.sum()), n_par)
         yr = whiten(res, w)
-        last["map"] = map_noise(model, yr)
-        last["scale"] = combined_scale(kappa, spread, last["map"], map_low)
+        self.residual, self.map = res, map_noise(model, yr)
+        self.common = combined_scale(kappa, self.null.spread, self.map, self.null.map_low)
         # the subspace test is judged by its own map's noise too (a smooth residual)
-        last["sub"] = map_noise(model, yr, subspace=True)
-        if form != "S":
-            return kappa, last["scale"]
-        return kappa, subspace_scale(last["scale"], last["sub"], null.noise_draws("G2"))
-    ring_width = resolution_mas(kpd.kernel_model, kpd.wavelengths)
+        self.subspace = map_noise(model, yr, subspace=True)
+        return kappa, self.test.scale(self.common, self.subspace,
+                                      lambda: self.null.null.noise_draws("G2"))
 
-    def ring(res, peak, subspace=form == "S"):
-        # only ever up (an annulus's chance excess errs on the safe side)
+    def ring(self, res, peak, subspace=None):
+        """The annulus noise around *peak* (None: per annulus, as a map); only ever up
+        (an annulus's chance excess errs on the safe side)."""
+        subspace = self.test.subspace_map if subspace is None else subspace
+        model, yr = self.white.model, whiten(res, self.white.w)
         if peak is None:
-            return annulus_noise(model, whiten(res, w), subspace=subspace)
-        return float(np.nan_to_num(ring_noise(model, whiten(res, w), peak, width=ring_width,
-                                              radius=1.5 * ring_width, subspace=subspace),
+            return annulus_noise(model, yr, subspace=subspace)
+        return float(np.nan_to_num(ring_noise(model, yr, peak, width=self.ring_width,
+                                              radius=1.5 * self.ring_width, subspace=subspace),
                                    nan=1.0))
+
+
+@dataclass
+class _Found:
+    """The candidates, the final residual's reduced chi-square and noise scale, and its
+    judge (the measures of that residual)."""
+
+    candidates: object
+    chi2_red: float
+    scale: float
+    judge: _NoiseJudge
+
+
+def _search_stage(prep, white, null, opts):
+    kpd, judge = prep.kpd, _NoiseJudge(prep, white, null)
     cands, kappa, scale = _sequential_search(
-        model, kp, w, kpd, threshold=threshold, null=null, spectrum=spectrum, fit=fit,
-        max_candidates=max_candidates, scaler=scaler, ring=ring, poses=poses,
-        characterise=characterise, stack=stack)
+        white.model, white.kp, white.w, kpd, threshold=null.threshold, null=null.null,
+        spectrum=prep.spectrum, fit=opts.fit, max_candidates=opts.max_candidates,
+        scaler=judge.scale, ring=judge.ring, poses=white.poses,
+        characterise=white.characterise, stack=white.stack)
     _warn_clamped(kpd, scale)
-    if frame == "sky":
-        sky_search_columns(cands, poses)
+    if white.frame == "sky":
+        sky_search_columns(cands, white.poses)
     else:
         # sky offsets only from angles the data know (not the 0 assumed without any)
         add_sky_columns(cands, kpd.detpa if data_angles(kpd) is not None else None)
-    fit_w, fit_rows = (w, null.noise_rows) if characterise is None else characterise[:2]
-    if frame == "detector" and fit and refit_on_sky(cands, kp, fit_w, kpd, noise_rows=fit_rows) \
-            and "chi2_red" in cands.colnames:
+    char = white.characterise
+    fit_w, fit_rows = (white.w, null.null.noise_rows) if char is None else char[:2]
+    if white.frame == "detector" and opts.fit and refit_on_sky(
+            cands, white.kp, fit_w, kpd, noise_rows=fit_rows) and "chi2_red" in cands.colnames:
         # the rotating fit's errors, scaled like the detector fit's
-        chi2 = cands["fit_chi2_red" if characterise is not None else "chi2_red"]
+        chi2 = cands["fit_chi2_red" if char is not None else "chi2_red"]
         k = np.sqrt(np.maximum(1.0, np.asarray(chi2, float)))
         for col in ("fit_dra_err", "fit_ddec_err", "fit_pa_sky_err"):
             cands[col] = cands[col] * k
-    flag_candidates(cands, grid, resolution=resolution_mas(kpd.kernel_model, kpd.wavelengths),
-                    noise_scale=scale)
-    add_spectrum_model(cands, model.basis)
+    flag_candidates(cands, white.grid, noise_scale=scale,
+                    resolution=resolution_mas(kpd.kernel_model, kpd.wavelengths))
+    add_spectrum_model(cands, white.model.basis)
+    return _Found(cands, kappa, scale, judge)
+
+
+# --- stage 5: maps and limits --------------------------------------------------------
+@dataclass
+class _Maps:
+    """The maps at the noise scale the data show against the model: statistic, local
+    and global P_FA, contrasts and errors, the search's residual map; the energy
+    test's numbers (*energy*) and the noise scale common to every test."""
+
+    statistic: np.ndarray
+    pfa_local: np.ndarray
+    pfa_global: np.ndarray
+    contrast: np.ndarray
+    contrast_err: np.ndarray
+    search_map: np.ndarray
+    energy: dict
+    common: float
+
+
+def _maps_stage(prep, white, null, found, opts):
+    model, form, judge = white.model, prep.test.map_name, found.judge
+    power = get_test(form).power
     # the noise level the data show against the model (the residual after the candidates,
     # in all its modes and on the map): statistics, errors and limits are scaled by it
-    t, c, cerr = model.maps(y, form, spectrum)
+    t, c, cerr = model.maps(white.y, form, prep.spectrum)
     # per annulus, the map's own noise where it exceeds the scale (`annulus_noise`)
-    smap = np.fmax(scale, np.nan_to_num(ring(last["res"], None), nan=0.0))
-    t = t / smap ** _POWER[form]
+    smap = np.fmax(found.scale, np.nan_to_num(judge.ring(judge.residual, None), nan=0.0))
+    t = t / smap ** power
     # what decided: the map of the residual the search stopped on (the candidates
     # subtracted), at the same noise scale (`DetectionResult.search_map`)
-    search_map = model.maps(whiten(last["res"], w), form, spectrum)[0] / smap ** _POWER[form]
-    cerr = cerr * np.sqrt(last["scale"])
-    valid = grid.valid
-    pglob = np.where(valid, null.pfa(t), np.nan)
-    ploc = np.where(valid, model.local_pfa(t, form), np.nan)
-
-    dof = int(rank.sum())
-    t_e = float(np.sum(y ** 2))
+    search_map = model.maps(whiten(judge.residual, white.w), form, prep.spectrum)[0] \
+        / smap ** power
+    cerr = cerr * np.sqrt(judge.common)
+    valid = white.grid.valid
+    dof = int(white.rank.sum())
+    t_e = float(np.sum(white.y ** 2))
     # the raw energy is the error model's diagnostic (dof when it is calibrated); its P_FA,
-    # like every test's, is judged with the noise scale the search applies
-    # the search's scale is the test's own (S: its map's too)
-    common = scale if form != "S" else last["scale"]
+    # like every test's, is judged with the noise scale the search applies (the test's
+    # own: S's map's too)
+    common = found.scale if not prep.test.subspace_map else judge.common
     t_es = t_e / common
     energy = {"statistic": t_es, "raw": t_e, "dof": dof, "pfa": float(chi2_sf(t_es, dof)),
-              "threshold": float(energy_threshold(pfa, dof)), "pd": pd,
-              "noise_scale": common, "map_noise": last["map"],
-              "subspace_noise": last.get("sub")}
+              "threshold": float(energy_threshold(opts.pfa, dof)), "pd": opts.pd,
+              "noise_scale": common, "map_noise": judge.map, "subspace_noise": judge.subspace}
+    return _Maps(t, np.where(valid, model.local_pfa(t, form), np.nan),
+                 np.where(valid, null.null.pfa(t), np.nan), c, cerr, search_map, energy, common)
+
+
+@dataclass
+class _Limits:
+    """Every registered test's limit map, scaled by its noise, its radial curves, the
+    subspace test's noise scale and the energy's correlated draws."""
+
+    maps: dict
+    curves: object
+    scale_subspace: float
+
+
+def _limits_stage(prep, white, null, found, maps, opts):
+    model, rows, energy = white.model, white.rows, maps.energy
     te = None
-    if not limits:
-        return _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, {}, cands, threshold,
-                       energy, {"search_map": search_map, "frame": frame, "chi2_red": kappa,
-                                "noise_scale": scale,
-                                "n_draws": n_draws, "seed": seed, "test": test, "pfa": pfa,
-                                "pd": pd, "null": null_info, "static": static_info,
-                                "blocks": None if stack is None else stack.info})
     if rows is not None:   # correlated channels: the energy's law from the same null model
         # a one-number statistic: its draws are cheap, and its threshold is read directly
-        te = energy_null(rows, max(n_draws, ENERGY_DRAWS), seed)
-        energy["pfa"] = float((np.sum(te["energy"] >= t_es) + 1) / (len(te["energy"]) + 1))
-        if pfa * len(te["energy"]) >= 10:
-            energy["threshold"] = float(np.quantile(te["energy"], 1 - pfa))
-    limits = {"NP": limit_np(model.norm2, pfa, pd, a)}
-    corr = None
-    if rows is None:
-        limits["E"] = limit_energy(model.norm2, pfa, pd, dof, a)
-    else:
-        corr, limits["E"] = correlated_inputs(model, rows, a, energy, te, seed)
-    thr = {f: threshold if f == form else make_null(f)[0].threshold(pfa)
-           for f in ("B", "B-paper", "S")}
-    if corr is None:
-        for f in ("B", "B-paper"):
-            limits[f] = limit_binary(model.norm2, thr[f], pd, form=f, spectrum=a, seed=seed)
-    else:       # the correlated draws of each position serve both forms
-        limits.update(limit_binary_correlated_forms(
-            model.norm2, {f: thr[f] for f in ("B", "B-paper")}, pd, spectrum=a, seed=seed,
-            correlation=corr))
-    limits["S"] = limit_subspace(model.subspace, model.norm2, thr["S"], pd, spectrum=a,
-                                 correlation=corr, seed=seed)
-    if corr is not None:    # the known-spectrum reference with the same correlation
-        limits["NP"] = np_correlated(model.norm2, corr, a, pfa, pd)
-    # the NP reference uses the local threshold; with the grid search its own global one
-    if form == "NP":
-        limits["NP"] = (threshold - norm_isf(pd)) / np.sqrt(
-            np.tensordot(a ** 2, model.norm2, axes=(0, 0)))
-    if corr is not None and model.half_positions()[1]:
-        for f in ("E", "B", "B-paper", "S"):
-            limits[f] = mirror_half_map(limits[f])
-    scales = {k: common for k in limits}
-    scales["S"] = subspace_scale(common, last["sub"], make_null("S")[0].noise_draws("G2"))
-    if form == "S":
-        scales["S"] = max(scales["S"], scale)
-    zmap = np.nan_to_num(ring(last["res"], None, subspace=False), nan=0.0)
-    gmap = np.nan_to_num(ring(last["res"], None, subspace=True), nan=0.0)
-    limits = {k: np.where(valid, v * np.sqrt(np.fmax(scales[k], gmap if k == "S" else zmap)),
-                          np.nan) for k, v in limits.items()}
-    curves = radial_curves(limits, grid)
-    meta = {"search_map": search_map, "test": test, "pfa": pfa, "pd": pd, "n_draws": n_draws,
-            "seed": seed,
-            "chi2_red": kappa, "noise_scale": scale, "noise_scale_common": common,
-            "noise_scale_S": scales["S"], "error_model": kpd.meta.get("error_model"),
-            "energy_spread": spread, "map_noise_low": map_low,
-            "calibrators": kpd.meta.get("calibrators", []),
-            "source": kpd.meta.get("source", ""), "spectrum": a.tolist(),
-            "lambda_energy": energy_lambda(pfa, pd, dof),
-            "null_channels": "covariance rows" if rows is not None else "independent",
-            "null": null_info,
-            "frame": frame,
-            "pa_bins": None if poses is None else [np.asarray(p).tolist() for p in poses],
-            "pa_bins_search": None if search_poses is None
-            else [np.asarray(p).tolist() for p in search_poses],
-            "blocks": None if stack is None else stack.info, "static": static_info}
-    log.info("detect: %d candidate(s) above the %s threshold %.3f (global P_FA %.1e)",
-             len(cands), form, threshold, pfa)
-    return _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands,
-                   threshold, energy, meta, curves)
+        te = energy_null(rows, max(opts.n_draws, ENERGY_DRAWS), opts.seed)
+        energy["pfa"] = float((np.sum(te["energy"] >= energy["statistic"]) + 1)
+                              / (len(te["energy"]) + 1))
+        if opts.pfa * len(te["energy"]) >= 10:
+            energy["threshold"] = float(np.quantile(te["energy"], 1 - opts.pfa))
+    tests = list(REGISTRY.values())
+    inputs = LimitInputs(model, opts.pfa, opts.pd, prep.a, int(white.rank.sum()), opts.seed,
+                         lambda name: null.for_test(name).threshold(opts.pfa),
+                         prep.test.map_name, null.threshold, tuple(t.name for t in tests),
+                         None if rows is None else channel_correlation(model, rows), rows,
+                         te, energy["threshold"])
+    raw = {t.name: t.limit(inputs) for t in tests}
+    judge, scales = found.judge, {}
+    # the subspace map's null draws come with the subspace test's null
+    g2 = (lambda: null.for_test(subspace_test().name).noise_draws("G2"))
+    maps_noise = {s: np.nan_to_num(judge.ring(judge.residual, None, subspace=s), nan=0.0)
+                  for s in (False, True)}
+    out = {}
+    for t in tests:
+        if raw[t.name] is None:
+            continue
+        scales[t.name] = t.scale(maps.common, judge.subspace, g2)
+        if t.name == prep.test.map_name:
+            scales[t.name] = max(scales[t.name], found.scale)
+        out[t.name] = np.where(white.grid.valid, raw[t.name] * np.sqrt(
+            np.fmax(scales[t.name], maps_noise[t.subspace_map])), np.nan)
+    sub = [scales[t.name] for t in tests if t.subspace_map and t.name in scales]
+    return _Limits(out, radial_curves(out, white.grid), sub[0] if sub else maps.common)
+
+
+# --- stage 6: the report -------------------------------------------------------------
+def _report(prep, white, null, found, maps, limits, opts):
+    kpd, grid, valid = prep.kpd, white.grid, white.grid.valid
+    poses = white.poses
+    lim = None if limits is None else LimitsReport(
+        maps.common, limits.scale_subspace, kpd.meta.get("error_model"), null.spread,
+        null.map_low, kpd.meta.get("calibrators", []), kpd.meta.get("source", ""),
+        prep.a.tolist(), energy_lambda(opts.pfa, opts.pd, int(white.rank.sum())),
+        "covariance rows" if white.rows is not None else "independent",
+        None if poses is None else [np.asarray(p).tolist() for p in poses],
+        None if white.search_poses is None
+        else [np.asarray(p).tolist() for p in white.search_poses])
+    report = DetectionReport(
+        prep.test.name, prep.test.map_name, opts.pfa, opts.pd, opts.n_draws, opts.seed, white.frame,
+        found.chi2_red, found.scale, null.report, prep.static_info,
+        None if white.stack is None else white.stack.info, _aliased(kpd).tolist(),
+        list(kpd.meta.get("channels") or range(1, kpd.n_wave + 1)),
+        list(kpd.meta.get("excluded_channels", [])), search_field(kpd, grid), lim)
+    limit_maps = {} if limits is None else limits.maps
+    return DetectionResult(
+        grid=grid, test=prep.test.name, pfa=opts.pfa, pd=opts.pd, statistic=maps.statistic,
+        pfa_local=maps.pfa_local, pfa_global=maps.pfa_global,
+        contrast=np.where(valid, maps.contrast, np.nan),
+        contrast_err=np.where(valid, maps.contrast_err, np.nan), limits=limit_maps,
+        curves=radial_curves(limit_maps, grid) if limits is None else limits.curves,
+        candidates=found.candidates, threshold=null.threshold, wavelengths=kpd.wavelengths,
+        energy=maps.energy, header=kpd.header.copy(), report=report,
+        search_map=np.where(valid, maps.search_map, np.nan))
 
 
 def _warn_clamped(kpd, scale):
@@ -452,25 +624,6 @@ def _warn_clamped(kpd, scale):
                       f"say (noise scale clamped at {MIN_SCALE}): the errors (KP-SIGM, KP-COV "
                       f"or the pixel noise) are too large for these data, and every test and "
                       f"limit is too conservative", KpifsWarning, stacklevel=4)
-
-
-def _result(kpd, grid, test, pfa, pd, t, ploc, pglob, c, cerr, limits, cands, threshold,
-            energy, meta, curves=None):
-    valid = grid.valid
-    meta["aliased"] = _aliased(kpd).tolist()
-    meta["channels"] = list(kpd.meta.get("channels") or range(1, kpd.n_wave + 1))
-    meta["excluded_channels"] = list(kpd.meta.get("excluded_channels", []))
-    meta["field"] = search_field(kpd, grid)
-    if curves is None:
-        curves = radial_curves(limits, grid)
-    search = meta.pop("search_map", None)
-    return DetectionResult(grid=grid, test=test, pfa=pfa, pd=pd, statistic=t, pfa_local=ploc,
-                           pfa_global=pglob, contrast=np.where(valid, c, np.nan),
-                           contrast_err=np.where(valid, cerr, np.nan), limits=limits,
-                           curves=curves, candidates=cands, threshold=threshold,
-                           wavelengths=kpd.wavelengths, energy=energy, meta=meta,
-                           header=kpd.header.copy(),
-                           search_map=None if search is None else np.where(valid, search, np.nan))
 
 
 #: Draws of the energy detector's correlated null (its threshold read from them).

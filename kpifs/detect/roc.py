@@ -16,15 +16,16 @@ import numpy as np
 from astropy import units as u
 from astropy.table import QTable
 
-from .._lazy import lazy_module
 from ..covariance import empirical_covariance
 from ..extraction.extract import extract_kernel_phases
 from ..model.kernel import KernelModel
 from ..model.pupil import make_pupil
 from ..simulation.simulate import simulate_scene
-from .stats import TESTS, auc, known_position_subspace, monte_carlo_roc, roc_curve
-
-stats = lazy_module("scipy.stats")
+from .known_position import monte_carlo_roc
+from .statistics import REGISTRY, get_test
+# where they were before the tests became objects (issue 38)
+from .statistics.subspace import subspace_mean, theory_roc_subspace  # noqa: F401
+from .stats import auc, roc_curve
 
 __all__ = ["paper_experiment", "theory_roc", "theory_roc_subspace", "subspace_mean",
            "whitened_signal"]
@@ -63,7 +64,9 @@ def whitened_signal(kernel_model, whitening, wavelengths, offset, contrasts, *, 
 
 
 def theory_roc(test, norm_x, dof, pfa):
-    """Theoretical ``P_D(P_FA)`` for ``'NP'`` and ``'E'``.
+    """Theoretical ``P_D(P_FA)`` of a test with a closed form at a known position
+    (`DetectionTest.theory_pd <kpifs.detect.statistics.DetectionTest.theory_pd>`)
+    for a signal of norm *norm_x* and *dof* noise dimensions.
 
     Examples
     --------
@@ -71,83 +74,10 @@ def theory_roc(test, norm_x, dof, pfa):
     >>> round(float(theory_roc("NP", 3.0, None, 0.01)), 4)
     0.7497
     """
-    pfa = np.asarray(pfa, float)
-    if test == "NP":
-        return stats.norm.sf(stats.norm.isf(pfa) - norm_x)
-    if test == "E":
-        return stats.ncx2.sf(stats.chi2.isf(pfa, dof), dof, norm_x ** 2)
-    raise ValueError(test)
-
-
-def subspace_mean(norms):
-    """Mean ``(mu_h, lambda_perp, r)`` of the subspace statistic's projections at a known
-    position: ``gamma = W z ~ N(mu, I_r)``, ``mu_h`` its part along the sign vector ``h``
-    and ``lambda_perp`` the squared rest (as `~kpifs.detect.stats.monte_carlo_roc`
-    builds ``W`` and ``h`` from the channels' signal norms *norms*).
-
-    Examples
-    --------
-    >>> from kpifs.detect.roc import subspace_mean
-    >>> mu_h, lam, r = subspace_mean([2.0, 2.0, 2.0, 2.0])   # flat: all along h
-    >>> round(mu_h, 4), round(lam, 6), r
-    (4.0, 0.0, 3)
-    """
-    norms = np.asarray(norms, float)
-    w, h = known_position_subspace(norms)
-    mu = w @ norms
-    mu_h = float(mu @ h / np.linalg.norm(h))
-    return mu_h, float(max(mu @ mu - mu_h ** 2, 0.0)), len(w)
-
-
-def theory_roc_subspace(mu_h, lam_perp, r, pfa):
-    """Theoretical ``P_D(P_FA)`` of the subspace test at a known position.
-
-    ``S = |gamma|^2`` when ``h . gamma > 0`` (else 0), ``gamma ~ N(mu, I_r)``: with
-    ``g`` the part along ``h``, ``P(S > t) = int_0^inf phi(g - mu_h)
-    P(chi2'_{r-1}(lambda_perp) > t - g^2) dg``; under H0 that is half the chi2 law
-    with r degrees of freedom, so the threshold at *pfa* (< 0.5) is
-    ``chi2.isf(2 pfa, r)``.
-
-    Examples
-    --------
-    >>> from kpifs.detect.roc import theory_roc_subspace
-    >>> round(float(theory_roc_subspace(0.0, 0.0, 3, 0.01)), 4)     # H1 = H0
-    0.01
-    """
-    pfa = np.atleast_1d(np.asarray(pfa, float))
-    out = np.empty(pfa.shape)
-    g = np.linspace(0.0, mu_h + 12.0, 4001)[1:] if mu_h > 0 else np.linspace(0, 12, 4001)[1:]
-    dens = stats.norm.pdf(g - mu_h)
-    for k, pf in enumerate(pfa):
-        if pf >= 0.5:
-            out[k] = np.nan
-            continue
-        t = stats.chi2.isf(2 * pf, r)
-        rest = t - g ** 2
-        if r == 1:
-            tail = (rest <= 0).astype(float)
-        elif lam_perp > 0:
-            tail = np.where(rest <= 0, 1.0, stats.ncx2.sf(np.maximum(rest, 0), r - 1, lam_perp))
-        else:
-            tail = np.where(rest <= 0, 1.0, stats.chi2.sf(np.maximum(rest, 0), r - 1))
-        out[k] = np.trapezoid(dens * tail, g)
-    return out if out.size > 1 else out[0]
-
-
-def _theory_auc_subspace(mu_h, lam_perp, r):
-    # continuous part (P_FA < 0.5), then the atom at 0: H0 half the time, H1 when
-    # h . gamma <= 0 (probability Phi(-mu_h)); ties count half, as in `auc`
-    grid = np.concatenate([np.logspace(-10, -3, 200), np.linspace(1e-3, 0.5, 800)[1:-1]])
-    cont = np.trapezoid(theory_roc_subspace(mu_h, lam_perp, r, grid), grid)
-    q1 = stats.norm.cdf(-mu_h)
-    return float(cont + 0.5 * ((1 - q1) + 0.5 * q1))
-
-
-def _theory_auc(test, norm_x, dof):
-    if test == "NP":
-        return float(stats.norm.cdf(norm_x / np.sqrt(2)))
-    grid = np.concatenate([np.logspace(-12, -3, 400), np.linspace(1e-3, 1, 4000)[1:]])
-    return float(np.trapezoid(theory_roc(test, norm_x, dof, grid), grid))
+    out = get_test(test).theory_pd(np.array([[float(norm_x)]]), dof, pfa)
+    if out is None:
+        raise ValueError(f"test {test!r} has no closed-form ROC")
+    return out
 
 
 def paper_experiment(*, preset="paper", n_frames=1000, n_draws=30000, seed=0, pfa_ref=0.01,
@@ -209,22 +139,21 @@ def paper_experiment(*, preset="paper", n_frames=1000, n_draws=30000, seed=0, pf
         norm = float(np.linalg.norm(xs))
         res = monte_carlo_roc(xs, n_draws=n_draws, seed=rng, basis=[bases[i] for i in chans])
         curves[name] = {}
-        for test in TESTS:
-            t0, t1 = res[test]
+        for test in REGISTRY.values():
+            if test.name not in res:
+                continue
+            t0, t1 = res[test.name]
             pf, pdet = roc_curve(t0, t1)
-            curves[name][test] = (pf, pdet)
+            curves[name][test.name] = (pf, pdet)
             thr = np.quantile(t0, 1 - pfa_ref, method="higher")
-            row = {"channels": name, "test": test, "norm_x": norm, "dof": dof,
+            row = {"channels": name, "test": test.name, "norm_x": norm, "dof": dof,
                    "auc": auc(t0, t1), "pd": float(np.mean(t1 > thr)),
                    "auc_theory": np.nan, "pd_theory": np.nan}
-            if test in ("NP", "E"):
-                row["auc_theory"] = _theory_auc(test, norm, dof)
-                row["pd_theory"] = float(theory_roc(test, norm, dof, pfa_ref))
-                curves[name][f"{test} theory"] = (pf, theory_roc(test, norm, dof, pf))
-            elif test == "S":
-                sm = subspace_mean(np.linalg.norm(xs, axis=1))
-                row["auc_theory"] = _theory_auc_subspace(*sm)
-                row["pd_theory"] = float(theory_roc_subspace(*sm, pfa_ref))
+            theory = test.theory_pd(xs, dof, pf)
+            if theory is not None:
+                row["auc_theory"] = test.theory_auc(xs, dof)
+                row["pd_theory"] = float(test.theory_pd(xs, dof, pfa_ref))
+                curves[name][f"{test.name} theory"] = (pf, theory)
             rows.append(row)
     table = QTable(rows=[[r[k] for k in rows[0]] for r in rows], names=list(rows[0]))
     table.meta.update({"preset": preset, "n_frames": n_frames, "n_draws": n_draws,

@@ -15,14 +15,12 @@ from ..exceptions import KpifsWarning
 from .fit import refine_candidates
 from .quality import resolution_mas
 from .sky import rotated_binary_kernel_phases
+from .statistics import get_test
 
 __all__ = []
 
 log = logging.getLogger(__name__)
 optimize = lazy_module("scipy.optimize")
-
-#: How each statistic scales with the noise variance (B: a sum of squares).
-_POWER = {"B": 1.0, "B-paper": 0.5, "NP": 0.5, "S": 1.0}
 
 
 def _chi2_red(residual, w, dof, n_par):
@@ -104,7 +102,7 @@ def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max
         log.debug("peak %.2f: noise scale %.2f after its subtraction, %.2f in its annulus",
                   float(row["statistic"][0]), scale, around)
         scale = max(scale, around)
-        stat = float(row["statistic"][0]) / scale ** _POWER[form]
+        stat = float(row["statistic"][0]) / scale ** get_test(form).power
         if stat < threshold:
             log.info("peak at (%.1f, %.1f) mas: statistic %.2f / chi2_red %.2f is below the "
                      "threshold %.2f", x, y, float(row["statistic"][0]), kappa, threshold)
@@ -228,7 +226,8 @@ def _joint_check(rows, models, scales, kp, ctx, *, threshold, spectrum, scaler, 
             rest = kp - _others(kp, w, models, [j for j in keep if j != k], refit, judged=k)
             t = model.local_statistic(whiten(rest, w), form, spectrum)
             s = max(scale, ring(rest - models[k], pts[0]))
-            stats[k] = np.nan_to_num(_near(model, t, pts, radius), nan=0.0) / s ** _POWER[form]
+            stats[k] = np.nan_to_num(_near(model, t, pts, radius), nan=0.0) \
+                / s ** get_test(form).power
         worst = min(keep, key=lambda k: stats[k])
         if stats[worst] >= threshold:
             break

@@ -13,6 +13,9 @@ Model (per channel ``i``, whitened): ``H0: y_i = e_i``, ``H1: y_i = x_i + e_i`` 
   seed paper's printed form ``T_B' = sum_i max(z_i, 0)`` ("B-paper",
   ``P_FA = sum_k C(q, k) 2^-q P(sum of k half-normals > xi)``). They coincide
   for one channel.
+
+The tests themselves (their maps, nulls, limits and labels) are objects of
+`kpifs.detect.statistics`, built on these laws.
 """
 import numpy as np
 
@@ -25,13 +28,9 @@ optimize = lazy_module("scipy.optimize")
 special = lazy_module("scipy.special")
 stats = lazy_module("scipy.stats")
 
-__all__ = ["TESTS", "check_probability", "np_threshold", "np_pd", "energy_threshold",
+__all__ = ["check_probability", "np_threshold", "np_pd", "energy_threshold",
            "energy_pd", "binary_pfa", "binary_threshold", "binary_statistic", "np_statistic",
-           "energy_statistic", "auc", "roc_curve", "monte_carlo_roc", "known_position_subspace"]
-
-#: Test names: Neyman-Pearson, energy detector, GLR binary test, the paper's binary form,
-#: the spectral-model (subspace) test.
-TESTS = ("NP", "E", "B", "B-paper", "S")
+           "energy_statistic", "auc", "roc_curve", "known_position_subspace"]
 
 
 def check_probability(value, name):
@@ -284,75 +283,3 @@ def known_position_subspace(norms):
     n2 = norms[:, None] ** 2
     w = spectral.subspace_weights(n2, basis)
     return w[:, :, 0], spectral.subspace_sign(w, n2, basis)[:, 0]
-
-
-def monte_carlo_roc(x, *, n_draws=30000, seed=None, dof=None, tests=TESTS, basis=None):
-    """Statistics of every test under H0 and H1 for a signal *x*, by Monte-Carlo.
-
-    Parameters
-    ----------
-    x : ndarray, shape (q, p)
-        Whitened signal per channel (the binary test uses its direction as the
-        template, i.e. the companion's position is known).
-    n_draws : int
-        Draws under each hypothesis.
-    seed : int or `numpy.random.Generator`
-    dof : sequence of int, optional
-        Noise dimension kept per channel (rank of the whitening); default p.
-    tests : sequence of str
-        Among `TESTS`; ``'S'`` is the subspace test with a smooth spectrum
-        over the channels (`kpifs.detect.spectral`), quadratic or of rank
-        ``q - 1`` when there are fewer than four channels.
-    basis : list of ndarray (p, r_i), optional
-        Orthonormal bases of the whitened subspaces (noise is drawn in them);
-        default the full space.
-
-    Returns
-    -------
-    dict
-        ``{test: (t0, t1)}`` with arrays of length *n_draws*.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from kpifs.detect.stats import auc, monte_carlo_roc
-    >>> x = np.full((1, 9), 1.0)                         # ||x|| = 3
-    >>> res = monte_carlo_roc(x, n_draws=20000, seed=0)
-    >>> round(auc(*res["NP"]), 2)
-    0.98
-    """
-    rng = np.random.default_rng(seed)
-    x = np.atleast_2d(np.asarray(x, float))
-    q, p = x.shape
-    if basis is None:
-        basis = [None] * q
-    out = {t: (np.zeros(n_draws), np.zeros(n_draws)) for t in tests}
-    z0 = np.empty((n_draws, q))
-    z1 = np.empty((n_draws, q))
-    chunk = max(1, min(n_draws, 2 ** 24 // max(p, 1)))
-    for i in range(q):
-        norm = np.linalg.norm(x[i])
-        for a in range(0, n_draws, chunk):
-            b = min(n_draws, a + chunk)
-            if basis[i] is None:
-                e = rng.standard_normal((b - a, p))
-            else:
-                e = rng.standard_normal((b - a, basis[i].shape[1])) @ basis[i].T
-            ex = e @ x[i]
-            if "NP" in out:
-                out["NP"][0][a:b] += ex
-                out["NP"][1][a:b] += ex + norm ** 2
-            if "E" in out:
-                ee = np.einsum("ij,ij->i", e, e)
-                out["E"][0][a:b] += ee
-                out["E"][1][a:b] += ee + 2 * ex + norm ** 2
-            zi = ex / norm if norm > 0 else np.zeros(b - a)
-            z0[a:b, i] = zi
-            z1[a:b, i] = zi + norm
-    for form in ("B", "B-paper"):
-        if form in out:
-            out[form] = (binary_statistic(z0, form), binary_statistic(z1, form))
-    if "S" in out:      # the subspace test: a smooth spectrum over the channels' order
-        w, h = known_position_subspace(np.linalg.norm(x, axis=1))
-        out["S"] = tuple(np.sum((z @ w.T) ** 2, axis=1) * ((z @ w.T) @ h > 0) for z in (z0, z1))
-    return out

@@ -81,26 +81,12 @@ def _image(data, name, wcs_header, bunit=None, comment=None):
     return hdu
 
 
-def detection_hdulist(result, *, header=None, inputs=()):
-    """Build the products of a `~kpifs.data.DetectionResult` as an HDUList.
-
-    *header* (default ``result.header``): the searched data's header, whose
-    cards the primary header keeps.
-
-    Examples
-    --------
-    >>> from kpifs.detect.pipeline import _example_result
-    >>> from kpifs.io.products import detection_hdulist
-    >>> hdul = detection_hdulist(_example_result())
-    >>> hdul[0].header["CONTENT"], "CANDIDATES" in hdul
-    ('KPIFS-DETECTION', True)
-    """
-    header = result.header if header is None else header
-    hdr = fits.Header() if header is None else _strip(header)
-    hdr["KPIFSVER"] = (VERSION, "kpifs version")
-    hdr["CONTENT"] = ("KPIFS-DETECTION", "kpifs detection products")
-    hdr["TEST"] = (result.test, "detection test (B, B-paper, NP, E)")
-    hdr["MAPTEST"] = ("B" if result.test == "E" else result.test, "test of the DETECTION map")
+def _report_cards(result, hdr, inputs):
+    """The cards of the search's report (test, probabilities, null, energy test, noise
+    scale, grid, channels, spectrum, calibrators, inputs), written into *hdr*;
+    `detection_header_meta` reads them back."""
+    hdr["TEST"] = (result.test, "detection test (kpifs.detect.statistics)")
+    hdr["MAPTEST"] = (result.meta.get("map_test", result.test), "test of the DETECTION map")
     hdr["PFA"] = (result.pfa, "global false-alarm probability of the search")
     hdr["PD"] = (result.pd, "detection probability of the limits")
     hdr["THRESH"] = (result.threshold, "threshold of the map statistic at PFA")
@@ -123,6 +109,11 @@ def detection_hdulist(result, *, header=None, inputs=()):
     hdr["EPFA"] = (result.energy.get("pfa", np.nan), "energy-detector P_FA of the data")
     hdr["ETHRESH"] = (result.energy.get("threshold", np.nan),
                       "energy-detector threshold at PFA")
+    _channel_cards(result, hdr, inputs)
+
+
+def _channel_cards(result, hdr, inputs):
+    """The grid's, channels', null's, noise's and provenance cards of `_report_cards`."""
     hdr["GRIDFRM"] = (result.grid.frame, "maps on the sky (dRA, dDec) or the detector")
     hdr["GRIDMIN"] = (float(result.grid.min_sep), "[mas] smallest separation searched")
     hdr["GRIDMAX"] = (float(result.grid.max_sep) if np.isfinite(result.grid.max_sep) else -1.0,
@@ -173,6 +164,27 @@ def detection_hdulist(result, *, header=None, inputs=()):
     if "detpa" in result.candidates.meta:
         hdr["DETPA"] = (float(result.candidates.meta["detpa"]),
                         "[deg] detector +y position angle, East of North")
+
+
+def detection_hdulist(result, *, header=None, inputs=()):
+    """Build the products of a `~kpifs.data.DetectionResult` as an HDUList.
+
+    *header* (default ``result.header``): the searched data's header, whose
+    cards the primary header keeps.
+
+    Examples
+    --------
+    >>> from kpifs.detect.pipeline import _example_result
+    >>> from kpifs.io.products import detection_hdulist
+    >>> hdul = detection_hdulist(_example_result())
+    >>> hdul[0].header["CONTENT"], "CANDIDATES" in hdul
+    ('KPIFS-DETECTION', True)
+    """
+    header = result.header if header is None else header
+    hdr = fits.Header() if header is None else _strip(header)
+    hdr["KPIFSVER"] = (VERSION, "kpifs version")
+    hdr["CONTENT"] = ("KPIFS-DETECTION", "kpifs detection products")
+    _report_cards(result, hdr, inputs)
     wcs_hdr = result.grid.wcs().to_header()
     q = len(result.wavelengths)
     wcs3 = wcs_hdr.copy()
@@ -188,8 +200,9 @@ def detection_hdulist(result, *, header=None, inputs=()):
                        comment="residual map the search stopped on")]),
             _image(result.contrast, "CONTRAST", wcs3, comment=f"{q} channels"),
             _image(result.contrast_err, "CONTRAST_ERR", wcs3, comment="1-sigma"),
-            _image(result.limit, "LIMIT", wcs_hdr,
-                   comment=f"{result.test} limit at P_FA {result.pfa:g}, P_D {result.pd:g}")]
+            *([] if result.limit is None else [
+                _image(result.limit, "LIMIT", wcs_hdr,
+                       comment=f"{result.test} limit at P_FA {result.pfa:g}, P_D {result.pd:g}")])]
     for name, lim in result.limits.items():
         hdu = _image(lim, f"LIMIT_{name.upper().replace('-', '_')}", wcs_hdr)
         hdu.header["LIMTEST"] = (name, "test of this limit map")
@@ -336,7 +349,8 @@ def detection_header_meta(hdr, path):
                       ("subspace_noise", "SUBNOISE")):
         if name in hdr:
             energy[key] = hdr[name]
-    meta = {"test": hdr["TEST"], "pfa": hdr["PFA"], "pd": hdr["PD"], "n_draws": hdr["NDRAWS"],
+    meta = {"test": hdr["TEST"], "map_test": hdr.get("MAPTEST", hdr["TEST"]), "pfa": hdr["PFA"],
+            "pd": hdr["PD"], "n_draws": hdr["NDRAWS"],
             "seed": hdr["MCSEED"], "null_channels": hdr["NULLCHAN"],
             "calibrators": [hdr[k] for k in hdr if k.startswith("KPCAL") and k[5:].isdigit()],
             "spectrum": [hdr[f"SPEC{i}"] for i in range(1, nwave + 1) if f"SPEC{i}" in hdr],

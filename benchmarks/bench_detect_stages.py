@@ -1,0 +1,168 @@
+"""``kpifs detect`` on the 20-frame 22-channel CHARIS simulation: this checkout against the
+starting commit of issue 38 and against its own null's bare matrix products.
+
+Makes the file as ``bench_detect_process.py`` does (``kpifs simulate --preset charis
+--layout charis --frames 20``, then ``kpifs extract --calibrator``), unless ``--cal``
+gives it. Then, alternately and ``--repeat`` times each, whole processes:
+
+- ``kpifs detect CAL`` (default options: test auto = S, limits of every test) with
+  this checkout and with the baseline (``--baseline-path DIR``; default: the
+  starting commit ``--base`` exported with ``git archive`` to a temporary folder);
+- the same search without limits (``detect(kpd, limits=False)``, as injections
+  run it), a whole process too, for both: there the null reduces only the search's
+  test (issue 38 item 3).
+
+Then, in this process, the run's Gaussian and empirical nulls (the test the run
+chose, with the tests its limits read) against their bare matrix products: the
+same ``(draws, rows) @ (rows, positions)`` products per channel and batch of 256
+draws, nothing else. Prints medians of wall and CPU time (user + system: the
+steadier figure on a shared machine), their ratios and the load average.
+``--threads N`` sets KPIFS_THREADS and OPENBLAS_NUM_THREADS for every process
+(1 by default: on a loaded machine, threads only add contention).
+"""
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_detect_process import prepare  # noqa: E402
+from bench_process import ROOT  # noqa: E402
+
+NO_LIMITS = ("import sys; from kpifs.data import KernelPhaseData; from kpifs.detect import "
+             "detect; detect(KernelPhaseData.read(sys.argv[1]), limits=False)")
+
+
+def run_once(cmd, env):
+    """Wall time, CPU time (user + system) in s and peak memory (MiB) of one process."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, cwd=tempfile.gettempdir())
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    if os.waitstatus_to_exitcode(status):
+        raise SystemExit(f"{' '.join(cmd)} failed")
+    return wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024
+
+
+def time_commands(commands, repeat, env):
+    """Medians of `run_once` of each command, run in turn (A B C D A B C D ...)."""
+    runs = {name: [] for name in commands}
+    for _ in range(repeat):
+        for name, (cmd, extra) in commands.items():
+            runs[name].append(run_once(cmd, dict(env, **(extra or {}))))
+    return {k: np.median(np.array(v), axis=0) for k, v in runs.items()}
+
+
+def export_base(commit):
+    """The package at *commit*, exported to a temporary folder (no worktree)."""
+    dest = Path(tempfile.mkdtemp(prefix="kpifs-base-"))
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", commit, "kpifs"],
+                             check=True, capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
+    return dest
+
+
+def _run_nulls(cal):
+    """The run's nulls, as detect draws them: (model, nulls' (rows, draws, coefficients))."""
+    from kpifs.covariance import whiten, whitening_matrix
+    from kpifs.data import KernelPhaseData
+    from kpifs.detect import DetectionModel, pipeline
+    from kpifs.detect.channels import scale_block_rows
+    from kpifs.detect.null import EMPIRICAL_DRAWS
+    kpd = KernelPhaseData.read(cal)
+    kp, cov, kpd = pipeline._prepare(kpd, "auto", False)
+    w, rank = whitening_matrix(cov, return_rank=True)
+    frame, poses, _ = pipeline._frame_and_poses(kpd, "auto", None)
+    model = DetectionModel(kpd.kernel_model, kpd.wavelengths, w,
+                           pipeline.default_grid(kpd, frame=frame), pixscale=kpd.pixscale,
+                           window=kpd.window, dof=np.atleast_1d(rank), detpa=poses)
+    rows = whiten(kpd.covariance_rows, w)
+    model.correlate(rows)
+    blocks = scale_block_rows(whiten(kpd.block_rows, w), np.atleast_1d(rank))[0]
+    return model, rows, blocks, EMPIRICAL_DRAWS
+
+
+def _bare_products(model, row_sets, batch=256):
+    """The nulls' matrix products alone: per draw set, batch and channel, coef @ proj[i]."""
+    positions = model.half_positions()[0]
+    total = 0.0
+    for rows, n_draws in row_sets:
+        valid, z = model.row_projections(rows)
+        proj = np.ascontiguousarray(z[np.searchsorted(valid, positions)].transpose(2, 1, 0),
+                                    np.float32)
+        coef = np.random.default_rng(0).standard_normal((n_draws, len(rows)), dtype=np.float32)
+        out = np.empty((batch, proj.shape[2]), np.float32)
+        t0 = time.perf_counter()
+        for a in range(0, n_draws, batch):
+            c = coef[a:a + batch]
+            for i in range(len(proj)):
+                np.matmul(c, proj[i], out=out[:len(c)])
+        total += time.perf_counter() - t0
+    return total
+
+
+def null_versus_products(cal, repeat=3):
+    from kpifs.detect.null import _CACHE, search_null
+    model, rows, blocks, n_emp = _run_nulls(cal)
+    t_null, t_bare = [], []
+    for _ in range(repeat):
+        _CACHE.clear()
+        t0 = time.process_time()
+        # the run's search (auto: S) and the nulls its limits read, from the same draws
+        null, _ = search_null(model, form="S", noise_rows=rows, block_rows=blocks,
+                              also=("B", "B-paper", "S"))
+        null.threshold(1e-3)
+        t_null.append(time.process_time() - t0)
+        t0 = time.process_time()
+        _bare_products(model, [(rows, 5000), (blocks, n_emp)])
+        t_bare.append(time.process_time() - t0)
+    return float(np.median(t_null)), float(np.median(t_bare))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--cal", help="an existing calibrated CHARIS file")
+    ap.add_argument("--base", default="4cb53d9", help="starting commit (default %(default)s)")
+    ap.add_argument("--baseline-path", help="a checkout to time instead of --base")
+    ap.add_argument("--threads", default="1", help="threads of every process (default 1)")
+    args = ap.parse_args(argv)
+    tmp = Path(tempfile.mkdtemp())
+    cal = Path(args.cal) if args.cal else prepare(tmp)
+    base = args.baseline_path or str(export_base(args.base))
+    env = dict(os.environ, PYTHONPATH=str(ROOT), KPIFS_THREADS=args.threads,
+               OPENBLAS_NUM_THREADS=args.threads, OMP_NUM_THREADS=args.threads)
+    cmd = [sys.executable, "-m", "kpifs", "detect", str(cal), "-o", str(tmp / "det.fits"),
+           "--overwrite", "-q"]
+    quick = [sys.executable, "-c", NO_LIMITS, str(cal)]
+    load0 = os.getloadavg()
+    commands = {"kpifs detect": (cmd, None),
+                "kpifs detect (start of issue 38)": (cmd, {"PYTHONPATH": base}),
+                "detect(limits=False)": (quick, None),
+                "detect(limits=False) (start of issue 38)": (quick, {"PYTHONPATH": base})}
+    med = time_commands(commands, args.repeat, env)
+    print(f"{'whole process (median of %d)' % args.repeat:44s} {'wall (s)':>9s} "
+          f"{'CPU (s)':>8s} {'peak MiB':>9s}")
+    for name, (wall, cpu, peak) in med.items():
+        print(f"{name:44s} {wall:9.2f} {cpu:8.2f} {peak:9.0f}")
+    a, b, c, d = (med[n] for n in commands)
+    print(f"kpifs detect / start: wall {a[0] / b[0]:.2f}, CPU {a[1] / b[1]:.2f} (target <= 0.5); "
+          f"without limits: wall {c[0] / d[0]:.2f}, CPU {c[1] / d[1]:.2f}")
+    os.environ.update(KPIFS_THREADS=args.threads)
+    t_null, t_bare = null_versus_products(cal)
+    print(f"the run's nulls (Gaussian 5000 + empirical draws; S, B, B-paper), CPU: {t_null:.2f} "
+          f"s; their bare matrix products {t_bare:.2f} s (ratio {t_null / t_bare:.1f}); "
+          f"kpifs detect's CPU / bare products {a[1] / t_bare:.1f} (target <= 2)")
+    print(f"load average (1, 5, 15 min) before: {load0}, after: {os.getloadavg()} on "
+          f"{os.cpu_count()} cores")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
