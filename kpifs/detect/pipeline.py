@@ -21,6 +21,7 @@ from .skyfit import refit_on_sky
 from .limits import (energy_lambda, limit_binary, limit_binary_correlated_forms, limit_energy,
                      limit_np, mirror_half_map, radial_curves)
 from .blocks import block_stack
+from .sdk import SpectralStack
 from .maps import DetectionModel
 from .null import DEFAULT_DRAWS, check_draws, search_null
 from .channels import (MIN_SCALE, NOISE_CONFIDENCE, combined_scale, correlated_inputs,
@@ -93,7 +94,8 @@ def _frame_and_poses(kpd, frame, grid):
 
 
 def _prepare(kpd, shrinkage, allow_uncalibrated):
-    adi = getattr(kpd.rotation, "search", None) == "angular-differential"
+    adi = getattr(kpd.rotation, "search", None) == "angular-differential" \
+        or getattr(kpd, "spectral", None) is not None      # issue 39: nor what is static
     if not kpd.meta.get("calibrated") and not adi:     # ADI: only what turns is searched
         if not allow_uncalibrated:
             raise KpifsError(f"{kpd.name}: not calibrated (no calibrator star subtracted): "
@@ -254,6 +256,10 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     window = kpd.window
     # issue 29: a rotating sequence's time blocks, stacked (None: the one mean, as before)
     stack = block_stack(kpd, kp, w, rank, frame=frame, mode=blocks)
+    if stack is None and getattr(kpd, "spectral", None) is not None:
+        # issue 39: the channel combinations free of the static profiles (`kpifs.detect.sdk`)
+        stack = SpectralStack(kpd, kp, cov, spectrum=spectrum, poses=search_poses)
+        spectrum, basis, a = None, stack.basis, np.ones(stack.n_comb)
     cov_rows, blk_rows, fit_rows = kpd.covariance_rows, kpd.block_rows, kpd.fit_covariance_rows
     if static_rows is not None and cov_rows is not None:
         cov_rows = np.concatenate([cov_rows, static_rows])
@@ -261,7 +267,8 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
         kp, w, rank, y = stack.kp, stack.whitening, stack.rank, stack.kp
         cov_rows, blk_rows, fit_rows = stack.rows, stack.block_rows, None
         model = stack.detection_model(grid, basis=basis)
-        inner = inner_separation(model) if stack.mode == "angular-differential" else np.nan
+        inner = inner_separation(model) if stack.mode == "angular-differential" else \
+            getattr(stack, "inner", np.nan)
         if own_grid and np.isfinite(inner) and inner > float(grid.min_sep):
             # the angular-differential search starts where the rotation keeps half a
             # companion's signal (`kpifs.calibration.adi.inner_separation`)
@@ -353,6 +360,9 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
     # the noise level the data show against the model (the residual after the candidates,
     # in all its modes and on the map): statistics, errors and limits are scaled by it
     t, c, cerr = model.maps(y, form, spectrum)
+    if hasattr(stack, "channel_contrasts"):       # issue 39: combinations -> channels
+        c, cerr = stack.channel_contrasts(c, cerr)
+        stack.channel_table(cands)
     # per annulus, the map's own noise where it exceeds the scale (`annulus_noise`)
     smap = np.fmax(scale, np.nan_to_num(ring(last["res"], None), nan=0.0))
     t = t / smap ** _POWER[form]
