@@ -191,6 +191,16 @@ def _reduction_options(p, *, pa_help):
                         "turns with the sky (what stays on the detector removed; with "
                         "--calibrator also the calibrated mean, scaled by its own reduced "
                         "chi-square; refused when the angles do not turn)")
+    p.add_argument("--spectral-differential", nargs="?", const="static",
+                   default=EXTRACT["spectral_differential"], metavar="BASIS",
+                   choices=("poly", "static", "both"),
+                   help="search only the channel combinations free of what varies like a "
+                        "static aberration across the channels, kernel phase by kernel "
+                        "phase: the leading channel profiles of the static residual imaged "
+                        "through the pupil (static, the default), polynomials in 1/lambda "
+                        "(poly) or both; no calibrator needed (with one: extra protection), "
+                        "combined with --angular-differential when given; refused for "
+                        "single-channel data")
     p.add_argument("--pa", metavar="DEG|LIST|FILE",
                    help="detector position angle of the target's frames (deg, East of North "
                         "of the detector +y axis): one value, a comma list with one per "

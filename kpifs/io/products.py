@@ -139,6 +139,14 @@ def detection_hdulist(result, *, header=None, inputs=()):
         hdr["STATSHR"] = (round(float(st["share"]), 6), "static residual / frames' variance")
         hdr["STATAMP"] = (float(st["amplitude"]), "static residual amplitude (ML fit)")
         hdr["STATPUP"] = (str(st["pupil"]), "pupil the static residual was imaged through")
+    sdk = result.meta.get("blocks") or {}
+    if sdk.get("mode") == "spectral-differential":       # issue 39
+        hdr["SDKBASIS"] = (str(sdk.get("basis")), "spectral-differential nuisance profiles")
+        hdr["SDKNPROF"] = (int(sdk["profiles"]), "profiles projected out along the channels")
+        hdr["SDKNCOMB"] = (int(sdk["combinations"]), "channel combinations searched")
+        inner = sdk.get("inner_separation")
+        hdr["SDKINNER"] = (round(float(inner), 3) if inner is not None and np.isfinite(inner)
+                           else -1.0, "[mas] half a companion's signal kept from (-1: never)")
     chans = result.meta.get("channels") or []
     if result.meta.get("excluded_channels"):
         hdr["EXCLCHAN"] = (",".join(map(str, result.meta["excluded_channels"])),
@@ -348,6 +356,10 @@ def detection_header_meta(hdr, path):
         meta.update(chi2_red=hdr["CHI2RED"], noise_scale=hdr.get("NOISESC", 1.0))
     if field_from_header(hdr):
         meta["field"] = field_from_header(hdr)
+    if "SDKNPROF" in hdr:
+        meta["blocks"] = {"mode": "spectral-differential", "basis": hdr.get("SDKBASIS"),
+                          "profiles": hdr["SDKNPROF"], "combinations": hdr.get("SDKNCOMB"),
+                          "inner_separation": hdr.get("SDKINNER", -1.0)}
     if "STATSHR" in hdr:
         meta["static"] = {"share": hdr["STATSHR"], "amplitude": hdr.get("STATAMP"),
                           "pupil": hdr.get("STATPUP")}
