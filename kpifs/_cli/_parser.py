@@ -351,6 +351,10 @@ def _simulate(command):
     g.add_argument("--static-diff", help="rms of static aberrations of the calibrator only "
                                          "(a calibration residual), nm if no unit, e.g. 10nm "
                                          "(default 0)")
+    g.add_argument("--typical-static", action="store_true",
+                   help="a static aberration typical of the instruments, for sequences with "
+                        "no calibrator: 50 nm common to both stars at low order, 15 nm of "
+                        "the target's own, 10 nm drifting (the options above override each)")
     g = p.add_argument_group("field rotation (pupil tracking: the sky turns, the aberrations "
                              "stay on the detector; default: the preset's angles)")
     g.add_argument("--rotation", help="the detector angle turns by this much over the "
