@@ -267,8 +267,7 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
         kp, w, rank, y = stack.kp, stack.whitening, stack.rank, stack.kp
         cov_rows, blk_rows, fit_rows = stack.rows, stack.block_rows, None
         model = stack.detection_model(grid, basis=basis)
-        inner = inner_separation(model) if stack.mode == "angular-differential" else \
-            getattr(stack, "inner", np.nan)
+        inner = inner_separation(model) if stack.mode == "angular-differential" else np.nan
         if own_grid and np.isfinite(inner) and inner > float(grid.min_sep):
             # the angular-differential search starts where the rotation keeps half a
             # companion's signal (`kpifs.calibration.adi.inner_separation`)
@@ -440,7 +439,8 @@ def detect(kpd, *, test="auto", pfa=1e-3, pd=0.5, grid=None, spectrum=None, basi
             "noise_scale_S": scales["S"], "error_model": kpd.meta.get("error_model"),
             "energy_spread": spread, "map_noise_low": map_low,
             "calibrators": kpd.meta.get("calibrators", []),
-            "source": kpd.meta.get("source", ""), "spectrum": a.tolist(),
+            "source": kpd.meta.get("source", ""),
+            "spectrum": np.asarray(getattr(stack, "spectrum", a)).tolist(),   # issue 39
             "lambda_energy": energy_lambda(pfa, pd, dof),
             "null_channels": "covariance rows" if rows is not None else "independent",
             "null": null_info,

@@ -11,9 +11,10 @@ sin(theta_c) / s_c``: the projection acts on data, noise and signatures alike
 (DESIGN.md section 8), and the search, its null, the limits and the fits all
 see the same combinations, each with the companion's one contrast scale (the
 contrasts reported per channel are that scale times ``a``). What the projection
-leaves of a companion is measured (``info['retained']``, by separation) and the
-grid starts at the separation where half of it is left
-(`~kpifs.calibration.spectral_diff.inner_separation`).
+leaves of a companion is measured (``info['retained']``, by separation) with the
+separation from which half of it is left
+(`~kpifs.calibration.spectral_diff.inner_separation`); the grid is not cut there:
+the limits carry the self-subtraction.
 """
 import hashlib
 import logging
