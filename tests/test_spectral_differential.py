@@ -141,6 +141,11 @@ def test_model_signatures_are_the_projected_ones(km):
     data = st.model_kp((x, y), 1e-4)
     c, _ = model.contrast_maps(data)
     assert np.allclose(c[:, iy, ix], 1e-4, rtol=1e-3)
+    # the maps from the cached unit signatures are the projections' (on the searched area)
+    noise = np.random.default_rng(2).normal(0, 1, data.shape)
+    assert "_amp" in model.__dict__
+    fast, slow = model.dot_maps(noise), DetectionModel.dot_maps(model, noise)
+    assert np.allclose(fast[:, sel], slow[:, sel], rtol=1e-4, atol=1e-4 * np.abs(slow).max())
 
 
 @pytest.mark.slow

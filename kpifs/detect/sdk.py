@@ -122,6 +122,39 @@ class SpectralModel(DetectionModel):
                 a = a + (cx[None] * gw[:, None, :]).reshape(m * nx, nuv) @ sy.T
         return -a.reshape(m, nx, -1).transpose(0, 2, 1)
 
+    def _signature_norms(self):
+        out = super()._signature_norms()
+        if "_unit_cache" in self.__dict__:
+            # dot_maps from the unit signatures: ||s|| at the positions kept
+            keep = self._unit_cache[0]
+            self._amp = np.sqrt(out.reshape(len(out), -1)[:, keep])
+            self._mirrored = self.half_positions()[1]
+        return out
+
+    def dot_maps(self, y):
+        """As `~kpifs.detect.DetectionModel.dot_maps`; from the cached unit signatures
+        (positions x kernel phases per combination) when they are kept, instead of one
+        projection per channel and combination."""
+        cached = self.__dict__.get("_unit_cache")
+        if cached is None or "_amp" not in self.__dict__:
+            return super().dot_maps(y)
+        keep, unit = cached
+        y = np.asarray(y, float)
+        lead = y.shape[:-2]
+        yb = y.reshape((-1,) + y.shape[-2:])
+        m, q = len(yb), len(self.wavelengths)
+        ny, nx = self.grid.shape
+        out = np.zeros((m, q, ny * nx))
+        for i in range(q):
+            amp = self._amp[i]
+            with np.errstate(invalid="ignore"):
+                d = (yb[:, i].astype(np.float32) @ unit[i].T).astype(float) * amp
+            d = np.where(amp > 0, d, 0.0)
+            out[:, i, keep] = d
+            if self._mirrored:                  # the signature at -pos is minus that at pos
+                out[:, i, ny * nx - 1 - keep] = -d
+        return out.reshape(lead + (q, ny, nx))
+
     def key(self):
         if "_digest" not in self.__dict__:
             base = super().key()
