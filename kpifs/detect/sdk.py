@@ -182,6 +182,21 @@ class SpectralStack:
         The companion's contrast shape (flat by default).
     poses : tuple, optional
         ``(angles, weights)`` of a sky search (`~kpifs.detect.sky.pa_bins`).
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs.calibration.spectral_diff import nuisance_profiles
+    >>> from kpifs.detect.sdk import SpectralStack
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> kp, cov = np.zeros((8, km.n_kp)), np.stack([np.eye(km.n_kp)] * 8)
+    >>> kpd = KernelPhaseData(kp[None], np.linspace(1.2, 2.3, 8) * u.um, 16.2 * u.mas, km,
+    ...                       covariance=cov)
+    >>> kpd.spectral = {"profiles": nuisance_profiles(kpd, order=2)}
+    >>> st = SpectralStack(kpd, kp, cov)
+    >>> st.kp.shape, int(st.rank.sum()) == 5 * km.n_kp
+    ((5, 37), True)
     """
 
     mode = "spectral-differential"
