@@ -7,7 +7,7 @@ from astropy.io import fits
 
 from kpifs import KernelPhaseData
 from kpifs.cli import main
-from kpifs.exceptions import KpifsError
+from kpifs.exceptions import KpifsError, KpifsWarning
 from kpifs.io.layouts import write_observation
 from kpifs.simulation.simulate import simulate_scene
 from kpifs.workflow import ExtractOptions, reduce_observation
@@ -68,3 +68,21 @@ def test_extract_and_detect(sim8, tmp_path, capsys):
     assert "5 channel combinations searched" in out
     hdr = fits.getheader(det)
     assert hdr["SDKNPROF"] == 3 and hdr["SDKNCOMB"] == 5 and hdr["SDKBASIS"] == "poly"
+
+
+@pytest.mark.slow
+def test_process_observation_without_calibrator(sim8, tmp_path):
+    """The one driver (batch's) reduces a target alone with the option, and refuses it
+    without (no calibrator)."""
+    from kpifs.workflow import DetectOptions, process_observation
+    with pytest.raises(KpifsError, match="no calibrator"):
+        process_observation(sim8["target"], [], tmp_path / "a",
+                            extract_options=ExtractOptions(step="1.2m"))
+    with pytest.warns(KpifsWarning, match="30 frames for 25 kernel phases"):
+        out = process_observation(sim8["target"], [], tmp_path / "b",
+                                  extract_options=ExtractOptions(
+                                      step="1.2m", spectral_differential="poly"),
+                                  detect_options=DetectOptions(draws=1000, pfa=0.01))
+    assert out["calibrated"].spectral["profiles"].shape == (8, 3)
+    assert out["result"].meta["blocks"]["combinations"] == 5
+    assert fits.getheader(out["paths"]["detection"])["SDKNCOMB"] == 5

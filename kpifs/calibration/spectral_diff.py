@@ -263,8 +263,8 @@ def spectral_differential(target, calibrated=None, *, basis="poly", order=SDK_OR
     out.spectral = {"profiles": prof, "basis": basis, "order": int(order)}
     out.meta["spectral_differential"] = {"basis": basis, "order": int(order), "m": int(m),
                                          "channels": int(q)}
-    out.header["SDKBASIS"] = (basis, "spectral-differential nuisance profiles")
-    out.header["SDKNPROF"] = (int(m), "profiles projected out along the channels")
+    out.header["SDKBASIS"] = (basis, "spectral-differential profiles")
+    out.header["SDKNPROF"] = (int(m), "profiles projected out")
     log.info("%s: spectral-differential product: %d profile(s) (%s) out of %d channels",
              name, m, basis, q)
     return out

@@ -141,12 +141,12 @@ def detection_hdulist(result, *, header=None, inputs=()):
         hdr["STATPUP"] = (str(st["pupil"]), "pupil the static residual was imaged through")
     sdk = result.meta.get("blocks") or {}
     if sdk.get("mode") == "spectral-differential":       # issue 39
-        hdr["SDKBASIS"] = (str(sdk.get("basis")), "spectral-differential nuisance profiles")
-        hdr["SDKNPROF"] = (int(sdk["profiles"]), "profiles projected out along the channels")
+        hdr["SDKBASIS"] = (str(sdk.get("basis")), "spectral-differential profiles")
+        hdr["SDKNPROF"] = (int(sdk["profiles"]), "profiles projected out")
         hdr["SDKNCOMB"] = (int(sdk["combinations"]), "channel combinations searched")
         inner = sdk.get("inner_separation")
         hdr["SDKINNER"] = (round(float(inner), 3) if inner is not None and np.isfinite(inner)
-                           else -1.0, "[mas] half a companion's signal kept from (-1: never)")
+                           else -1.0, "[mas] half kept from (-1: never)")
     chans = result.meta.get("channels") or []
     if result.meta.get("excluded_channels"):
         hdr["EXCLCHAN"] = (",".join(map(str, result.meta["excluded_channels"])),
