@@ -114,11 +114,12 @@ def test_retained_fraction_theory(small):
     assert np.isnan(inner_separation([10, 20], [0.9, 0.1]))
 
 
-def test_model_signatures_are_the_projected_ones(km):
+def test_model_signatures_are_the_projected_ones(small):
     """The combinations' signature norms (white noise) over the channels' free ones are the
     retained fraction; the maps of the stack's companion model give its contrast back."""
+    km = small
     q = len(WL)
-    grid = DetectionGrid.from_separation(200 * u.mas, 40 * u.mas, min_sep=30 * u.mas)
+    grid = DetectionGrid.from_separation(95 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
     prof = nuisance_profiles(KernelPhaseData(np.zeros((1, q, km.n_kp)), WL, 16.2 * u.mas, km),
                              order=1)
     v = kept_combinations(prof, np.ones(q))
