@@ -23,10 +23,12 @@ import numpy as np
 from astropy import units as u
 
 from ..calibration.spectral_diff import inner_separation, kept_combinations, retained_fraction
+from .._utils import thread_map
 from ..covariance import whiten, whitening_matrix
 from ..model.kernel import MAS
 from ._blockfit import refine_stack
-from .maps import DetectionModel
+from ._signatures import _unit
+from .maps import UNIT_CACHE_BYTES, DetectionModel
 from .sky import sky_to_detector
 from .spectral import spectrum_shape
 
@@ -36,6 +38,9 @@ log = logging.getLogger(__name__)
 
 #: Position angles per separation at which the retained fraction is measured.
 RETAINED_ANGLES = 16
+#: Grid positions whose signatures are made at a time (channels x positions x kernel
+#: phases in memory).
+NORM_CHUNK = 512
 
 
 class SpectralModel(DetectionModel):
@@ -123,13 +128,38 @@ class SpectralModel(DetectionModel):
         return -a.reshape(m, nx, -1).transpose(0, 2, 1)
 
     def _signature_norms(self):
-        out = super()._signature_norms()
-        if "_unit_cache" in self.__dict__:
+        """As `~kpifs.detect.DetectionModel`'s, chunk by chunk: the channels' signatures
+        ``K sin(theta_c)`` once, mixed into the combinations, then whitened (one lift per
+        channel, not one per channel and combination)."""
+        k, p = len(self.wavelengths), self.kernel_model.n_kp
+        n = self.grid.valid.size
+        keep, mirrored, rows = self._norm_rows()
+        cache = k * len(keep) * p * 4 <= UNIT_CACHE_BYTES
+        at = np.searchsorted(rows, keep) if not mirrored else np.arange(len(keep))
+        unit = np.empty((k, len(keep), p), np.float32) if cache else None
+        wf = self._wfac.ravel()[keep]
+        out = np.zeros((k, n))
+        kt = self.kernel_model.kernel.T
+        wt = np.swapaxes(self.whitening, 1, 2)
+        for a in range(0, len(rows), NORM_CHUNK):
+            chunk = rows[a:a + NORM_CHUNK]
+            per = np.stack(thread_map(lambda c: self._channel_sin(c, chunk) @ kt,
+                                      range(len(self._real))))            # (q, n, p)
+            white = np.matmul(np.einsum("kc,cnp->knp", self._mix, per), wt)   # (k, n, p)
+            raw = np.einsum("knp,knp->kn", white, white)
+            out[:, chunk] = raw
+            if cache:
+                sel = (at >= a) & (at < a + len(chunk))
+                for i in range(k):
+                    unit[i, sel] = _unit(white[i, at[sel] - a], raw[i, at[sel] - a], wf[sel])
+        if mirrored:
+            out[:, n - 1 - rows] = out[:, rows]
+        if cache:
+            self._unit_cache = (keep, unit)
             # dot_maps from the unit signatures: ||s|| at the positions kept
-            keep = self._unit_cache[0]
-            self._amp = np.sqrt(out.reshape(len(out), -1)[:, keep])
-            self._mirrored = self.half_positions()[1]
-        return out
+            self._amp = np.sqrt(out[:, keep]) * wf
+            self._mirrored = mirrored
+        return out.reshape((k,) + self.grid.shape) * self._wfac[None] ** 2
 
     def dot_maps(self, y):
         """As `~kpifs.detect.DetectionModel.dot_maps`; from the cached unit signatures
