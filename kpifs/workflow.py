@@ -77,7 +77,7 @@ class ExtractOptions:
     JWST files in several filters (`extract_filters`), and
     ``angular_differential`` makes the product of a rotating sequence that is
     searched by what turns with the sky, and ``spectral_differential`` (a basis
-    name, `~kpifs.calibration.spectral_diff.SDK_BASES`) one searched by the
+    name, ``kpifs.calibration.spectral_diff.SDK_BASES``) one searched by the
     channel combinations free of the static residual's profiles
     (`reduce_observation`). The defaults
     are written once, in ``kpifs._defaults``, for the command line too.
