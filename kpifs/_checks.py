@@ -215,8 +215,10 @@ def preflight_detect(kp, calibrators, output, options):
     if calibrated and calibrators:
         raise KpifsError(f"{kp}: already calibrated (CALFLAG true): calibrating it again "
                          f"subtracts a star twice; give it without --calibrator")
+    hdr = fits.getheader(kp) if not calibrated else {}
     if not calibrated and not calibrators and not options.allow_uncalibrated \
-            and fits.getheader(kp).get("BLKSRCH") != "angular-differential":   # issue 29
+            and hdr.get("BLKSRCH") != "angular-differential" \
+            and "SDKNPROF" not in hdr:                            # issues 29 and 39
         raise KpifsError(f"{kp}: not calibrated (no calibrator star subtracted): give its "
                          f"calibrator (--calibrator CALIBRATOR_KP.fits), or --allow-uncalibrated "
                          f"to search the data as they are")

@@ -11,7 +11,8 @@ says which).
 __all__ = ["EXTRACT", "DETECT"]
 
 #: `kpifs.workflow.ExtractOptions`: reading, pupil model, extraction, covariance, and the
-#: step between extraction and detection (calibrator, JWST filters, angular-differential).
+#: step between extraction and detection (calibrator, JWST filters, angular-differential,
+#: spectral-differential: None for none, else the nuisance basis' name).
 EXTRACT = {
     "instrument": "auto", "wavelengths": None, "pixscale": None, "pa": None, "dq_bits": None,
     "pupil": None, "pupil_scale": None, "step": None, "offset": None,
@@ -22,6 +23,7 @@ EXTRACT = {
     "precision": "double",
     "shrinkage": "auto", "joint_covariance": False, "covariance": False,
     "pixel_noise": "auto", "filter_kernels": "own", "angular_differential": False,
+    "spectral_differential": None,
 }
 
 #: `kpifs.workflow.DetectOptions`: the search.

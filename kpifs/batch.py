@@ -411,7 +411,8 @@ def process_entry(entry, extract_options, detect_options, outdir, *, overwrite=F
             earlier, note = _earlier(row, out / "detection.fits")
             if earlier is not None:
                 return earlier
-        if not entry.calibrators and not xo.angular_differential:
+        if not entry.calibrators and not xo.angular_differential \
+                and not xo.spectral_differential:
             raise KpifsError(f"{entry.name}: no calibrator")
         tmp = _private_folder(outdir, entry.name)
         with warnings.catch_warnings(record=True) as caught, \

@@ -186,6 +186,9 @@ class KernelPhaseData:
         self.meta = dict(meta or {})
         # time blocks of a rotating sequence (kpifs.rotation)
         self.rotation = None
+        # spectral-differential nuisance profiles along the channels (issue 39,
+        # `kpifs.calibration.spectral_diff`): {'profiles': (q, m), 'basis', 'order'}
+        self.spectral = None
 
     @property
     def shape(self):
@@ -269,6 +272,8 @@ class KernelPhaseData:
             r = self.rotation
             out.rotation = type(r)(r.angles, r.frames, r.data[:, idx], r.noise[:, idx],
                                    r.n_target_noise, r.calibrated, r.search)
+        if self.spectral is not None:
+            out.spectral = dict(self.spectral, profiles=self.spectral["profiles"][idx])
         return out
 
     def __repr__(self):
@@ -283,9 +288,11 @@ def _read_kpd(path, *, detpa=None):
     km = KernelModel.from_parts(model, source=path)
     window = ExtractionWindow.from_header(parts["header"])
     rotation = parts.pop("rotation", None)
+    spectral = parts.pop("spectral", None)
     out = KernelPhaseData(parts.pop("kp"), parts.pop("wavelengths"), parts.pop("pixscale"),
                           km, window=window, **parts)
     out.rotation = rotation
+    out.spectral = spectral
     return out
 
 

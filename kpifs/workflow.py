@@ -31,6 +31,7 @@ from .extraction import filters as _filters
 from ._defaults import DETECT as _DETECT, EXTRACT as _EXTRACT
 from ._utils import check_output_dir, check_output_path, to_quantity
 from .calibration.adi import angular_differential
+from .calibration.spectral_diff import SDK_BASES, spectral_differential
 from .calibration.calibrate import calibrate, check_calibration
 from .covariance import empirical_covariance
 from .data import KernelPhaseData
@@ -48,6 +49,7 @@ from .calibration.pixelnoise import attach_pixel_noise
 from .provenance import (combined_digest, inputs_digest, observation_digest, options_record,
                          products_digest)
 from .model.window import ExtractionWindow
+from .simulation.aberrations import static_residual_rows
 
 __all__ = ["ExtractOptions", "DetectOptions", "DEFAULT_PUPIL", "kernel_model_for",
            "default_pupil",
@@ -76,7 +78,10 @@ class ExtractOptions:
     read without it (`calibrator_options`). ``filter_kernels`` applies to
     JWST files in several filters (`extract_filters`), and
     ``angular_differential`` makes the product of a rotating sequence that is
-    searched by what turns with the sky (`reduce_observation`). The defaults
+    searched by what turns with the sky, and ``spectral_differential`` (a basis
+    name, ``kpifs.calibration.spectral_diff.SDK_BASES``) one searched by the
+    channel combinations free of the static residual's profiles
+    (`reduce_observation`). The defaults
     are written once, in ``kpifs._defaults``, for the command line too.
 
     Examples
@@ -118,6 +123,7 @@ class ExtractOptions:
     pixel_noise: str = _EXTRACT["pixel_noise"]
     filter_kernels: str = _EXTRACT["filter_kernels"]   # `extract_filters`
     angular_differential: bool = _EXTRACT["angular_differential"]   # `reduce_observation`
+    spectral_differential: object = _EXTRACT["spectral_differential"]   # issue 39
 
     def __post_init__(self):
         # the registry's names: one check, one message, for the command line, a batch and
@@ -461,7 +467,11 @@ def reduce_observation(target, calibrators=(), options=None, *, progress=False):
       ``options.covariance`` asks for it);
     - ``options.angular_differential``: the product of a rotating sequence
       searched by what turns with the sky (`kpifs.calibration.adi.angular_differential`),
-      with or without calibrators.
+      with or without calibrators;
+    - ``options.spectral_differential``: the product searched by the channel
+      combinations free of the static residual's profiles
+      (`kpifs.calibration.spectral_diff.spectral_differential`), with or without
+      calibrators.
 
     Parameters
     ----------
@@ -495,18 +505,45 @@ def reduce_observation(target, calibrators=(), options=None, *, progress=False):
     target = [str(target)] if isinstance(target, (str, Path)) else [str(f) for f in target]
     calibrators = [[str(f) for f in files] for files in calibrators]
     if len(_filters.jwst_filters(target)) > 1:     # JWST filters as the channels of one product
+        if options.spectral_differential:
+            raise KpifsError(f"{target[0]}: --spectral-differential needs the channels of "
+                             f"one IFS cube; JWST filters are searched with a calibrator")
         if options.angular_differential:
             raise KpifsError(f"{target[0]}: --angular-differential needs one rotating "
                              f"sequence; JWST files in several filters make one calibrated "
                              f"frame per filter (reduce each filter on its own)")
         return extract_filters(target, calibrators, options, progress=progress), []
+    if options.spectral_differential and options.angular_differential:
+        raise KpifsError(f"{target[0]}: --spectral-differential with --angular-differential "
+                         f"(ASDI) is not implemented yet: use one of the two")
     tkp = extract_observation(target, options, progress=progress)
     cals = [extract_observation(files, calibrator_options(options), model=tkp.kernel_model,
                                 progress=progress) for files in calibrators]
     kpd = calibrate_observation(tkp, cals, options)
     if options.angular_differential:               # issue 29
         kpd = angular_differential(tkp, kpd if cals else None)
+    if options.spectral_differential:              # issue 39
+        kpd = _spectral_step(tkp, kpd if (cals or options.angular_differential) else None,
+                             options)
     return kpd, [tkp] + cals
+
+
+def _spectral_step(target, product, options):
+    """`~kpifs.calibration.spectral_diff.spectral_differential` with the options' basis
+    (the static residual imaged through the target's pupil when the basis needs it)."""
+    basis = options.spectral_differential
+    basis = "static" if basis is True else basis
+    if basis not in SDK_BASES:
+        raise KpifsError(f"spectral_differential must be one of {SDK_BASES}, got {basis!r}")
+    if target.n_wave < 2:
+        raise KpifsError(f"{target.name}: --spectral-differential needs several channels "
+                         f"(an IFS cube); these data have one channel")
+    rows = None
+    if basis in ("static", "both"):
+        rows = static_residual_rows(target.kernel_model, target.wavelengths, target.pixscale,
+                                    window=target.window)
+    return spectral_differential(target, product, basis=basis, static_rows=rows,
+                                 shrinkage=options.shrinkage)
 
 
 def _mas(value, name):
@@ -616,9 +653,10 @@ def process_observation(target, calibrators, outdir, *, extract_options=None,
     target = [str(f) for f in target]
     calibrators = [[str(f) for f in files] for files in calibrators]
     _checks.check_inputs(target, calibrators)
-    if not calibrators and not xo.angular_differential:
+    if not calibrators and not xo.angular_differential and not xo.spectral_differential:
         raise KpifsError(f"{target[0] if target else outdir}: no calibrator (only an "
-                         f"angular-differential reduction searches a target alone)")
+                         f"angular- or spectral-differential reduction searches a target "
+                         f"alone)")
     paths = {"calibrated": outdir / "calibrated_kp.fits", "detection": outdir / "detection.fits"}
     names = ["target_kp.fits"] + (["calibrator_kp.fits"] if len(calibrators) == 1 else
                                   [f"calibrator{i}_kp.fits" for i in

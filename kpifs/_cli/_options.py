@@ -20,6 +20,7 @@ EXTRACT_FIELDS = {
     "joint_covariance": "joint_covariance", "covariance": "covariance",
     "pixel_noise": "pixel_noise", "filter_kernels": "filter_kernels",
     "angular_differential": "angular_differential",
+    "spectral_differential": "spectral_differential",
 }
 
 #: `~kpifs.workflow.DetectOptions` field -> the parsed option.

@@ -194,6 +194,16 @@ def _reduction_options(p, *, pa_help):
                         "turns with the sky (what stays on the detector removed; with "
                         "--calibrator also the calibrated mean, scaled by its own reduced "
                         "chi-square; refused when the angles do not turn)")
+    p.add_argument("--spectral-differential", nargs="?", const="static",
+                   default=EXTRACT["spectral_differential"], metavar="BASIS",
+                   choices=("poly", "static", "both"),
+                   help="search only the channel combinations free of what varies like a "
+                        "static aberration across the channels, kernel phase by kernel "
+                        "phase: the leading channel profiles of the static residual imaged "
+                        "through the pupil (static, the default), polynomials in 1/lambda "
+                        "(poly) or both; no calibrator needed (with one: extra protection), "
+                        "combined with --angular-differential when given; refused for "
+                        "single-channel data")
     p.add_argument("--pa", metavar="DEG|LIST|FILE",
                    help="detector position angle of the target's frames (deg, East of North "
                         "of the detector +y axis): one value, a comma list with one per "
@@ -349,6 +359,10 @@ def _simulate(command):
     g.add_argument("--static-diff", help="rms of static aberrations of the calibrator only "
                                          "(a calibration residual), nm if no unit, e.g. 10nm "
                                          "(default 0)")
+    g.add_argument("--typical-static", action="store_true",
+                   help="a static aberration typical of the instruments, for sequences with "
+                        "no calibrator: 50 nm common to both stars at low order, 15 nm of "
+                        "the target's own, 10 nm drifting (the options above override each)")
     g = p.add_argument_group("field rotation (pupil tracking: the sky turns, the aberrations "
                              "stay on the detector; default: the preset's angles)")
     g.add_argument("--rotation", help="the detector angle turns by this much over the "

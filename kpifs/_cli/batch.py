@@ -19,9 +19,10 @@ def run(args):
     for m in args.manifest or []:
         entries += read_manifest(m)
     if args.glob:
-        if not args.calibrator and not args.angular_differential:
+        if not args.calibrator and not args.angular_differential \
+                and not args.spectral_differential:
             raise KpifsError("--glob needs --calibrator PATTERN (the calibrator rule), or "
-                             "--angular-differential")
+                             "--angular-differential or --spectral-differential")
         entries += entries_from_glob(args.glob, args.calibrator)
     if not entries:
         raise KpifsError("nothing to do: give a MANIFEST or --glob PATTERN --calibrator PATTERN")

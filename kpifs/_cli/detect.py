@@ -1,4 +1,5 @@
 """``kpifs detect``: search kernel phases for companions and write the products."""
+import math
 import sys
 import warnings
 
@@ -70,6 +71,7 @@ def run(args):
     _aliased_line(res)
     if res.meta.get("field"):
         print("  " + field_sentence(res.meta["field"]))
+    _spectral_line(res)
     st = res.meta.get("static")
     if st:
         print(f"static aberrations (no calibrator): a kernel-phase residual imaged through the "
@@ -89,6 +91,20 @@ def run(args):
             args.plots = None
     products_line(args.output, args.plots)
     return 0
+
+
+def _spectral_line(res):
+    """What a spectral-differential search projected out, and where it starts (issue 39)."""
+    sdk = res.meta.get("blocks") or {}
+    if sdk.get("mode") != "spectral-differential":
+        return
+    inner = sdk.get("inner_separation")
+    where = (f"half a companion's signal is kept from {inner:.0f} mas"
+             if inner is not None and math.isfinite(inner) and inner > 0
+             else "less than half a companion's signal is kept anywhere on the grid")
+    print(f"spectral-differential: {sdk['profiles']} profile(s) along the channels "
+          f"({sdk.get('basis')}) projected out of every kernel phase, "
+          f"{sdk['combinations']} channel combinations searched; {where}")
 
 
 def _aliased_line(res):

@@ -14,6 +14,7 @@ def run(args):
     kpd.write(args.output, overwrite=args.overwrite,
               inputs=list(args.cubes) + [f for files in cal_files for f in files])
     what = "calibrated kernel phases" if kpd.meta.get("calibrated") else \
+        "spectral-differential kernel phases" if opts.spectral_differential else \
         "angular-differential time blocks" if opts.angular_differential else \
         f"{kpd.n_frame} frame(s) x {kpd.n_wave} channel(s) x {kpd.n_kp} kernel phases"
     print(f"{kpd.meta.get('instrument', 'cube')}: {what} -> {args.output}")

@@ -9,7 +9,7 @@ from ..io.instruments import INSTRUMENTS
 from ..io.layouts import write_observation
 from ..detect.sky import detector_to_sky
 from ..rotation import sequence_angles
-from ..simulation.simulate import PRESETS, SceneParameters, simulate_scene
+from ..simulation.simulate import PRESETS, TYPICAL_STATIC, SceneParameters, simulate_scene
 
 
 def run(args):
@@ -59,6 +59,8 @@ def run(args):
         over["shape"] = (args.shape, args.shape)
     if args.exptime is not None:
         over["exptime"] = to_quantity(args.exptime, u.s, name="--exptime")
+    if getattr(args, "typical_static", False):      # issue 39
+        over.update(TYPICAL_STATIC)
     for opt, name in (("drift", "drift_rms"), ("static", "static_rms"),
                       ("static_diff", "static_diff_rms")):
         if getattr(args, opt) is not None:

@@ -22,6 +22,7 @@ from ..simulation.aberrations import static_term
 from ._inputs import _aliased, _check_closure_dof, _drop_aliased, _measured, _wants_static
 from ._laws import chi2_sf
 from .blocks import block_stack
+from .sdk import SpectralStack
 from .channels import (MIN_SCALE, NOISE_CONFIDENCE, annulus_noise, channel_correlation,
                        combined_scale, energy_null, energy_spread, map_noise, ring_noise,
                        scale_block_rows)
@@ -101,7 +102,8 @@ def _frame_and_poses(kpd, frame, grid):
 
 
 def _prepare(kpd, shrinkage, allow_uncalibrated):
-    adi = getattr(kpd.rotation, "search", None) == "angular-differential"
+    adi = getattr(kpd.rotation, "search", None) == "angular-differential" \
+        or getattr(kpd, "spectral", None) is not None      # issue 39: nor what is static
     if not kpd.meta.get("calibrated") and not adi:     # ADI: only what turns is searched
         if not allow_uncalibrated:
             raise KpifsError(f"{kpd.name}: not calibrated (no calibrator star subtracted): "
@@ -328,6 +330,10 @@ def _whiten_stage(prep, opts):
         cov_rows = np.concatenate([cov_rows, prep.static_rows])
     # issue 29: a rotating sequence's time blocks, stacked (None: the one mean, as before)
     stack = block_stack(kpd, kp, w, rank, frame=frame, mode=opts.blocks)
+    if stack is None and getattr(kpd, "spectral", None) is not None:
+        # issue 39: the channel combinations free of the static profiles (`kpifs.detect.sdk`)
+        stack = SpectralStack(kpd, kp, prep.cov, spectrum=prep.spectrum, poses=search_poses)
+        prep.spectrum, prep.basis, prep.a = None, stack.basis, np.ones(stack.n_comb)
     if stack is not None:
         kp, w, rank = stack.kp, stack.whitening, stack.rank
         cov_rows, blk_rows, fit_rows = stack.rows, stack.block_rows, None
@@ -519,6 +525,9 @@ def _maps_stage(prep, white, null, found, opts):
     # the noise level the data show against the model (the residual after the candidates,
     # in all its modes and on the map): statistics, errors and limits are scaled by it
     t, c, cerr = model.maps(white.y, form, prep.spectrum)
+    if hasattr(white.stack, "channel_contrasts"):       # issue 39: combinations -> channels
+        c, cerr = white.stack.channel_contrasts(c, cerr)
+        white.stack.channel_table(found.candidates)
     # per annulus, the map's own noise where it exceeds the scale (`annulus_noise`)
     smap = np.fmax(found.scale, np.nan_to_num(judge.ring(judge.residual, None), nan=0.0))
     t = t / smap ** power
@@ -594,7 +603,8 @@ def _report(prep, white, null, found, maps, limits, opts):
     lim = None if limits is None else LimitsReport(
         maps.common, limits.scale_subspace, kpd.meta.get("error_model"), null.spread,
         null.map_low, kpd.meta.get("calibrators", []), kpd.meta.get("source", ""),
-        prep.a.tolist(), energy_lambda(opts.pfa, opts.pd, int(white.rank.sum())),
+        np.asarray(getattr(white.stack, "spectrum", prep.a)).tolist(),
+        energy_lambda(opts.pfa, opts.pd, int(white.rank.sum())),
         "covariance rows" if white.rows is not None else "independent",
         None if poses is None else [np.asarray(p).tolist() for p in poses],
         None if white.search_poses is None

@@ -124,9 +124,24 @@ def kpd_to_hdulist(kpd, *, inputs=(), history=()):
     hdus.append(_wavelength_hdu(kpd))
     hdus += _angle_hdus(kpd)
     hdus += rotation_hdus(kpd)          # issue 29: time blocks of a rotating sequence
+    hdus += _spectral_hdus(kpd)         # issue 39: spectral-differential profiles
     if kpd.phases is not None and kpd.amplitudes is not None:
         hdus.append(_visibility_hdu(kpd))
     return fits.HDUList(hdus)
+
+
+def _spectral_hdus(kpd):
+    """KP-SDK: the spectral-differential nuisance profiles along the channels (q, m) that
+    detection projects out of every kernel phase (`kpifs.calibration.spectral_diff`)."""
+    sdk = getattr(kpd, "spectral", None)
+    if sdk is None:
+        return []
+    h = fits.ImageHDU(np.asarray(sdk["profiles"], float), name="KP-SDK")
+    h.header["SDKBASIS"] = (str(sdk.get("basis", "")), "how the profiles were made")
+    h.header["SDKORDER"] = (int(sdk.get("order", -1)), "degree of the 1/lambda polynomials")
+    h.header["COMMENT"] = ("profiles along the channels (nwave, nprofile) projected out of "
+                           "every kernel phase before the search")
+    return [h]
 
 
 def _primary_header(kpd, inputs, history):

@@ -442,4 +442,19 @@ def _read_data(hdul, path, detpa):
             "joint_covariance": jcov, "covariance_rows": rows,
             "fit_covariance_rows": fit_rows, "block_rows": blk_rows, "detpa": pa,
             "rotation": rotation_from_hdul(hdul, path),
+            "spectral": _spectral_from_hdul(hdul, len(wl), path),
             "phases": phases, "amplitudes": amps, "header": hdr, "meta": meta}
+
+
+def _spectral_from_hdul(hdul, n_wave, path):
+    """The spectral-differential record of KP-SDK (issue 39), or None."""
+    if "KP-SDK" not in hdul:
+        return None
+    h = hdul["KP-SDK"]
+    prof = None if h.data is None else np.asarray(h.data, float)
+    if prof is None or prof.ndim != 2 or prof.shape[0] != n_wave or not prof.shape[1] \
+            or not np.all(np.isfinite(prof)):
+        raise KpifsError(f"{path}: KP-SDK must hold finite profiles (nwave={n_wave}, "
+                         f"nprofile), got {None if prof is None else prof.shape}")
+    return {"profiles": prof, "basis": str(h.header.get("SDKBASIS", "")),
+            "order": int(h.header.get("SDKORDER", -1))}

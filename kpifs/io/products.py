@@ -130,6 +130,14 @@ def _channel_cards(result, hdr, inputs):
         hdr["STATSHR"] = (round(float(st["share"]), 6), "static residual / frames' variance")
         hdr["STATAMP"] = (float(st["amplitude"]), "static residual amplitude (ML fit)")
         hdr["STATPUP"] = (str(st["pupil"]), "pupil the static residual was imaged through")
+    sdk = result.meta.get("blocks") or {}
+    if sdk.get("mode") == "spectral-differential":       # issue 39
+        hdr["SDKBASIS"] = (str(sdk.get("basis")), "spectral-differential profiles")
+        hdr["SDKNPROF"] = (int(sdk["profiles"]), "profiles projected out")
+        hdr["SDKNCOMB"] = (int(sdk["combinations"]), "channel combinations searched")
+        inner = sdk.get("inner_separation")
+        hdr["SDKINNER"] = (round(float(inner), 3) if inner is not None and np.isfinite(inner)
+                           else -1.0, "[mas] half kept from (-1: never)")
     chans = result.meta.get("channels") or []
     if result.meta.get("excluded_channels"):
         hdr["EXCLCHAN"] = (",".join(map(str, result.meta["excluded_channels"])),
@@ -362,6 +370,10 @@ def detection_header_meta(hdr, path):
         meta.update(chi2_red=hdr["CHI2RED"], noise_scale=hdr.get("NOISESC", 1.0))
     if field_from_header(hdr):
         meta["field"] = field_from_header(hdr)
+    if "SDKNPROF" in hdr:
+        meta["blocks"] = {"mode": "spectral-differential", "basis": hdr.get("SDKBASIS"),
+                          "profiles": hdr["SDKNPROF"], "combinations": hdr.get("SDKNCOMB"),
+                          "inner_separation": hdr.get("SDKINNER", -1.0)}
     if "STATSHR" in hdr:
         meta["static"] = {"share": hdr["STATSHR"], "amplitude": hdr.get("STATAMP"),
                           "pupil": hdr.get("STATPUP")}

@@ -28,7 +28,8 @@ from ..io.instruments import INSTRUMENTS
 from ..model.kernel import MAS
 from ..model.pupil import MASKS, TELESCOPES, pupil_image
 
-__all__ = ["simulate_psf", "phase_screens", "SceneParameters", "PRESETS", "simulate_scene",
+__all__ = ["simulate_psf", "phase_screens", "SceneParameters", "PRESETS", "TYPICAL_STATIC",
+           "simulate_scene",
            "SimulatedObservation", "charis_field"]
 
 log = logging.getLogger(__name__)
@@ -193,6 +194,10 @@ class SceneParameters:
     drift_time: float = 10.0
     static_rms: u.Quantity = 0 * u.nm
     static_diff_rms: u.Quantity = 0 * u.nm
+    # issue 39: the common static part at low order (no AO correction of its low spatial
+    # frequencies), and a static part of the target's own (not the calibrator's)
+    static_low_order: bool = False
+    static_own_rms: u.Quantity = 0 * u.nm
     # the pupil as the detector sees it: turned by this angle (counter-clockwise from +x
     # to +y), as when a model is made for the textbook orientation
     pupil_rotation: u.Quantity = 0 * u.deg
@@ -337,9 +342,12 @@ class SimulatedObservation:
         for key, value, comment in (
                 ("KPSIMDRF", p.drift_rms, "[nm] rms of the drifting aberrations"),
                 ("KPSIMSTA", p.static_rms, "[nm] rms of the common static aberrations"),
-                ("KPSIMSTD", p.static_diff_rms, "[nm] rms of the calibrator-only static")):
+                ("KPSIMSTD", p.static_diff_rms, "[nm] rms of the calibrator-only static"),
+                ("KPSIMSTO", p.static_own_rms, "[nm] rms of the target-only static")):
             if u.Quantity(value, u.nm).value > 0:
                 cards[key] = (float(u.Quantity(value, u.nm).value), comment)
+        if p.static_low_order:
+            cards["KPSIMSLO"] = (True, "common static aberrations at low order")
         if u.Quantity(p.drift_rms, u.nm).value > 0:
             cards["KPSIMDRT"] = (float(p.drift_time), "[frames] correlation time of the drift")
         if p.sky_offset is not None:
@@ -358,18 +366,21 @@ class _QuasiStatic:
         self.rho = float(np.exp(-1.0 / params.drift_time))
         self.state = {}
         stat, diff = params.static_rms.to_value(u.m), params.static_diff_rms.to_value(u.m)
-        self.static = {"target": self._screen(stat), "calibrator": self._screen(stat)}
-        if stat > 0:
-            self.static["calibrator"] = self.static["target"]        # common to both stars
-        d = self._screen(diff)
-        if d is not None:
-            base = self.static["calibrator"]
-            self.static["calibrator"] = d if base is None else base + d
+        low = 1e-9 if params.static_low_order else None       # no AO damping: low orders
+        common = self._screen(stat, cutoff=low)
+        self._screen(stat)          # a second draw, unused: the random stream as before
+        self.static = {"target": common, "calibrator": common}   # common to both stars
+        for which, rms in (("calibrator", diff), ("target", params.static_own_rms.to_value(u.m))):
+            d = self._screen(rms)
+            if d is not None:
+                base = self.static[which]
+                self.static[which] = d if base is None else base + d
 
-    def _screen(self, rms):
+    def _screen(self, rms, cutoff=None):
         if rms <= 0:
             return None
-        return phase_screens(self.npup, self.dx, 1, rms=rms, mask=self.mask, seed=self.rng)[0]
+        return phase_screens(self.npup, self.dx, 1, rms=rms, mask=self.mask, cutoff=cutoff,
+                             seed=self.rng)[0]
 
     def add(self, opd, which):
         parts = [opd, self.static[which]]
@@ -424,7 +435,7 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
     params.exptime = to_quantity(params.exptime, u.s, name="exposure time")
     if not (np.isfinite(params.exptime.value) and params.exptime.value > 0):
         raise KpifsError(f"the exposure time must be > 0, got {params.exptime}")
-    for name in ("drift_rms", "static_rms", "static_diff_rms"):
+    for name in ("drift_rms", "static_rms", "static_diff_rms", "static_own_rms"):
         setattr(params, name, to_quantity(getattr(params, name), u.nm, name=name))
     if not params.drift_time > 0:
         raise KpifsError(f"drift_time must be > 0 frames, got {params.drift_time}")
@@ -482,6 +493,16 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
 
 # issue 28: SPHERE's 7-hole SAM mask behind the IFS (39 YJ channels of 7.46 mas, 50 nm
 # of residual wavefront), a companion of 2 % brighter in the blue at (60, -40) mas
+# issue 39: SPHERE-IFS in YJH (39 channels over 0.957-1.636 um, a factor of 1.7 in lambda)
+PRESETS["sphere-yjh"] = dict(PRESETS["sphere"], wavelengths=np.linspace(0.957, 1.636, 39) * u.um)
+
+#: issue 39: a static aberration typical of the instruments, for sequences with no
+#: calibrator (``simulate_scene(..., **TYPICAL_STATIC)``, ``kpifs simulate
+#: --typical-static``): 50 nm common to both stars at low order, 15 nm of the target's
+#: own, 10 nm drifting (correlation time 10 frames), on top of the fast residual.
+TYPICAL_STATIC = dict(static_rms=50 * u.nm, static_low_order=True, static_own_rms=15 * u.nm,
+                      drift_rms=10 * u.nm, drift_time=10.0)
+
 PRESETS["sphere-sam"] = dict(telescope="sphere_sam7",
                              wavelengths=np.linspace(0.957, 1.329, 39) * u.um,
                              pixscale=7.46 * u.mas, shape=(64, 64), n_frames=20,

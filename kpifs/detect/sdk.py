@@ -1,0 +1,362 @@
+"""Searching spectral-differential kernel phases (issue 39; `kpifs.calibration.spectral_diff`).
+
+Data carrying nuisance profiles along the channels (``kpd.spectral``) are
+searched in the ``k = q - m`` channel combinations free of them: the kernel
+phases of combination ``k`` are ``d_k = sum_c V[c, k] kp_c / s_c`` (``s_c``:
+channel ``c``'s noise scale; `~kpifs.calibration.spectral_diff.kept_combinations`),
+whitened combination by combination in that kept space (``k p`` degrees of
+freedom). A companion of contrasts ``c a_c`` (``a``: its spectrum shape, flat by
+default) has, in combination ``k``, the signature ``c sum_c V[c, k] a_c K
+sin(theta_c) / s_c``: the projection acts on data, noise and signatures alike
+(DESIGN.md section 8), and the search, its null, the limits and the fits all
+see the same combinations, each with the companion's one contrast scale (the
+contrasts reported per channel are that scale times ``a``). What the projection
+leaves of a companion is measured (``info['retained']``, by separation) with the
+separation from which half of it is left
+(`~kpifs.calibration.spectral_diff.inner_separation`); the grid is not cut there:
+the limits carry the self-subtraction.
+"""
+import hashlib
+import logging
+
+import numpy as np
+from astropy import units as u
+
+from ..calibration.spectral_diff import inner_separation, kept_combinations, retained_fraction
+from .._utils import thread_map
+from ..covariance import whiten, whitening_matrix
+from ..model.kernel import MAS
+from ._blockfit import refine_stack
+from ._signatures import _unit
+from .maps import UNIT_CACHE_BYTES, DetectionModel
+from .sky import sky_to_detector
+from .spectral import spectrum_shape
+
+__all__ = ["SpectralModel", "SpectralStack"]
+
+log = logging.getLogger(__name__)
+
+#: Position angles per separation at which the retained fraction is measured.
+RETAINED_ANGLES = 16
+#: Grid positions whose signatures are made at a time (channels x positions x kernel
+#: phases in memory).
+NORM_CHUNK = 512
+
+
+class SpectralModel(DetectionModel):
+    """`~kpifs.detect.DetectionModel` of channel combinations: combination ``k``'s
+    signature is ``sum_c mixing[k, c] K sin(theta_c)`` whitened by ``whitening[k]``.
+
+    Parameters
+    ----------
+    kernel_model, grid, pixscale, window, dof, detpa, basis
+        As `~kpifs.detect.DetectionModel`.
+    wavelengths : `~astropy.units.Quantity` (q,)
+        The channels' wavelengths.
+    whitening : ndarray (k, p, p)
+        The combinations' whitening.
+    mixing : ndarray (k, q)
+        Each combination's weights on the channels' signatures.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.data import DetectionGrid
+    >>> from kpifs.detect.sdk import SpectralModel
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas)
+    >>> mix = np.array([[1.0, -1.0]]) / np.sqrt(2)          # one combination of two channels
+    >>> dm = SpectralModel(km, [1.6, 2.2] * u.um, np.eye(km.n_kp)[None], mix, grid)
+    >>> dm.norm2.shape
+    (1, 21, 21)
+    """
+
+    def __init__(self, kernel_model, wavelengths, whitening, mixing, grid, *, pixscale=None,
+                 window=None, dof=None, detpa=None, basis=None):
+        real = np.atleast_1d(u.Quantity(wavelengths, u.um))
+        mix = np.asarray(mixing, float)
+        self._real = real
+        self._mix = mix
+        # a combination's nominal wavelength: its weights' centre (labels only)
+        wts = mix ** 2 / np.sum(mix ** 2, axis=1, keepdims=True)
+        nominal = wts @ real.to_value(u.um) * u.um
+        self._init = True
+        super().__init__(kernel_model, nominal, whitening, grid, pixscale=pixscale,
+                         window=window, dof=dof, detpa=detpa,
+                         basis=np.ones((len(mix), 1)) if basis is None else basis)
+
+    def _check_grid(self):
+        nominal, self.wavelengths = self.wavelengths, self._real
+        try:
+            super()._check_grid()
+        finally:
+            self.wavelengths = nominal
+
+    def _axis_trig(self, lam):
+        # called once per combination by the parent: the channels' factors are made once
+        if self.__dict__.pop("_init", False):
+            self._channel_trig = [super(SpectralModel, self)._axis_trig(v)
+                                  for v in self._real.to_value(u.m)]
+        return None
+
+    def _channel_sin(self, c, rows):
+        nx = self.grid.shape[1]
+        iy, ix = np.divmod(rows, nx)
+        out = 0.0
+        for sx, cx, sy, cy, wt in self._channel_trig[c]:
+            out = out + wt * (sx[ix] * cy[iy] + cx[ix] * sy[iy])
+        return out
+
+    def _sin_rows(self, i, rows):
+        out = 0.0
+        for c, w in enumerate(self._mix[i]):
+            if w != 0:
+                out = out + w * self._channel_sin(c, rows)
+        return out
+
+    def _project(self, g, i):
+        """``-sum_uv sin(theta) g`` of combination *i* (the channels' weighted sum)."""
+        m = len(g)
+        a = 0.0
+        for c, w in enumerate(self._mix[i]):
+            for sx, cx, sy, cy, wt in (self._channel_trig[c] if w != 0 else ()):
+                nx, nuv = sx.shape
+                gw = (w * wt) * g
+                a = a + (sx[None] * gw[:, None, :]).reshape(m * nx, nuv) @ cy.T
+                a = a + (cx[None] * gw[:, None, :]).reshape(m * nx, nuv) @ sy.T
+        return -a.reshape(m, nx, -1).transpose(0, 2, 1)
+
+    def _signature_norms(self):
+        """As `~kpifs.detect.DetectionModel`'s, chunk by chunk: the channels' signatures
+        ``K sin(theta_c)`` once, mixed into the combinations, then whitened (one lift per
+        channel, not one per channel and combination)."""
+        k, p = len(self.wavelengths), self.kernel_model.n_kp
+        n = self.grid.valid.size
+        keep, mirrored, rows = self._norm_rows()
+        cache = k * len(keep) * p * 4 <= UNIT_CACHE_BYTES
+        at = np.searchsorted(rows, keep) if not mirrored else np.arange(len(keep))
+        unit = np.empty((k, len(keep), p), np.float32) if cache else None
+        wf = self._wfac.ravel()[keep]
+        out = np.zeros((k, n))
+        kt = self.kernel_model.kernel.T
+        wt = np.swapaxes(self.whitening, 1, 2)
+        for a in range(0, len(rows), NORM_CHUNK):
+            chunk = rows[a:a + NORM_CHUNK]
+            per = np.stack(thread_map(lambda c: self._channel_sin(c, chunk) @ kt,
+                                      range(len(self._real))))            # (q, n, p)
+            white = np.matmul(np.einsum("kc,cnp->knp", self._mix, per), wt)   # (k, n, p)
+            raw = np.einsum("knp,knp->kn", white, white)
+            out[:, chunk] = raw
+            if cache:
+                sel = (at >= a) & (at < a + len(chunk))
+                for i in range(k):
+                    unit[i, sel] = _unit(white[i, at[sel] - a], raw[i, at[sel] - a], wf[sel])
+        if mirrored:
+            out[:, n - 1 - rows] = out[:, rows]
+        if cache:
+            self._unit_cache = (keep, unit)
+            # dot_maps from the unit signatures: ||s|| at the positions kept
+            self._amp = np.sqrt(out[:, keep]) * wf
+            self._mirrored = mirrored
+        return out.reshape((k,) + self.grid.shape) * self._wfac[None] ** 2
+
+    def dot_maps(self, y):
+        """As `~kpifs.detect.DetectionModel.dot_maps`; from the cached unit signatures
+        (positions x kernel phases per combination) when they are kept, instead of one
+        projection per channel and combination."""
+        cached = self.__dict__.get("_unit_cache")
+        if cached is None or "_amp" not in self.__dict__:
+            return super().dot_maps(y)
+        keep, unit = cached
+        y = np.asarray(y, float)
+        lead = y.shape[:-2]
+        yb = y.reshape((-1,) + y.shape[-2:])
+        m, q = len(yb), len(self.wavelengths)
+        ny, nx = self.grid.shape
+        out = np.zeros((m, q, ny * nx))
+        for i in range(q):
+            amp = self._amp[i]
+            with np.errstate(invalid="ignore"):
+                d = (yb[:, i].astype(np.float32) @ unit[i].T).astype(float) * amp
+            d = np.where(amp > 0, d, 0.0)
+            out[:, i, keep] = d
+            if self._mirrored:                  # the signature at -pos is minus that at pos
+                out[:, i, ny * nx - 1 - keep] = -d
+        return out.reshape(lead + (q, ny, nx))
+
+    def key(self):
+        if "_digest" not in self.__dict__:
+            base = super().key()
+            h = hashlib.sha1(base.encode())
+            h.update(np.ascontiguousarray(self._mix).tobytes())
+            h.update(np.ascontiguousarray(self._real.value).tobytes())
+            self._digest = h.hexdigest()
+        return self._digest
+
+
+class SpectralStack:
+    """Whitened channel combinations of a spectral-differential search, their noise rows,
+    models and fits (the interface of `~kpifs.detect.blocks.BlockStack`: ``kp`` (k, p)
+    is already whitened, its whitening the identity).
+
+    Parameters
+    ----------
+    kpd : `~kpifs.KernelPhaseData`
+        The data, with ``kpd.spectral`` (`~kpifs.calibration.spectral_diff`).
+    kp : ndarray (q, p)
+        Their kernel phases (one frame).
+    cov : ndarray (q, p, p)
+        Their covariance per channel.
+    spectrum : array-like (q,), optional
+        The companion's contrast shape (flat by default).
+    poses : tuple, optional
+        ``(angles, weights)`` of a sky search (`~kpifs.detect.sky.pa_bins`).
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs.calibration.spectral_diff import nuisance_profiles
+    >>> from kpifs.detect.sdk import SpectralStack
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> kp, cov = np.zeros((8, km.n_kp)), np.stack([np.eye(km.n_kp)] * 8)
+    >>> kpd = KernelPhaseData(kp[None], np.linspace(1.2, 2.3, 8) * u.um, 16.2 * u.mas, km,
+    ...                       covariance=cov)
+    >>> kpd.spectral = {"profiles": nuisance_profiles(kpd, order=2)}
+    >>> st = SpectralStack(kpd, kp, cov)
+    >>> st.kp.shape, int(st.rank.sum()) == 5 * km.n_kp
+    ((5, 37), True)
+    """
+
+    mode = "spectral-differential"
+
+    def __init__(self, kpd, kp, cov, *, spectrum=None, poses=None):
+        self.kpd, self.poses = kpd, poses
+        q, p = kp.shape
+        prof = np.asarray(kpd.spectral["profiles"], float)
+        cov = np.asarray(cov, float)
+        var = np.trace(cov, axis1=1, axis2=2) / p
+        self.scale = np.sqrt(np.where(var > 0, var, np.max(var)))
+        self.combinations = v = kept_combinations(prof, self.scale)         # (q, k)
+        self.data_mixing = (v / self.scale[:, None]).T                       # (k, q)
+        self.spectrum = spectrum_shape(spectrum, q)
+        self.mixing = self.data_mixing * self.spectrum[None]
+        k = v.shape[1]
+        ccov = np.einsum("kc,cpr->kpr", self.data_mixing ** 2, cov)
+        w, rank = whitening_matrix(ccov, return_rank=True,
+                                   source="covariance of the channel combinations")
+        self._w = w
+        self.rank = np.atleast_1d(rank)
+        self.kp = whiten(self.data_mixing @ kp, w)
+        self.rows = self._rows(kpd.covariance_rows)
+        self.block_rows = self._rows(kpd.block_rows)
+        self.whitening = np.broadcast_to(np.eye(p), (k, p, p))
+        self.basis = np.ones((k, 1))
+        self.n_comb = k
+        self.inner = float("nan")
+        self.info = {"mode": self.mode, "basis": kpd.spectral.get("basis"),
+                     "profiles": int(prof.shape[1]), "combinations": int(k),
+                     "dof": int(self.rank.sum())}
+        log.info("%s: spectral-differential search: %d profile(s) out of %d channels, %d "
+                 "combinations", kpd.name, prof.shape[1], q, k)
+
+    def _rows(self, rows):
+        if rows is None:
+            return None
+        return whiten(np.einsum("kc,ncp->nkp", self.data_mixing, rows), self._w)
+
+    def detection_model(self, grid, *, basis=None):
+        """The `SpectralModel` on *grid*; what the projection keeps of a companion is
+        measured by separation (``info['retained']``) with the inner separation where
+        half of it is left (``self.inner``, ``info['inner_separation']``)."""
+        kpd = self.kpd
+        model = SpectralModel(kpd.kernel_model, kpd.wavelengths, self._w, self.mixing, grid,
+                              pixscale=kpd.pixscale, window=kpd.window, dof=self.rank,
+                              detpa=self.poses, basis=self.basis)
+        self._retained(grid)
+        return model
+
+    def _retained(self, grid):
+        sel = grid.valid
+        seps = np.unique(np.round(grid.sep[sel], 6))
+        step = float(max(abs(grid.step[0]), abs(grid.step[1])))
+        rings = np.arange(seps.min(), seps.max() + step / 2, step)
+        ang = np.arange(RETAINED_ANGLES) * np.pi / RETAINED_ANGLES
+        pos = np.stack([np.outer(rings, np.cos(ang)).ravel(),
+                        np.outer(rings, np.sin(ang)).ravel()], axis=1)
+        frac = retained_fraction(self.kpd.kernel_model, self.kpd.wavelengths, pos,
+                                 self.combinations, spectrum=self.spectrum, scale=self.scale)
+        sep = np.repeat(rings, len(ang))
+        self.inner = inner_separation(sep, frac)
+        med = [float(np.median(frac[sep == r])) for r in rings]
+        self.info["retained"] = [[round(float(r), 1), round(m, 4)] for r, m in zip(rings, med)]
+        self.info["inner_separation"] = self.inner
+
+    def model_kp(self, pos, contrast, *, derivative=False):
+        """Whitened model (k, p) of a companion at *pos* (mas, the search's frame) with one
+        contrast scale per combination (*contrast*, (k,), window included); with
+        *derivative*, also its derivative with respect to each (k, p)."""
+        kpd = self.kpd
+        km = kpd.kernel_model
+        lam = kpd.wavelengths.to_value(u.m)
+        k = self.n_comb
+        c = np.broadcast_to(np.asarray(contrast, float), (k,))
+        if self.poses is None:
+            xy, wts = np.array([[float(pos[0]), float(pos[1])]]), np.ones(1)
+        else:
+            ang, wts = np.asarray(self.poses[0], float), self.poses[1]
+            wts = np.ones(ang.size) if wts is None else np.asarray(wts, float)
+            xy = np.column_stack(sky_to_detector(float(pos[0]), float(pos[1]), ang))
+        wts = wts / wts.sum()
+        uv = km.uv.value
+        theta = 2 * np.pi * MAS * (xy @ uv.T)                                 # (n, nuv)
+        h = np.exp(-1j * theta[:, None, :] / lam[None, :, None])              # (n, q, nuv)
+        ca = c[:, None] * self.spectrum[None, :]                             # (k, q)
+        z = 1 + ca[None, :, :, None] * h[:, None]                            # (n, k, q, nuv)
+        phase = np.tensordot(wts, np.angle(z), axes=(0, 0)) @ km.kernel.T     # (k, q, p)
+        out = whiten(np.einsum("kc,kcp->kp", self.data_mixing, phase), self._w)
+        if not derivative:
+            return out
+        dz = np.imag(self.spectrum[None, :, None] * h[:, None] / z)
+        dphase = np.tensordot(wts, dz, axes=(0, 0)) @ km.kernel.T
+        return out, whiten(np.einsum("kc,kcp->kp", self.data_mixing, dphase), self._w)
+
+    def _attenuation(self, x, y):
+        kpd = self.kpd
+        if kpd.window is None:
+            return 1.0
+        return float(kpd.window.at(np.hypot(x, y), kpd.pixscale))
+
+    def refine(self, cands, residual, noise_rows=None, box=20.0):
+        """Fit each candidate's position and contrast scales to the combinations (in
+        place, as `~kpifs.detect.fit.refine_candidates`); returns the fitted models."""
+        return refine_stack(self, cands, residual, noise_rows, box)
+
+    def channel_contrasts(self, c, cerr):
+        """The combinations' contrast maps (k, ny, nx) and errors as the channels' (q, ...):
+        their weighted mean (the companion's one scale) times the spectrum shape."""
+        wt = np.where(np.isfinite(cerr) & (cerr > 0), 1 / np.where(cerr > 0, cerr, 1) ** 2, 0)
+        tot = wt.sum(axis=0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = np.sum(wt * np.nan_to_num(c), axis=0) / tot
+            err = 1 / np.sqrt(tot)
+        a = self.spectrum[:, None, None]
+        return a * mean[None], a * err[None]
+
+    def channel_table(self, cands):
+        """The candidates' per-combination contrast columns as per-channel ones (in place)."""
+        a = self.spectrum
+        for val, err in (("contrast", "contrast_err"), ("fit_contrast", "fit_contrast_err")):
+            if val not in cands.colnames or err not in cands.colnames or not len(cands):
+                continue
+            c = np.asarray(cands[val], float).reshape(len(cands), -1)
+            e = np.asarray(cands[err], float).reshape(len(cands), -1)
+            if c.shape[1] != self.n_comb:
+                continue
+            wt = np.where(e > 0, 1 / np.where(e > 0, e, 1) ** 2, 0.0)
+            tot = wt.sum(axis=1)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                mean, sig = np.sum(wt * c, axis=1) / tot, 1 / np.sqrt(tot)
+            cands[val] = mean[:, None] * a[None]
+            cands[err] = sig[:, None] * a[None]

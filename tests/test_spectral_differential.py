@@ -1,0 +1,192 @@
+"""Spectral-differential kernel phases (issue 39): the step, the projection of data,
+noise and signatures alike, what it keeps of a companion, and its record."""
+import warnings
+
+import numpy as np
+import pytest
+from astropy import units as u
+
+from kpifs import KernelModel, KernelPhaseData, make_pupil
+from kpifs.calibration.spectral_diff import (inner_separation, kept_combinations,
+                                             nuisance_profiles, retained_fraction,
+                                             spectral_differential)
+from kpifs.data import DetectionGrid
+from kpifs.detect import DetectionModel, detect
+from kpifs.detect.sdk import SpectralModel, SpectralStack
+from kpifs.exceptions import KpifsError
+
+WL = np.linspace(1.16, 2.37, 10) * u.um
+
+
+@pytest.fixture(scope="module")
+def km():
+    """Fine enough for a grid out to 230 mas at 1.16 um."""
+    return KernelModel.from_pupil(make_pupil("subaru", step=0.5 * u.m))
+
+
+@pytest.fixture(scope="module")
+def small():
+    return KernelModel.from_pupil(make_pupil("subaru", step=1.2 * u.m))
+
+
+def _static(km, rng, amp=1.0):
+    """A residual smooth in 1/lambda (degree 2) per kernel phase: inside the profiles."""
+    x = 1 / WL.to_value(u.um)
+    coef = rng.normal(0, amp, (3, km.n_kp))
+    return np.stack([x ** 0, x, x ** 2], axis=1) @ coef                 # (q, p)
+
+
+def _product(km, rng, n_frames=400, sigma=None, static=0.0):
+    q = len(WL)
+    sigma = np.linspace(1.0, 2.0, q) if sigma is None else sigma
+    frames = rng.normal(0, 1, (n_frames, q, km.n_kp)) * sigma[None, :, None]
+    frames += _static(km, rng, static)[None]
+    t = KernelPhaseData(frames, WL, 16.2 * u.mas, km)
+    return t, sigma
+
+
+def test_profiles_orthonormal_and_refusals(small):
+    km = small
+    kpd = KernelPhaseData(np.zeros((3, len(WL), km.n_kp)), WL, 16.2 * u.mas, km)
+    for order in (0, 1, 2, 3):
+        t = nuisance_profiles(kpd, order=order)
+        assert t.shape == (len(WL), order + 1)
+        assert np.allclose(t.T @ t, np.eye(order + 1))
+    one = KernelPhaseData(np.zeros((3, 1, km.n_kp)), [1.6] * u.um, 16.2 * u.mas, km)
+    with pytest.raises(KpifsError, match="several channels"):
+        spectral_differential(one)
+    with pytest.raises(KpifsError, match="leaves nothing"):
+        spectral_differential(kpd, order=len(WL))
+    with pytest.raises(KpifsError, match="static_rows"):
+        nuisance_profiles(kpd, basis="static")
+
+
+def test_whitened_energy_is_dof_and_static_removed(small):
+    """With the covariance known, the whitened energy of companion-free combinations is
+    chi-square with (q - m) p degrees of freedom, and a static residual in the profiles'
+    span (1000 times the noise) leaves it unchanged to rounding."""
+    km = small
+    rng = np.random.default_rng(1)
+    q, p = len(WL), km.n_kp
+    sigma = np.linspace(1.0, 2.0, q)
+    cov = np.stack([np.eye(p) * s ** 2 for s in sigma])
+    prof = nuisance_profiles(KernelPhaseData(np.zeros((1, q, p)), WL, 16.2 * u.mas, km),
+                             order=2)
+    energies = []
+    for _ in range(50):
+        noise = rng.normal(0, 1, (q, p)) * sigma[:, None]
+        kpd = KernelPhaseData(noise[None], WL, 16.2 * u.mas, km, covariance=cov,
+                              meta={"calibrated": True})
+        kpd.spectral = {"profiles": prof, "basis": "poly", "order": 2}
+        st = SpectralStack(kpd, noise, cov)
+        assert st.rank.sum() == (q - 3) * p
+        e = float(np.sum(st.kp ** 2))
+        st2 = SpectralStack(kpd, noise + 1000 * _static(km, rng), cov)
+        assert np.isclose(float(np.sum(st2.kp ** 2)), e, rtol=1e-6)
+        energies.append(e)
+    dof = (q - 3) * p
+    # mean of 50 chi2(dof): sd sqrt(2 dof / 50); 6 sd
+    assert abs(np.mean(energies) - dof) < 6 * np.sqrt(2 * dof / 50)
+
+
+def test_retained_fraction_theory(small):
+    """One constant profile and equal noise: what is kept is
+    1 - ||sum_c s_c||^2 / (q sum_c ||s_c||^2); close in (kernel phases cancel the linear
+    term: the signature goes as 1/lambda^3) a degree-3 basis keeps nothing, far out a
+    degree-1 basis keeps most."""
+    km = small
+    q = len(WL)
+    const = np.ones((q, 1)) / np.sqrt(q)
+    v = kept_combinations(const, np.ones(q))
+    pos = np.array([[150.0, 40.0], [-60.0, 210.0]])
+    lam = WL.to_value(u.m)
+    theta = 2 * np.pi * (pos * np.pi / 180 / 3600e3) @ km.uv.value.T
+    s = np.sin(theta[None] / lam[:, None, None]) @ km.kernel.T               # (q, n, p)
+    expect = 1 - np.sum(s.sum(axis=0) ** 2, axis=-1) / (q * np.sum(s ** 2, axis=(0, 2)))
+    got = retained_fraction(km, WL, pos, v)
+    assert np.allclose(got, expect, rtol=1e-10)
+    kpd = KernelPhaseData(np.zeros((1, q, km.n_kp)), WL, 16.2 * u.mas, km)
+    cubic = kept_combinations(nuisance_profiles(kpd, order=3), np.ones(q))
+    assert retained_fraction(km, WL, [[1.0, 0.5]], cubic)[0] < 1e-3
+    lin = kept_combinations(nuisance_profiles(kpd, order=1), np.ones(q))
+    assert retained_fraction(km, WL, [[300.0, 100.0]], lin)[0] > 0.5
+    assert inner_separation([10, 10, 20, 20, 40], [0.1, 0.3, 0.6, 0.3, 0.8]) == 40.0
+    assert np.isnan(inner_separation([10, 20], [0.9, 0.1]))
+
+
+def test_model_signatures_are_the_projected_ones(small):
+    """The combinations' signature norms (white noise) over the channels' free ones are the
+    retained fraction; the maps of the stack's companion model give its contrast back."""
+    km = small
+    q = len(WL)
+    grid = DetectionGrid.from_separation(95 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    prof = nuisance_profiles(KernelPhaseData(np.zeros((1, q, km.n_kp)), WL, 16.2 * u.mas, km),
+                             order=1)
+    v = kept_combinations(prof, np.ones(q))
+    eye = np.broadcast_to(np.eye(km.n_kp), (v.shape[1], km.n_kp, km.n_kp))
+    sm = SpectralModel(km, WL, eye, v.T, grid)
+    free = DetectionModel(km, WL, np.broadcast_to(np.eye(km.n_kp), (q, km.n_kp, km.n_kp)),
+                          grid)
+    sel = grid.valid
+    ratio = sm.norm2.sum(axis=0)[sel] / free.norm2.sum(axis=0)[sel]
+    pos = np.column_stack([grid.X[sel], grid.Y[sel]])
+    assert np.allclose(ratio, retained_fraction(km, WL, pos, v), rtol=1e-8)
+    # a faint companion's model seen by the maps: its contrast at its position
+    cov = np.broadcast_to(np.eye(km.n_kp), (q, km.n_kp, km.n_kp))
+    kpd = KernelPhaseData(np.zeros((1, q, km.n_kp)), WL, 16.2 * u.mas, km, covariance=cov)
+    kpd.spectral = {"profiles": prof, "basis": "poly", "order": 1}
+    st = SpectralStack(kpd, np.zeros((q, km.n_kp)), cov)
+    model = st.detection_model(grid)
+    iy, ix = np.unravel_index(np.argmax(np.where(sel, grid.sep, 0) * (grid.X > 0)), sel.shape)
+    x, y = grid.X[iy, ix], grid.Y[iy, ix]
+    data = st.model_kp((x, y), 1e-4)
+    c, _ = model.contrast_maps(data)
+    assert np.allclose(c[:, iy, ix], 1e-4, rtol=1e-3)
+    # the maps from the cached unit signatures are the projections' (on the searched area)
+    noise = np.random.default_rng(2).normal(0, 1, data.shape)
+    assert "_amp" in model.__dict__
+    fast, slow = model.dot_maps(noise), DetectionModel.dot_maps(model, noise)
+    assert np.allclose(fast[:, sel], slow[:, sel], rtol=1e-4, atol=1e-4 * np.abs(slow).max())
+
+
+@pytest.mark.slow
+def test_detect_finds_companion_under_static(km):
+    """No calibrator, a static residual 30 times the frames' noise in the profiles' span:
+    without the option the search is refused; with it, a companion is found where it is,
+    with its contrast, and companion-free data give nothing."""
+    rng = np.random.default_rng(3)
+    t, sigma = _product(km, rng, n_frames=400, static=30.0 / np.sqrt(400))
+    with pytest.raises(KpifsError, match="not calibrated"):
+        detect(t, n_draws=1000)
+    grid = DetectionGrid.from_separation(230 * u.mas, 12 * u.mas, min_sep=40 * u.mas)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        empty = detect(spectral_differential(t, order=2), n_draws=1000, grid=grid, pfa=1e-2,
+                       limits=False)
+    assert len(empty.candidates) == 0
+    c = 0.02
+    comp = km.binary_kernel_phases([180.0, -60.0] * u.mas, np.full(len(WL), c), WL)
+    t.kp += comp[None]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = detect(spectral_differential(t, order=2), n_draws=1000, grid=grid, pfa=1e-2,
+                     limits=False)
+    assert len(res.candidates) >= 1
+    row = res.candidates[0]
+    assert np.hypot(row["fit_x"].to_value(u.mas) - 180, row["fit_y"].to_value(u.mas) + 60) < 5
+    fc = np.asarray(row["fit_contrast"], float)
+    assert fc.shape == (len(WL),)
+    assert abs(fc.mean() - c) < 5 * float(np.asarray(row["fit_contrast_err"]).mean())
+    assert res.meta["blocks"]["mode"] == "spectral-differential"
+
+
+def test_kpfits_round_trip(small, tmp_path):
+    rng = np.random.default_rng(0)
+    t, _ = _product(small, rng, n_frames=300)
+    sdk = spectral_differential(t, order=1)
+    sdk.write(tmp_path / "sdk.fits")
+    back = KernelPhaseData.read(tmp_path / "sdk.fits")
+    assert np.allclose(back.spectral["profiles"], sdk.spectral["profiles"])
+    assert back.spectral["basis"] == "poly" and back.spectral["order"] == 1
+    sub = back.select_channels([0, 2, 4, 6])
+    assert sub.spectral["profiles"].shape == (4, 2)
