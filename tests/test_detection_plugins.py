@@ -128,6 +128,10 @@ def test_a_registered_toy_test_runs_detect(toy_test):
     assert float(toy_test.local_pfa(res_model(), np.array(9.0))) == pytest.approx(
         1 - (1 - norm_sf(3.0)) ** 2, rel=1e-12)
     assert "M" not in res.limits and set(res.limits) == {"NP", "E", "B", "B-paper", "S"}
+    # a built-in search runs with the toy registered (its null is not one the limits read)
+    assert res.meta["null"]["threshold"] == res.threshold
+    res_b = detect(_data(), grid=GRID, test="B", n_draws=2000, seed=0)
+    assert len(res_b.candidates) == 1 and "M" not in res_b.limits
 
 
 def res_model():

@@ -397,8 +397,8 @@ class _Null:
 
 def _null_stage(prep, white, opts):
     form = prep.test.map_name
-    # only what is needed is reduced: the search's test, and the limits' nulls (drawn
-    # together; a null that depends on the spectrum shape is drawn on its own)
+    # only what is needed is reduced: the search's test, and the nulls the limits read
+    # (drawn together; a null that depends on the spectrum shape is drawn on its own)
     shared = tuple(t.name for t in REGISTRY.values()
                    if _has_null(t) and not t.spectral_null) if opts.limits else ()
 
@@ -425,8 +425,11 @@ def _null_stage(prep, white, opts):
 
 
 def _has_null(test):
-    """Whether a test draws its own null (a map test with a reduction of the draws)."""
-    return test.map_name == test.name and type(test).null_reducer is not DetectionTest.null_reducer
+    """Whether a test's limit reads the threshold of its own null (a map test with a
+    reduction of the draws, and a limit)."""
+    own = type(test)
+    return test.map_name == test.name and own.null_reducer is not DetectionTest.null_reducer \
+        and own.limit is not DetectionTest.limit
 
 
 # --- stage 4: the sequential search and the fits ---------------------------------------
