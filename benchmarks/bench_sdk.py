@@ -23,7 +23,8 @@ def main(argv=None):
     args = ap.parse_args(argv)
     root = Path(tempfile.mkdtemp(prefix="kpifs-bench-sdk-"))
     assert kpifs(["simulate", "--preset", "charis", "--typical-static", "--shape", "80",
-                  "--frames", "20", "--contrasts", ",".join(["0"] * 22), "-o", str(root / "sim"), "-q"]) == 0
+                  "--frames", "20", "--contrasts", ",".join(["0"] * 22),
+                  "-o", str(root / "sim"), "-q"]) == 0
     cube = str(root / "sim" / "target.fits")
     assert kpifs(["extract", cube, "-o", str(root / "raw.fits"), "-q"]) == 0
     assert kpifs(["extract", cube, "--spectral-differential", "poly", "-o",
