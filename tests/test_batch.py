@@ -105,6 +105,19 @@ def small_archive(tmp_path_factory):
 SMALL = ["--step", "1.2m", "--draws", "1000", "--pfa", "0.01", "--workers", "1", "-q"]
 
 
+def _long_manifest(small_archive, tmp_path, n=8):
+    """The small archive's four observations named *n* times over (absolute paths): a
+    batch that is still running when its first entry is done, however busy the machine
+    (with four entries, a loaded machine could finish them all between two looks)."""
+    lines = ["name,target,calibrator"]
+    for k in range(n):
+        s = small_archive / f"s{k % 4}"
+        lines.append(f"e{k},{s / 'target.fits'},{s / 'calibrator.fits'}")
+    path = tmp_path / "long.csv"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
 def test_batch_rerun_is_keyed_on_options(small_archive, tmp_path, capsys):
     """A rerun skips entries made with the same options and inputs, and redoes the others."""
     manifest = str(small_archive / "small.csv")
@@ -157,7 +170,8 @@ def test_batch_interrupt_keeps_a_record(small_archive, tmp_path):
     import signal
     import time
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "kpifs", "batch", str(small_archive / "small.csv"), *SMALL,
+    cmd = [sys.executable, "-m", "kpifs", "batch", str(_long_manifest(small_archive, tmp_path)),
+           *SMALL,
            "-o", str(out)]
     # Ctrl-C reaches the command even when this test runs in the background, where the
     # shell ignores SIGINT and the child would inherit that
@@ -165,7 +179,7 @@ def test_batch_interrupt_keeps_a_record(small_archive, tmp_path):
                             start_new_session=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     t0 = time.time()
-    while not (out / "s0" / "detection.fits").exists() and time.time() - t0 < 120:
+    while not (out / "e0" / "detection.fits").exists() and time.time() - t0 < 120:
         time.sleep(0.05)
     assert proc.poll() is None, "the batch finished before it could be interrupted"
     os.kill(proc.pid, signal.SIGINT)
@@ -175,12 +189,12 @@ def test_batch_interrupt_keeps_a_record(small_archive, tmp_path):
     assert "interrupted" in err and "summary.ecsv" in err
     summary = Table.read(out / "summary.ecsv")
     status = dict(zip(summary["name"], summary["status"]))
-    assert status["s0"] == "ok"
+    assert status["e0"] == "ok"
     assert "interrupted" in status.values()
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     again = dict(zip(*Table.read(out / "summary.ecsv")[["name", "status"]].columns.values()))
-    assert again["s0"] == "skipped"
+    assert again["e0"] == "skipped"
     assert all(again[n] in ("ok", "skipped") for n in again)
     assert sum(s == "ok" for s in again.values()) == sum(s != "ok" for s in status.values())
 
@@ -294,12 +308,13 @@ def test_batch_ctrl_c_to_the_process_group(small_archive, tmp_path):
     import signal
     import time
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "kpifs", "batch", str(small_archive / "small.csv"), *SMALL,
+    cmd = [sys.executable, "-m", "kpifs", "batch", str(_long_manifest(small_archive, tmp_path)),
+           *SMALL,
            "-o", str(out)]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
     t0 = time.time()
-    while not (out / "s0" / "detection.fits").exists() and time.time() - t0 < 120:
+    while not (out / "e0" / "detection.fits").exists() and time.time() - t0 < 120:
         time.sleep(0.05)
     os.killpg(proc.pid, signal.SIGINT)
     _, err = proc.communicate(timeout=120)
