@@ -22,8 +22,9 @@ TILE = 32
 
 @dataclass
 class KnownPositionDraws:
-    """Monte-Carlo draws at one known position, under H0 and H1 (pairs ``(h0, h1)``):
-    *ex* ``sum_i e_i . x_i`` (plus ``||x||^2`` under H1), *ee* the energy
+    """Monte-Carlo draws at one known position, under H0 and H1 (pairs ``(h0, h1)``).
+
+    *ex* ``sum_i e_i x_i`` (plus ``||x||^2`` under H1), *ee* the energy
     ``sum_i ||e_i + x_i||^2``, *z* (n, q) the normalised projections on the
     signal's direction, *norms* (q,) the signal's norm per channel
     (`kpifs.detect.known_position.monte_carlo_roc`).
@@ -149,8 +150,8 @@ class LimitInputs:
 class DetectionTest:
     """A detection test: subclass it, set the class attributes, implement the methods.
 
-    Class attributes
-    ----------------
+    Attributes
+    ----------
     name : str
         Its name (``--test NAME``, the TEST card, the ``<name>_median`` columns).
     label : str
