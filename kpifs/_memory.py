@@ -24,15 +24,16 @@ def available_memory():
 
 
 def _size(nbytes):
-    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
-        if nbytes < 1024 or unit == "PiB":
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB", "EiB"):
+        if nbytes < 1024 or unit == "EiB":
             return f"{nbytes:.0f} {unit}" if nbytes >= 1000 else f"{nbytes:.3g} {unit}"
         nbytes /= 1024
 
 
 def check_memory(nbytes, what, advice):
-    """Refuse a computation whose estimated memory exceeds what is available."""
+    """Refuse a computation whose estimated memory exceeds what is available (or cannot
+    be estimated: not finite)."""
     avail = available_memory()
-    if nbytes > avail:
+    if not nbytes <= avail:
         raise KpifsError(f"{what} needs about {_size(nbytes)} of memory ({_size(avail)} "
                          f"available): {advice}")

@@ -184,8 +184,8 @@ def test_memory_estimated_before_allocation(files, monkeypatch):
     """Every size a file implies is estimated first: with 1 MiB available, a 7-station
     file of 3 channels (its covariance ~300 kB per table) is refused by name, not by a
     MemoryError."""
-    import kpifs.io.oifits_noise as noise
-    monkeypatch.setattr(noise, "_available", lambda: 2 ** 14)
+    import kpifs._memory
+    monkeypatch.setattr(kpifs._memory, "available_memory", lambda: 2 ** 14)
     with pytest.raises(KpifsError, match=r"good\.oifits: .* needs about .* of memory"):
         KernelPhaseData.read(files["good"])
 

@@ -29,37 +29,16 @@ implied by the file's numbers is allocated, its memory is estimated and the
 read refused (`~kpifs.exceptions.KpifsError`) when it exceeds what the
 machine has.
 """
-import os
 
 import numpy as np
 
+from .._memory import check_memory
 from ..exceptions import KpifsError
 
 __all__ = ["closure_covariance", "check_size", "CORRELATIONS"]
 
 #: What closure phases that a file gives no correlations for are taken to share.
 CORRELATIONS = ("baselines", "independent")
-
-
-def _available():
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (ValueError, OSError, AttributeError):
-        return 2 ** 34
-
-
-def _size(nbytes):
-    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB", "EiB"):
-        if nbytes < 1024 or unit == "EiB":
-            return f"{nbytes:.3g} {unit}"
-        nbytes /= 1024
 
 
 def check_size(nbytes, what, source, advice):
@@ -75,10 +54,7 @@ def check_size(nbytes, what, source, advice):
     ...     print(str(exc)[:52])
     x.oifits: a covariance needs about 173 EiB of memory
     """
-    avail = _available()
-    if not np.isfinite(nbytes) or nbytes > avail:
-        raise KpifsError(f"{source}: {what} needs about {_size(float(nbytes))} of memory "
-                         f"({_size(avail)} available): {advice}")
+    check_memory(float(nbytes), f"{source}: {what}", advice)
 
 
 def _baseline_correlation(cmat, epoch):
