@@ -171,10 +171,15 @@ class DetectionModel:
 
     def _sin_rows(self, i, rows):
         """``sin(theta_i)`` (weighted mean over poses) at flat grid positions *rows*."""
-        nx = self.grid.shape[1]
-        iy, ix = np.divmod(rows, nx)
+        return self._sin_from(self._trig[i], rows)
+
+    def _sin_from(self, trig, rows):
+        """``sin(theta)`` at flat grid positions *rows* from one axis's separable factors
+        *trig* (``sin``/``cos`` along x and y and the pose weight, per pose):
+        ``sin(a + b) = sin a cos b + cos a sin b``."""
+        iy, ix = np.divmod(rows, self.grid.shape[1])
         out = 0.0
-        for sx, cx, sy, cy, wt in self._trig[i]:
+        for sx, cx, sy, cy, wt in trig:
             out = out + wt * (sx[ix] * cy[iy] + cx[ix] * sy[iy])
         return out
 

@@ -101,12 +101,7 @@ class SpectralModel(DetectionModel):
         return None
 
     def _channel_sin(self, c, rows):
-        nx = self.grid.shape[1]
-        iy, ix = np.divmod(rows, nx)
-        out = 0.0
-        for sx, cx, sy, cy, wt in self._channel_trig[c]:
-            out = out + wt * (sx[ix] * cy[iy] + cx[ix] * sy[iy])
-        return out
+        return self._sin_from(self._channel_trig[c], rows)
 
     def _sin_rows(self, i, rows):
         out = 0.0
