@@ -120,6 +120,11 @@ class _Projections:
                 z[np.searchsorted(valid, self.positions)].transpose(2, 1, 0), np.float32)
             # the sum of z over channels is one product: coef @ sum_i proj_i
             self.sum_weights = self.proj.sum(axis=0)
+            # and sum_i ||z_i||^2 a quadratic form of coef: coef^T (sum_i Z_i Z_i^T) coef
+            zh = z[np.searchsorted(valid, self.positions)]
+            flat = zh.transpose(1, 0, 2).reshape(len(rows), -1)
+            self.gram = flat @ flat.T
+            self._z = zh
         else:
             self.unit = model._unit_signatures(self.positions)            # (q, npos, p)
             self.flat_rows = None if rows is None else \
@@ -127,6 +132,16 @@ class _Projections:
             # ... or eps (all channels) @ the stacked signatures
             self.sum_weights = self.unit.transpose(0, 2, 1).reshape(self.q * p, -1) \
                 if self.mirrored else None
+
+    def combine(self, weights):
+        """Matrices (r, nrow, npos) that give the weighted channel sums
+        ``sum_i weights[j, i] z_i`` of the draws as one product each (*weights*
+        (r, q, npos)), or None when the draws do not go through the rows (there, the
+        channels' projections are the cheaper route)."""
+        if not self.via_rows:
+            return None
+        return np.einsum("jik,kri->jrk", np.asarray(weights, float), self._z).astype(
+            np.float32)
 
     def draw(self, rng, a, b):
         """The draws ``a:b``: an object whose ``channel(i, out)`` projects channel ``i``
@@ -156,6 +171,17 @@ class _Draw:
             lhs = self.coef if self.p.via_rows else self.joint.reshape(len(self.joint), -1)
             self._sum = lhs @ self.p.sum_weights
         return self._sum
+
+    def combined(self, mats):
+        """The weighted channel sums of `_Projections.combine`'s *mats*: (r, n, npos)."""
+        return np.matmul(self.coef, mats)
+
+    def energy(self):
+        """``sum_i ||z_i||^2`` of each draw, through the rows (None: not through them)."""
+        if not self.p.via_rows:
+            return None
+        c = self.coef.astype(float)
+        return np.einsum("nr,nr->n", c @ self.p.gram, c)
 
 
 class NullCalibration:
@@ -260,25 +286,33 @@ class NullCalibration:
         (the same draws whatever the tests and the number of threads)."""
         proj = _Projections(self)
         names = tuple(dict.fromkeys((self.form,) + tuple(self.also)))
-        setup = NullSetup(self.model, proj.positions, proj.mirrored, self.spectrum, names)
+        setup = NullSetup(self.model, proj.positions, proj.mirrored, self.spectrum, names,
+                          proj.combine)
         reducers = [r for r in (get_test(n).null_reducer(setup) for n in names) if r is not None]
         q = proj.q
+        # the channels' projections one by one, only for reductions that need them
+        per_channel = any(getattr(r, "per_channel", True) for r in reducers) \
+            or not proj.via_rows
 
         def one(job):
             (a, b), rng = job
             draw = proj.draw(rng, a, b)
             parts = [r.batch(b - a) for r in reducers]
-            z = np.empty((b - a, proj.npos), np.float32)
-            z2 = np.zeros(b - a)
-            for i in range(q):
-                draw.channel(i, out=z)
-                z2 += np.einsum("nk,nk->n", z, z)
-                for part in parts:
-                    part.add(i, z)
+            adders = [p for r, p in zip(reducers, parts) if getattr(r, "per_channel", True)]
+            z2 = draw.energy()
+            if per_channel:
+                z = np.empty((b - a, proj.npos), np.float32)
+                z2 = np.zeros(b - a) if z2 is None else z2
+                for i in range(q):
+                    draw.channel(i, out=z)
+                    if not proj.via_rows:
+                        z2 += np.einsum("nk,nk->n", z, z)
+                    for part in adders:
+                        part.add(i, z)
             # the map's mean square (mirrored positions have the same): `noise_draws`
             out = {"Z2": z2 / (q * proj.npos)}
             for part in parts:
-                out.update(part.finish(draw.channel_sum))
+                out.update(part.finish(draw))
             return out
 
         spans = [(a, min(self.n_draws, a + batch)) for a in range(0, self.n_draws, batch)]

@@ -51,7 +51,11 @@ class NullSetup:
 
     *positions* are the flat grid positions projected (half the grid when
     *mirrored*: a signature at ``-pos`` is minus that at ``pos``), *spectrum*
-    the matched filter's spectrum shape.
+    the matched filter's spectrum shape. *combine*, given channel weights
+    (r, q, npos), returns what a draw's ``combined`` turns into the weighted
+    channel sums ``sum_i weights[j, i] z_i`` (r, n, npos), one matrix product each,
+    or None when the draws are cheaper channel by channel: a reduction that is
+    linear in the ``z_i`` takes that route (and sets ``per_channel = False``).
 
     Examples
     --------
@@ -77,6 +81,7 @@ class NullSetup:
     spectrum: object = None
     #: The names of every test reduced from the same draws (tests that share work).
     names: tuple = ()
+    combine: object = None
 
     @property
     def n_channels(self):
@@ -213,8 +218,10 @@ class DetectionTest:
     def null_reducer(self, setup):
         """A `NullSetup` -> an object whose ``batch(n)`` gives a fresh reduction of *n*
         draws: ``add(i, z)`` for each channel ``i`` (*z* (n, npos) float32, read
-        only), then ``finish(channel_sum)`` -> ``{name: (n,) maxima over the grid}``
-        (*channel_sum* a function giving the projections' sum over channels)."""
+        only; not called when the object's ``per_channel`` is False), then
+        ``finish(draw)`` -> ``{name: (n,) maxima over the grid}`` (*draw*'s
+        ``channel_sum()`` gives the projections' sum over channels, its
+        ``combined(mats)`` the weighted sums of `NullSetup`'s *combine*)."""
         raise NotImplementedError(f"test {self.name!r} has no null")
 
     def limit(self, inputs):

@@ -59,14 +59,14 @@ class _Batch:
                 v *= v
                 self.neg[a:b] += v
 
-    def finish(self, channel_sum):
+    def finish(self, draw):
         out = {}
         for f, acc in self.acc.items():
             best = acc.max(axis=1)
             if f == "B" and self.r.mirrored:
                 best = np.maximum(best, self.neg.max(axis=1))
             elif self.r.mirrored:
-                best = np.maximum(best, (acc - channel_sum()).max(axis=1))
+                best = np.maximum(best, (acc - draw.channel_sum()).max(axis=1))
             out[f] = best
         return out
 

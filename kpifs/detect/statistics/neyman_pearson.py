@@ -24,6 +24,9 @@ class _Reducer:
         mfw = setup.model._mf_weights(setup.spectrum).reshape(q, -1)
         self.weights = mfw[:, setup.positions].astype(np.float32)
         self.mirrored = setup.mirrored
+        # through the noise rows, the filter's sum is one product of the draws
+        self.mats = None if setup.combine is None else setup.combine(mfw[None, :, setup.positions])
+        self.per_channel = self.mats is None
 
     def batch(self, n):
         return _Batch(self, n)
@@ -32,12 +35,15 @@ class _Reducer:
 class _Batch:
     def __init__(self, reducer, n):
         self.r = reducer
-        self.acc = np.zeros((n, reducer.weights.shape[1]), np.float32)
+        self.acc = np.zeros((n, reducer.weights.shape[1]), np.float32) \
+            if reducer.per_channel else None
 
     def add(self, i, z):
         self.acc += self.r.weights[i] * z
 
-    def finish(self, channel_sum):
+    def finish(self, draw):
+        if self.r.mats is not None:
+            self.acc = draw.combined(self.r.mats)[0]
         best = self.acc.max(axis=1)
         if self.r.mirrored:
             best = np.maximum(best, -self.acc.min(axis=1))

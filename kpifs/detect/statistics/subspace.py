@@ -94,6 +94,11 @@ class _Reducer:
         self.r = len(self.sub)
         self.sign = model.subspace_sign.reshape(self.r, -1)[:, pos].astype(np.float32)
         self.mirrored, self.npos = setup.mirrored, len(pos)
+        # through the noise rows, each projection is one product of the draws:
+        # sum_i U[j, i] z_i = coef @ sum_i U[j, i] Z_i (not q * r elementwise passes)
+        self.mats = None if setup.combine is None else \
+            setup.combine(sub.reshape(sub.shape[:2] + (-1,))[:, :, pos])
+        self.per_channel = self.mats is None
 
     def batch(self, n):
         return _Batch(self, n)
@@ -102,8 +107,9 @@ class _Reducer:
 class _Batch:
     def __init__(self, reducer, n):
         self.red = reducer
-        self.proj = np.zeros((reducer.r, n, reducer.npos), np.float32)
-        self.tmp = np.empty((TILE, reducer.npos), np.float32)
+        if reducer.per_channel:
+            self.proj = np.zeros((reducer.r, n, reducer.npos), np.float32)
+            self.tmp = np.empty((TILE, reducer.npos), np.float32)
 
     def add(self, i, z):
         # by tiles of draws: z's tile and the product stay in the cache for every j
@@ -115,8 +121,9 @@ class _Batch:
                 np.multiply(self.red.sub[j, i], zt, out=tmp)
                 self.proj[j, a:a + TILE] += tmp
 
-    def finish(self, channel_sum):
-        red, proj = self.red, self.proj
+    def finish(self, draw):
+        red = self.red
+        proj = self.proj if red.per_channel else draw.combined(red.mats)
         t_s = np.einsum("jnk,jnk->nk", proj, proj)
         # the subspace map's mean square (per coefficient): `noise_draws('G2')`
         out = {"G2": t_s.mean(axis=1) / red.r}
