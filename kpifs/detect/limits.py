@@ -220,7 +220,7 @@ def _moment_guess(m, sigma, threshold, power, pd):
     return hi
 
 
-def _crossings(z, m, threshold, power, start, n_iter=12, rtol=1e-4):
+def _crossings(z, m, threshold, power, start, n_iter=12, rtol=1e-4, chunk=4):
     """Per draw, the contrast at which the binary statistic crosses *threshold*.
 
     For draws *z* (k, q, N) and the signal per unit contrast *m* (k, q) (``m >= 0``),
@@ -230,35 +230,49 @@ def _crossings(z, m, threshold, power, start, n_iter=12, rtol=1e-4):
     piecewise polynomial). Returns (k, N), 0 for draws above the threshold
     without a companion. ``P_D(c)`` is the fraction of draws crossing below ``c``
     (`~kpifs.detect._laws.order_quantile`): no root finding on a Monte-Carlo ``P_D``.
+    The steps go *chunk* positions at a time, whose work arrays stay in the
+    processor's cache, and a chunk stops once all its draws have converged.
     """
     k, q, n = z.shape
     m32 = m.astype(np.float32)
     c = np.repeat(np.asarray(start, np.float32)[:, None], n, axis=1)
-    u = np.empty_like(z)
+    u = np.empty((min(chunk, k), q, n), z.dtype)
+    todo = list(range(0, k, chunk))
     for _ in range(n_iter):
-        np.multiply(m32[:, :, None], c[:, None, :], out=u)
-        u += z
-        np.maximum(u, 0, out=u)
-        if power == 2:
-            f = np.einsum("kqn,kqn->kn", u, u) - threshold
-            g = 2 * np.matmul(m32[:, None, :], u)[:, 0]
-        else:
-            f = u.sum(axis=1) - threshold
-            g = np.matmul(m32[:, None, :], (u > 0).astype(np.float32))[:, 0]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            new = np.maximum(c - f / g, 0)
-            off = g <= 0
-            if off.any():
-                # every channel off: go to where the first channel alone would reach
-                # the threshold, which is right of the crossing (T is at least that term)
-                alone = np.where(m32[:, :, None] > 0,
-                                 (threshold ** (1 / power) - z) / m32[:, :, None], np.inf)
-                new = np.where(off, np.maximum(alone.min(axis=1), c), new)
-        done = np.all(np.abs(new - c) <= rtol * np.maximum(new, 1e-30))
-        c = new
-        if done:
+        left = []
+        for a in todo:
+            sl = slice(a, a + chunk)
+            new = _newton_step(z[sl], m32[sl], c[sl], threshold, power, u[:len(c[sl])])
+            if not np.all(np.abs(new - c[sl]) <= rtol * np.maximum(new, 1e-30)):
+                left.append(a)
+            c[sl] = new
+        todo = left
+        if not todo:
             break
     return c
+
+
+def _newton_step(z, m32, c, threshold, power, u):
+    """One Newton step of `_crossings` from contrasts *c* (k, N); *u* a work array."""
+    np.multiply(m32[:, :, None], c[:, None, :], out=u)
+    u += z
+    np.maximum(u, 0, out=u)
+    if power == 2:
+        f = np.einsum("kqn,kqn->kn", u, u) - threshold
+        g = 2 * np.matmul(m32[:, None, :], u)[:, 0]
+    else:
+        f = u.sum(axis=1) - threshold
+        g = np.matmul(m32[:, None, :], (u > 0).astype(np.float32))[:, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        new = np.maximum(c - f / g, 0)
+        off = g <= 0
+        if off.any():
+            # every channel off: go to where the first channel alone would reach
+            # the threshold, which is right of the crossing (T is at least that term)
+            alone = np.where(m32[:, :, None] > 0,
+                             (threshold ** (1 / power) - z) / m32[:, :, None], np.inf)
+            new = np.where(off, np.maximum(alone.min(axis=1), c), new)
+    return new
 
 
 def limit_energy_correlated(signal_proj, signal_norm2, noise_energy, threshold, pd):
