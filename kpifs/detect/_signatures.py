@@ -3,19 +3,16 @@ model and the block model of a rotating sequence)."""
 import numpy as np
 
 
-def _norm_chunks(rows, size, signatures, at, wf, unit, basis=None):
+def _norm_chunks(rows, size, signatures, at, wf, unit):
     """``||s||^2`` of ``signatures(chunk)`` (len(chunk), p) over flat *rows*, *size*
-    at a time; the unit signatures of rows *at* go into *unit* (None: not kept).
-    With *basis* (p, r) orthonormal, the signatures are given in it, (len(chunk), r):
-    the same norms, and ``s @ basis.T`` the signatures."""
+    at a time; the unit signatures of rows *at* go into *unit* (None: not kept)."""
     raw = np.empty(len(rows))
     for a in range(0, len(rows), size):
         s = signatures(rows[a:a + size])
         raw[a:a + len(s)] = np.einsum("ij,ij->i", s, s)
         if unit is not None:
             sel = (at >= a) & (at < a + len(s))
-            kept = s[at[sel] - a] if basis is None else s[at[sel] - a] @ basis.T
-            unit[sel] = _unit(kept, raw[at[sel]], wf[sel])
+            unit[sel] = _unit(s[at[sel] - a], raw[at[sel]], wf[sel])
     return raw
 
 

@@ -200,11 +200,9 @@ class DetectionModel:
         out = np.zeros((q, n))
 
         def channel(i):
-            # ||W K sin||^2 through the (nuv, p) lift: fewer flops than the (nuv, nuv) Gram;
-            # through (nuv, r) when the whitening keeps r < p modes
-            lift, basis = self._thin_lift(i)
-            raw = _norm_chunks(rows, 2048, lambda c: self._sin_rows(i, c) @ lift,
-                               at, wf, unit[i] if cache else None, basis)
+            # ||W K sin||^2 through the (nuv, p) lift: fewer flops than the (nuv, nuv) Gram
+            raw = _norm_chunks(rows, 2048, lambda c: self._sin_rows(i, c) @ self._lift[i],
+                               at, wf, unit[i] if cache else None)
             out[i, rows] = raw
             if mirrored:
                 out[i, n - 1 - rows] = raw
@@ -212,20 +210,6 @@ class DetectionModel:
         if cache:
             self._unit_cache = (keep, unit)
         return out.reshape((q,) + self.grid.shape) * self._wfac[None] ** 2
-
-    def _thin_lift(self, i):
-        """``(A, V)``: channel *i*'s lift ``L = A V^T`` with *V* (p, r) orthonormal, when the
-        whitening keeps ``r <= p / 2`` modes (few frames): ``||sin L|| = ||sin A||`` at r/p of
-        the work. Else (or if ``A V^T`` misses ``L`` by more than 1e-12) ``(L, None)``."""
-        lift = self._lift[i]
-        r = int(self.dof[i])
-        if 2 * r > lift.shape[1]:
-            return lift, None
-        basis = np.linalg.eigh(lift.T @ lift)[1][:, ::-1][:, :r]      # the largest r modes
-        thin = lift @ basis
-        if np.linalg.norm(lift - thin @ basis.T) > 1e-12 * np.linalg.norm(lift):
-            return lift, None
-        return thin, basis
 
     def _symmetric_grid(self):
         g = self.grid
