@@ -116,15 +116,11 @@ class _Projections:
         if self.via_rows:
             # the rows' projections on every valid position (the limits use them too)
             valid, z = model.row_projections(rows)                        # (nvalid, nrow, q)
-            self.proj = np.ascontiguousarray(
-                z[np.searchsorted(valid, self.positions)].transpose(2, 1, 0), np.float32)
-            # the sum of z over channels is one product: coef @ sum_i proj_i
-            self.sum_weights = self.proj.sum(axis=0)
-            # and sum_i ||z_i||^2 a quadratic form of coef: coef^T (sum_i Z_i Z_i^T) coef
-            zh = z[np.searchsorted(valid, self.positions)]
-            flat = zh.transpose(1, 0, 2).reshape(len(rows), -1)
+            self._z = z[np.searchsorted(valid, self.positions)]             # (npos, nrow, q)
+            # sum_i ||z_i||^2 is a quadratic form of coef: coef^T (sum_i Z_i Z_i^T) coef
+            flat = self._z.transpose(1, 0, 2).reshape(len(rows), -1)
             self.gram = flat @ flat.T
-            self._z = zh
+            self.proj = self.sum_weights = None          # `channels` makes them if needed
         else:
             self.unit = model._unit_signatures(self.positions)            # (q, npos, p)
             self.flat_rows = None if rows is None else \
@@ -133,6 +129,16 @@ class _Projections:
             self.sum_weights = self.unit.transpose(0, 2, 1).reshape(self.q * p, -1) \
                 if self.mirrored else None
 
+    def channels(self):
+        """Make the channels' projections (q, nrow, npos) and their sum, for the
+        reductions that need every channel's ``z_i`` (and the channels' sum)."""
+        if self.via_rows and self.proj is None:
+            proj = np.ascontiguousarray(self._z.transpose(2, 1, 0), np.float32)
+            # the sum of z over channels is one product: coef @ sum_i proj_i
+            self.sum_weights = proj.sum(axis=0)
+            self.proj = proj
+        return self
+
     def combine(self, weights):
         """Matrices (r, nrow, npos) that give the weighted channel sums
         ``sum_i weights[j, i] z_i`` of the draws as one product each (*weights*
@@ -140,8 +146,9 @@ class _Projections:
         channels' projections are the cheaper route)."""
         if not self.via_rows:
             return None
-        return np.einsum("jik,kri->jrk", np.asarray(weights, float), self._z).astype(
-            np.float32)
+        w = np.asarray(weights, float).transpose(2, 0, 1)                 # (npos, r, q)
+        mats = np.matmul(w, self._z.transpose(0, 2, 1))                    # (npos, r, nrow)
+        return np.ascontiguousarray(mats.transpose(1, 2, 0), np.float32)
 
     def draw(self, rng, a, b):
         """The draws ``a:b``: an object whose ``channel(i, out)`` projects channel ``i``
@@ -168,6 +175,7 @@ class _Draw:
 
     def channel_sum(self):
         if self._sum is None:
+            self.p.channels()
             lhs = self.coef if self.p.via_rows else self.joint.reshape(len(self.joint), -1)
             self._sum = lhs @ self.p.sum_weights
         return self._sum
@@ -293,6 +301,8 @@ class NullCalibration:
         # the channels' projections one by one, only for reductions that need them
         per_channel = any(getattr(r, "per_channel", True) for r in reducers) \
             or not proj.via_rows
+        if per_channel:
+            proj.channels()
 
         def one(job):
             (a, b), rng = job
