@@ -254,7 +254,7 @@ def _crossings(z, m, threshold, power, start, n_iter=12, rtol=1e-4, chunk=4):
 
 def _newton_step(z, m32, c, threshold, power, u):
     """One Newton step of `_crossings` from contrasts *c* (k, N); *u* a work array."""
-    np.multiply(m32[:, :, None], c[:, None, :], out=u)
+    np.einsum("kq,kn->kqn", m32, c, out=u)          # m c (an outer product: no sum)
     u += z
     np.maximum(u, 0, out=u)
     if power == 2:
