@@ -301,7 +301,8 @@ class _Whitened:
     """The whitened data and what the error model gives the search: the whitening
     *w* and its *rank*, the frame, PA bins of the search and of the fit (*poses*),
     the grid, the time blocks' stack, the `DetectionModel`, the whitened covariance
-    *rows* and time *blocks*, and the characterisation's error model."""
+    *rows* and time *blocks*, and the characterisation's error model (made on first
+    use, `_Characterisation`)."""
 
     kp: np.ndarray
     w: np.ndarray
@@ -316,7 +317,7 @@ class _Whitened:
     rows: np.ndarray = None
     blocks: np.ndarray = None
     block_energy: float = None
-    characterise: tuple = None
+    characterise: object = None
 
 
 def _whiten_stage(prep, opts):
@@ -350,10 +351,24 @@ def _whiten_stage(prep, opts):
     if opts.fit and cov_rows is not None and fit_rows is not None:
         # positions and contrasts from the error model with more modes (calibrate's
         # fit_modes), whose rows also carry its channel correlations
-        fw, frank = whitening_matrix(rows_covariance(fit_rows), return_rank=True,
-                                     source="characterisation covariance")
-        out.characterise = (fw, whiten(fit_rows, fw), int(np.sum(frank)))
+        out.characterise = _Characterisation(fit_rows)
     return out
+
+
+class _Characterisation:
+    """The characterisation's error model ``(whitening, whitened rows, dof)`` from its
+    covariance *rows*, made on first use: only candidates need it (a search that
+    finds none skips its eigen-decompositions)."""
+
+    def __init__(self, rows):
+        self._rows, self._model = rows, None
+
+    def __getitem__(self, key):
+        if self._model is None:
+            fw, frank = whitening_matrix(rows_covariance(self._rows), return_rank=True,
+                                         source="characterisation covariance")
+            self._model = (fw, whiten(self._rows, fw), int(np.sum(frank)))
+        return self._model[key]
 
 
 def _search_model(prep, opts, frame, search_poses, stack, w, rank):
@@ -491,7 +506,8 @@ def _search_stage(prep, white, null, opts):
         # sky offsets only from angles the data know (not the 0 assumed without any)
         add_sky_columns(cands, kpd.detpa if data_angles(kpd) is not None else None)
     char = white.characterise
-    fit_w, fit_rows = (white.w, null.null.noise_rows) if char is None else char[:2]
+    fit_w, fit_rows = (white.w, null.null.noise_rows) if char is None or not len(cands) \
+        else char[:2]
     if white.frame == "detector" and opts.fit and refit_on_sky(
             cands, white.kp, fit_w, kpd, noise_rows=fit_rows) and "chi2_red" in cands.colnames:
         # the rotating fit's errors, scaled like the detector fit's
