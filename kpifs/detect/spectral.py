@@ -345,6 +345,17 @@ def subspace_spectrum(contrast, err, basis):
     return a @ beta, np.sqrt(np.einsum("ij,jk,ik->i", a, cov, a))
 
 
+def _sum_squares(e):
+    """``np.sum(e ** 2, axis=-1)`` for a short last axis: the same sums in the same order
+    (numpy adds fewer than 8 terms one by one), a quarter of the time."""
+    if e.shape[-1] >= 8:
+        return np.sum(e ** 2, axis=-1)
+    out = e[..., 0] ** 2
+    for j in range(1, e.shape[-1]):
+        out += e[..., j] ** 2
+    return out
+
+
 def limit_subspace(weights, norm2, threshold, pd, *, spectrum=None, correlation=None,
                    n_draws=1024, seed=0):
     """Limit map of the subspace test: the contrast detected with probability *pd*.
@@ -389,7 +400,7 @@ def limit_subspace(weights, norm2, threshold, pd, *, spectrum=None, correlation=
             e = np.matmul(xi[None], root.transpose(0, 2, 1))          # (n, N, r)
         m2 = np.sum(mm ** 2, axis=1)[:, None]
         me = np.einsum("nkj,nj->nk", e, mm)
-        slack = threshold - np.sum(e ** 2, axis=2)
+        slack = threshold - _sum_squares(e)
         with np.errstate(invalid="ignore", divide="ignore"):
             c = (np.sqrt(me ** 2 + m2 * np.maximum(slack, 0)) - me) / m2
         c = np.where(slack <= 0, 0.0, c)
