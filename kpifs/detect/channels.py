@@ -404,7 +404,8 @@ def correlated_energy_limit(model, rows, a, threshold, pd, te):
     idx, z = model.row_projections(rows)                              # (npos, nrow, q)
     amp = a[None, :] * np.sqrt(model.norm2.reshape(q, -1)[:, idx].T)     # (npos, q)
     n = min(4096, len(te["energy"]))      # enough draws for P_D, far from the tail
-    proj = te["coef"][:n] @ np.einsum("kri,ki->rk", z, amp)             # (N, npos)
+    # (N, npos), stored by positions (the limit reads each position's draws)
+    proj = (np.einsum("kri,ki->kr", z, amp) @ te["coef"][:n].T).T
     lim = np.full(shape[0] * shape[1], np.nan)
     lim[idx] = limit_energy_correlated(proj, np.sum(amp ** 2, axis=1), te["energy"][:n],
                                        threshold, pd)

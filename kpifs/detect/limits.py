@@ -301,14 +301,24 @@ def limit_energy_correlated(signal_proj, signal_norm2, noise_energy, threshold, 
     # T_E(c) = thr is a quadratic in c per draw: its larger root is where that draw
     # crosses (the draws already above the threshold alone, a fraction P_FA, at 0)
     x2 = np.asarray(signal_norm2, float)
-    slack = (threshold - np.asarray(noise_energy, float))[:, None]
+    slack = threshold - np.asarray(noise_energy, float)
+    below = slack <= 0
 
     def chunk(a):
-        proj = np.asarray(signal_proj[:, a:a + 256], float)
+        # positions by rows, draws along them (their order statistic on contiguous rows)
+        proj = np.asarray(signal_proj[:, a:a + 256], float).T
+        x2a = x2[a:a + 256, None]
+        # (sqrt(max(proj^2 + x2 slack, 0)) - proj) / x2, in place
+        root = np.multiply(proj, proj, out=np.empty(proj.shape))
+        root += x2a * slack
         with np.errstate(invalid="ignore", divide="ignore"):
-            root = (np.sqrt(np.maximum(proj * proj + x2[a:a + 256] * slack, 0)) - proj) \
-                / x2[a:a + 256]
-        return order_quantile(np.where(slack <= 0, 0.0, np.maximum(root, 0)).T, pd)
+            np.maximum(root, 0, out=root)
+            np.sqrt(root, out=root)
+            root -= proj
+            root /= x2a
+        np.maximum(root, 0, out=root)
+        root[:, below] = 0.0
+        return order_quantile(root, pd)
     out = np.concatenate([np.zeros(0)] + thread_map(chunk, range(0, len(x2), 256)))
     return np.where(x2 > 0, out, np.nan)
 
