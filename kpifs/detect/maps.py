@@ -178,10 +178,20 @@ class DetectionModel:
         *trig* (``sin``/``cos`` along x and y and the pose weight, per pose):
         ``sin(a + b) = sin a cos b + cos a sin b``."""
         iy, ix = np.divmod(rows, self.grid.shape[1])
+        # runs of one grid row (the rows come sorted): its y factors broadcast, not gathered
+        cuts = np.flatnonzero(np.diff(iy)) + 1
+        runs = list(zip(np.r_[0, cuts], np.r_[cuts, len(rows)])) \
+            if len(cuts) < len(rows) // 8 else None
         out = None
         for sx, cx, sy, cy, wt in trig:
-            part = sx[ix] * cy[iy]
-            part += cx[ix] * sy[iy]
+            if runs is None:
+                part = sx[ix] * cy[iy]
+                part += cx[ix] * sy[iy]
+            else:
+                part = np.empty((len(rows), sx.shape[1]), np.result_type(sx, cy))
+                for a, b in runs:
+                    np.multiply(sx[ix[a:b]], cy[iy[a]], out=part[a:b])
+                    part[a:b] += cx[ix[a:b]] * sy[iy[a]]
             if wt != 1.0:
                 part = wt * part          # (a float64 weight: float64, as the sum is)
             out = part if out is None else out + part
