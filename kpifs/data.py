@@ -31,6 +31,7 @@ from .io.wavelengths import check_wavelengths
 from .model.kernel import KernelModel
 from .model.pupil import PupilModel
 from .model.window import ExtractionWindow
+from .report import DetectionReport
 
 __all__ = ["KernelPhaseData", "DetectionGrid", "DetectionResult"]
 
@@ -490,8 +491,9 @@ class DetectionResult:
     #: are subtracted, at the noise scale they were judged with (the SEARCH extension;
     #: None in products written before it).
     search_map: np.ndarray = None
-    #: The typed report of the search (`kpifs.detect.report.DetectionReport`) that made
-    #: it; *meta* is generated from it (None when read from products).
+    #: The typed report of the search (`kpifs.report.DetectionReport`) that made
+    #: it; *meta* is generated from it. Read from a product, it is made from the
+    #: cards (fields no card holds are None).
     report: object = None
 
     _io_format = "kpifs-detection"
@@ -526,13 +528,15 @@ def _read_detection(path):
                          max_sep=(hdr["GRIDMAX"] if hdr["GRIDMAX"] >= 0 else np.inf) * u.mas,
                          frame=frame)
     wl, energy, meta = detection_header_meta(hdr, path)
+    # the typed report again, from the cards `_report_cards` wrote from it
     return DetectionResult(grid=grid, test=hdr["TEST"], pfa=hdr["PFA"], pd=hdr["PD"],
                            statistic=stat, pfa_local=images["PFA_LOCAL"],
                            pfa_global=images["PFA"], contrast=images["CONTRAST"],
                            contrast_err=images["CONTRAST_ERR"], limits=parts["limits"],
                            curves=tables["CURVES"], candidates=tables["CANDIDATES"],
                            threshold=hdr["THRESH"], wavelengths=wl, energy=energy, meta=meta,
-                           header=hdr, search_map=images.get("SEARCH"))
+                           header=hdr, search_map=images.get("SEARCH"),
+                           report=DetectionReport.from_meta(meta))
 
 
 register(DetectionResult, "kpifs-detection", reader=_read_detection, writer=write_detection,

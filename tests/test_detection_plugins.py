@@ -190,7 +190,7 @@ def test_every_public_object_of_the_new_modules_has_an_example():
     for m in ("kpifs.detect.statistics", "kpifs.detect.statistics.neyman_pearson",
               "kpifs.detect.statistics.energy", "kpifs.detect.statistics.binary",
               "kpifs.detect.statistics.binary_paper", "kpifs.detect.statistics.subspace",
-              "kpifs.detect.options", "kpifs.detect.report", "kpifs.detect.known_position"):
+              "kpifs.detect.options", "kpifs.report", "kpifs.detect.known_position"):
         mod = importlib.import_module(m)
         for name in mod.__all__:
             obj = getattr(mod, name)

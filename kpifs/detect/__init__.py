@@ -4,7 +4,7 @@ from .maps import DetectionModel  # noqa: F401
 from .null import NullCalibration  # noqa: F401
 from .options import SearchOptions  # noqa: F401
 from .pipeline import default_grid, detect  # noqa: F401
-from .report import DetectionReport  # noqa: F401
+from ..report import DetectionReport  # noqa: F401
 from .statistics import DetectionTest, get_test, register_test, registered_names  # noqa: F401
 from .stats import (auc, binary_pfa, binary_threshold, energy_pd, energy_threshold,  # noqa
                     np_pd, np_threshold, roc_curve)

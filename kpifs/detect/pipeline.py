@@ -31,7 +31,7 @@ from .maps import DetectionModel
 from .null import check_draws, search_null
 from .options import SearchOptions
 from .quality import add_spectrum_model, flag_candidates, resolution_mas
-from .report import DetectionReport, LimitsReport, NullReport
+from ..report import DetectionReport, LimitsReport, NullReport
 from .search import _chi2_red, _sequential_search
 from .sky import add_sky_columns, data_angles, pa_bins, search_frame, sky_search_columns
 from .skyfit import refit_on_sky
@@ -226,7 +226,7 @@ def detect(kpd, options=None, /, **keywords):
     -------
     `DetectionResult`
         With its typed report (``result.report``, a
-        `~kpifs.detect.report.DetectionReport`; ``result.meta`` is made from it).
+        `~kpifs.report.DetectionReport`; ``result.meta`` is made from it).
 
     Examples
     --------

@@ -358,7 +358,7 @@ def detection_header_meta(hdr, path):
         if name in hdr:
             energy[key] = hdr[name]
     meta = {"test": hdr["TEST"], "map_test": hdr.get("MAPTEST", hdr["TEST"]), "pfa": hdr["PFA"],
-            "pd": hdr["PD"], "n_draws": hdr["NDRAWS"],
+            "pd": hdr["PD"], "n_draws": hdr["NDRAWS"], "frame": hdr.get("GRIDFRM"),
             "seed": hdr["MCSEED"], "null_channels": hdr["NULLCHAN"],
             "calibrators": [hdr[k] for k in hdr if k.startswith("KPCAL") and k[5:].isdigit()],
             "spectrum": [hdr[f"SPEC{i}"] for i in range(1, nwave + 1) if f"SPEC{i}" in hdr],

@@ -2,7 +2,10 @@
 
 `DetectionReport` holds named fields (the null's `NullReport`, the limits'
 `LimitsReport`); ``DetectionResult.meta``, which products, printouts and older
-code read, is generated from them (`DetectionReport.as_meta`).
+code read, is generated from them (`DetectionReport.as_meta`), and a product read
+back gets them again from its cards (`DetectionReport.from_meta` of what
+`kpifs.io.products.detection_header_meta` reads). It sits below the data
+containers and the products (the search in `kpifs.detect` fills it).
 """
 from dataclasses import dataclass, field
 
@@ -20,7 +23,7 @@ class NullReport:
 
     Examples
     --------
-    >>> from kpifs.detect.report import NullReport
+    >>> from kpifs.report import NullReport
     >>> NullReport("gaussian", 12.5, {"gaussian": 12.5}).as_meta()["threshold_gaussian"]
     12.5
     """
@@ -31,6 +34,14 @@ class NullReport:
     n_blocks: int = None
     block_energy: float = None
     empirical_draws: int = None
+
+    @classmethod
+    def from_meta(cls, meta):
+        """The report from a ``meta['null']`` dict (`as_meta`'s, or a product's)."""
+        thresholds = {k[len("threshold_"):]: v for k, v in meta.items()
+                      if k.startswith("threshold_")}
+        return cls(meta["method"], meta["threshold"], thresholds, meta.get("n_blocks"),
+                   meta.get("block_energy"), meta.get("empirical_draws"))
 
     def as_meta(self):
         """The ``meta['null']`` dict."""
@@ -100,6 +111,38 @@ class DetectionReport:
     excluded_channels: list = field(default_factory=list)
     field_searched: dict = None
     limits: LimitsReport = None
+
+    @classmethod
+    def from_meta(cls, meta):
+        """The report from a ``DetectionResult.meta`` dict: `as_meta`'s, or what a
+        product's cards give (`kpifs.io.products.detection_header_meta`; fields no card
+        holds are None).
+
+        Examples
+        --------
+        >>> from kpifs.detect.pipeline import _example_result
+        >>> from kpifs.report import DetectionReport
+        >>> report = _example_result().report
+        >>> DetectionReport.from_meta(report.as_meta()) == report
+        True
+        """
+        lim = None
+        if "null_channels" in meta:
+            lim = LimitsReport(
+                meta.get("noise_scale_common"), meta.get("noise_scale_S"),
+                meta.get("error_model"), meta.get("energy_spread"), meta.get("map_noise_low"),
+                list(meta.get("calibrators") or []), meta.get("source"),
+                list(meta.get("spectrum") or []), meta.get("lambda_energy"),
+                meta["null_channels"], meta.get("pa_bins"), meta.get("pa_bins_search"))
+        null = NullReport.from_meta(meta["null"]) if meta.get("null") else None
+        return cls(meta["test"], meta.get("map_test", meta["test"]), meta["pfa"], meta["pd"],
+                   meta.get("n_draws"), meta.get("seed"), meta.get("frame"),
+                   meta.get("chi2_red"), meta.get("noise_scale"), null,
+                   static=meta.get("static"), blocks=meta.get("blocks"),
+                   aliased=list(meta.get("aliased") or []),
+                   channels=list(meta.get("channels") or []),
+                   excluded_channels=list(meta.get("excluded_channels") or []),
+                   field_searched=meta.get("field"), limits=lim)
 
     def as_meta(self):
         """The ``DetectionResult.meta`` dict (the keys products and printouts read)."""
