@@ -30,6 +30,7 @@ from astropy import units as u
 from ..covariance import empirical_covariance
 from ..data import KernelPhaseData
 from ..exceptions import KpifsError
+from .calibrate import block_rows, covariance_rows
 
 __all__ = ["spectral_differential", "nuisance_profiles", "kept_combinations",
            "retained_fraction", "inner_separation", "SDK_BASES", "SDK_ORDER"]
@@ -211,9 +212,13 @@ def spectral_differential(target, calibrated=None, *, basis="poly", order=SDK_OR
     or an angular-differential product) the profiles are recorded on it (the
     projection then also protects against the calibrator's own static
     difference; *basis*, *order*, *n_static* and *static_rows*: `nuisance_profiles`);
-    without, the target's frames make the product: their mean
-    and its covariance (the frames' per channel, over their number). Refused
-    for single-channel data and for fewer channels than the profiles plus one.
+    without, the target's frames make the product: their mean, its covariance (the
+    frames' per channel, over their number), and the frames' deviations and time
+    blocks as covariance and block rows
+    (`~kpifs.calibration.calibrate.covariance_rows`,
+    `~kpifs.calibration.calibrate.block_rows`), which carry the channels'
+    correlations to the search's null and limits. Refused for single-channel data
+    and for fewer channels than the profiles plus one.
 
     Examples
     --------
@@ -256,10 +261,14 @@ def spectral_differential(target, calibrated=None, *, basis="poly", order=SDK_OR
             a = np.deg2rad(target.detpa)
             detpa = [float(np.rad2deg(np.arctan2(np.sin(a).mean(), np.cos(a).mean())))]
             meta["detpa_frames"] = [float(v) for v in target.detpa]
+        # the frames' deviations and time blocks carry the channels' correlations (a
+        # static or drifting aberration is shared by every channel, and most of it
+        # cancels in a combination, not all) to the search's null and limits
         out = KernelPhaseData(target.kp.mean(axis=0)[None], target.wavelengths,
                               target.pixscale, target.kernel_model, window=target.window,
-                              covariance=cov, header=target.header, detpa=detpa,
-                              bandwidth=target.bandwidth, meta=meta)
+                              covariance=cov, covariance_rows=covariance_rows(target),
+                              block_rows=block_rows(target, []), header=target.header,
+                              detpa=detpa, bandwidth=target.bandwidth, meta=meta)
     out.spectral = {"profiles": prof, "basis": basis, "order": int(order)}
     out.meta["spectral_differential"] = {"basis": basis, "order": int(order), "m": int(m),
                                          "channels": int(q)}
