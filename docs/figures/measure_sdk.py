@@ -20,8 +20,9 @@ calibrator differ by 15 nm), extracted as ``kpifs extract`` does
     from the truth.
 ``inject``
     Injection-recovery per companion-free sequence (`inject`): the fraction of
-    model companions at 0.5, 1, 1.5 and 2 times the stated limit, 8 position
-    angles, found within 5 mas at 150 and 250 mas.
+    model companions at 0.5, 1 and 2 times the stated limit (the limit map's
+    value at the position, and the radial curve's median), 8 position angles,
+    found within 5 mas at 150 and 250 mas.
 ``sphere``
     The same for SPHERE-IFS YJ (39 channels, 0.957-1.329 um; ``null`` only, one
     seed): inner separation and limits.
@@ -158,29 +159,41 @@ def _found(kpd, xy, c, pa_model, radius=5.0):
     return bool(d) and min(d) < radius
 
 
-def inject(seeds, tmp, shape=80, seps=(150.0, 250.0), factors=(0.5, 1.0, 1.5, 2.0), n_pa=8):
-    """Injection-recovery against the stated limit, per companion-free sequence: the
+def _local_limit(res, xy):
+    """The limit map of the searched test at the grid point nearest *xy* (mas)."""
+    g = res.grid
+    return float(res.limit[np.argmin(np.abs(g.y - xy[1])), np.argmin(np.abs(g.x - xy[0]))])
+
+
+def inject(seeds, tmp, shape=80, seps=(150.0, 250.0), factors=(0.5, 1.0, 2.0), n_pa=8):
+    """Injection-recovery against the stated limits, per companion-free sequence: the
     model's kernel phases (which the simulator's companions follow: correlation 0.999
     in noise-free simulations, the window's attenuation aside) added to the
     spectral-differential product at *n_pa* position angles and *factors* times the
-    median limit at each separation; the fraction found within 5 mas."""
+    limit map's value there (``local``) and times the median limit at that separation
+    (``median``, the radial curve); the fractions found within 5 mas."""
     out = []
     for seed in seeds:
         tkp, _ = _reduce("charis", seed, tmp, shape, contrasts=0.0)
         kpd = _sdk(None, tkp)
-        r = _search(kpd)
-        curve = np.array(r["curve"])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            res = detect(kpd, pfa=PFA, n_draws=DRAWS)
+        cur = res.curves
+        curve = (np.asarray(cur["separation"], float),
+                 np.asarray(cur[f"{res.test}_median"], float))
         for sep in seps:
-            lim = float(np.interp(sep, curve[:, 0], curve[:, 1]))
-            frac = []
-            for f in factors:
-                hits = [_found(kpd, (sep * np.cos(a), sep * np.sin(a)), f * lim,
-                               tkp.kernel_model)
-                        for a in np.deg2rad(7.0 + 360.0 * np.arange(n_pa) / n_pa)]
-                frac.append(float(np.mean(hits)))
-            out.append({"seed": seed, "sep": sep, "limit": lim, "factors": list(factors),
-                        "found": frac, "n_candidates_null": r["n_candidates"],
-                        "energy_pfa": r["energy_pfa"], "noise_scale": r["noise_scale"]})
+            med = float(np.interp(sep, *curve))
+            pos = [(sep * np.cos(a), sep * np.sin(a))
+                   for a in np.deg2rad(7.0 + 360.0 * np.arange(n_pa) / n_pa)]
+            row = {"seed": seed, "sep": sep, "median_limit": med, "factors": list(factors),
+                   "n_candidates_null": len(res.candidates),
+                   "local_limits": [_local_limit(res, xy) for xy in pos]}
+            for kind in ("local", "median"):
+                row[kind] = [float(np.mean([
+                    _found(kpd, xy, f * (loc if kind == "local" else med), tkp.kernel_model)
+                    for xy, loc in zip(pos, row["local_limits"])])) for f in factors]
+            out.append(row)
             print(json.dumps(out[-1]), flush=True)
     return out
 
