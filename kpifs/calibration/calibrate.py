@@ -28,6 +28,7 @@ from .pixelnoise import calibrated_pixel_covariance, complement_rows
 from ..rotation import rotation_blocks
 
 __all__ = ["calibrate", "check_compatible", "check_calibration", "mean_detpa", "block_rows",
+           "covariance_rows",
            "MAX_DETPA_SPAN"]
 
 log = logging.getLogger(__name__)
@@ -269,7 +270,7 @@ def calibrate(target, calibrators, *, shrinkage="auto", joint=False, debias=True
         if debias:
             jcov = jcov * _effective_hartlap([tj] + [c for _, c, _ in cj], frames,
                                              target.n_kp * target.n_wave, _name(target))
-    rows = _covariance_rows(target, calibrators, h)
+    rows = covariance_rows(target, calibrators, hartlap=h)
     meta = {"error_model": {"model": "frames", "hartlap": float(h)}}
     return _result(target, calibrators, t_mean - c_mean, cov, jcov, rows, meta,
                    [n for _, _, n in cal_stats])
@@ -420,16 +421,30 @@ def _effective_hartlap(covs, frames, dim, source):
     return h
 
 
-def _covariance_rows(target, calibrators, h):
-    """Scaled frame deviations whose Gram matrix is the calibrated covariance.
+def covariance_rows(target, calibrators=(), *, hartlap=1.0):
+    """Scaled frame deviations whose Gram matrix is the covariance of the (calibrated) mean.
 
     ``R = sqrt(h) [dt_f / sqrt(N_t (N_t - 1)); dc_f / (M sqrt(N_c (N_c - 1)))]``, with
-    ``h`` the Hartlap factor applied to the covariance: ``R^T R`` is the
-    covariance of the calibrated mean across *all* channels (its per-channel
-    blocks equal ``result.covariance`` when no shrinkage was needed), so random
-    combinations of the rows are noise with the data's own spectral
-    correlations. ``None`` when a data set has a single frame.
+    ``h`` the Hartlap factor (*hartlap*) applied to the covariance: ``R^T R`` is the
+    covariance of the calibrated mean (of the target's mean with no *calibrators*)
+    across *all* channels (its per-channel blocks equal the sample covariance over
+    the frames' number), so random combinations of the rows are noise with the
+    data's own spectral correlations. ``None`` when a data set has a single frame.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs.calibration.calibrate import covariance_rows
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> kp = np.random.default_rng(0).normal(0, 0.1, (30, 2, km.n_kp))
+    >>> rows = covariance_rows(KernelPhaseData(kp, [1.5, 1.6] * u.um, 10 * u.mas, km))
+    >>> gram = np.einsum("ncp,ncr->cpr", rows, rows)
+    >>> rows.shape, bool(np.allclose(gram[0], np.cov(kp[:, 0], rowvar=False) / 30))
+    ((30, 2, 37), True)
     """
+    if isinstance(calibrators, KernelPhaseData):
+        calibrators = [calibrators]
     parts = []
     m = len(calibrators)
     for kpd, scale in [(target, 1.0)] + [(c, 1.0 / m) for c in calibrators]:
@@ -437,7 +452,7 @@ def _covariance_rows(target, calibrators, h):
         if n < 2:
             return None
         dev = kpd.kp - kpd.kp.mean(axis=0)
-        parts.append(dev * (scale * np.sqrt(h / (n * (n - 1)))))
+        parts.append(dev * (scale * np.sqrt(hartlap / (n * (n - 1)))))
     return np.concatenate(parts)
 
 

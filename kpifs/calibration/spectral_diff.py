@@ -30,9 +30,10 @@ from astropy import units as u
 from ..covariance import empirical_covariance
 from ..data import KernelPhaseData
 from ..exceptions import KpifsError
+from .calibrate import block_rows, covariance_rows
 
-__all__ = ["spectral_differential", "nuisance_profiles", "kept_combinations",
-           "retained_fraction", "inner_separation", "SDK_BASES", "SDK_ORDER"]
+__all__ = ["spectral_differential", "frames_autocorrelation", "nuisance_profiles",
+           "kept_combinations", "retained_fraction", "inner_separation", "SDK_BASES", "SDK_ORDER"]
 
 log = logging.getLogger(__name__)
 
@@ -202,6 +203,33 @@ def inner_separation(separations, fraction, *, level=SDK_LEVEL):
     return float(rings[low[-1] + 1])
 
 
+def frames_autocorrelation(rows, blocks):
+    """Integrated autocorrelation time of a sequence's frames, by batch means: the
+    variance of its time blocks' means against its frames' over their number
+    (``tr(B^T B) / tr(R^T R)`` of its block and covariance rows,
+    `~kpifs.calibration.calibrate.block_rows` and
+    `~kpifs.calibration.calibrate.covariance_rows`), at least 1. The mean of frames
+    that drift together varies ``tau`` times more than independent frames say.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs.calibration.calibrate import block_rows, covariance_rows
+    >>> from kpifs.calibration.spectral_diff import frames_autocorrelation
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> rng = np.random.default_rng(0)
+    >>> walk = np.cumsum(rng.normal(0, 1, (64, 1, km.n_kp)), axis=0)   # a drift
+    >>> t = KernelPhaseData(walk, [1.6] * u.um, 10 * u.mas, km)
+    >>> bool(frames_autocorrelation(covariance_rows(t), block_rows(t, [])) > 3)
+    True
+    """
+    if rows is None or blocks is None:
+        return 1.0
+    var = float(np.sum(np.square(rows)))
+    return float(max(1.0, np.sum(np.square(blocks)) / var)) if var > 0 else 1.0
+
+
 def spectral_differential(target, calibrated=None, *, basis="poly", order=SDK_ORDER,
                           n_static=SDK_STATIC_PROFILES, static_rows=None, shrinkage="auto"):
     """A product searched by the channel combinations free of the static residual's
@@ -211,9 +239,14 @@ def spectral_differential(target, calibrated=None, *, basis="poly", order=SDK_OR
     or an angular-differential product) the profiles are recorded on it (the
     projection then also protects against the calibrator's own static
     difference; *basis*, *order*, *n_static* and *static_rows*: `nuisance_profiles`);
-    without, the target's frames make the product: their mean
-    and its covariance (the frames' per channel, over their number). Refused
-    for single-channel data and for fewer channels than the profiles plus one.
+    without, the target's frames make the product: their mean, its covariance (the
+    frames' per channel, over their number, times their autocorrelation time
+    `frames_autocorrelation`), and the frames' deviations (likewise) and time
+    blocks as covariance and block rows
+    (`~kpifs.calibration.calibrate.covariance_rows`,
+    `~kpifs.calibration.calibrate.block_rows`), which carry the channels'
+    correlations to the search's null and limits. Refused for single-channel data
+    and for fewer channels than the profiles plus one.
 
     Examples
     --------
@@ -247,19 +280,26 @@ def spectral_differential(target, calibrated=None, *, basis="poly", order=SDK_OR
         if target.n_frame < 2:
             raise KpifsError(f"{name}: --spectral-differential without a calibrator needs "
                              f"several frames (their scatter is the noise), got 1")
+        rows, blocks = covariance_rows(target), block_rows(target, [])
+        tau = frames_autocorrelation(rows, blocks)
         meta = dict(target.meta)
         meta.update(calibrated=False, n_target_frames=target.n_frame, calibrators=[],
-                    error_model={"model": "frames"})
-        cov = empirical_covariance(target.kp, shrinkage=shrinkage, debias=True) / target.n_frame
+                    error_model={"model": "frames", "tau": tau})
+        cov = empirical_covariance(target.kp, shrinkage=shrinkage, debias=True) \
+            * (tau / target.n_frame)
         detpa = None
         if target.detpa is not None and np.all(np.isfinite(target.detpa)):
             a = np.deg2rad(target.detpa)
             detpa = [float(np.rad2deg(np.arctan2(np.sin(a).mean(), np.cos(a).mean())))]
             meta["detpa_frames"] = [float(v) for v in target.detpa]
+        # the frames' deviations and time blocks carry the channels' correlations (a
+        # static or drifting aberration is shared by every channel, and most of it
+        # cancels in a combination, not all) to the search's null and limits
         out = KernelPhaseData(target.kp.mean(axis=0)[None], target.wavelengths,
                               target.pixscale, target.kernel_model, window=target.window,
-                              covariance=cov, header=target.header, detpa=detpa,
-                              bandwidth=target.bandwidth, meta=meta)
+                              covariance=cov, covariance_rows=rows * np.sqrt(tau),
+                              block_rows=blocks, header=target.header,
+                              detpa=detpa, bandwidth=target.bandwidth, meta=meta)
     out.spectral = {"profiles": prof, "basis": basis, "order": int(order)}
     out.meta["spectral_differential"] = {"basis": basis, "order": int(order), "m": int(m),
                                          "channels": int(q)}

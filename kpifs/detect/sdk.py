@@ -238,6 +238,11 @@ class SpectralStack:
         self.spectrum = spectrum_shape(spectrum, q)
         self.mixing = self.data_mixing * self.spectrum[None]
         k = v.shape[1]
+        # a whitening of each combination (its channels' covariances summed): what the
+        # channels share (most of a static or drifting aberration cancels in a
+        # combination, not all of it) reaches the null and the limits by the covariance
+        # rows (`_rows`); measured on CHARIS simulations, whitening with the rows'
+        # own (shrunk) covariance of each combination gives a less sensitive search
         ccov = np.einsum("kc,cpr->kpr", self.data_mixing ** 2, cov)
         w, rank = whitening_matrix(ccov, return_rank=True,
                                    source="covariance of the channel combinations")
