@@ -210,3 +210,25 @@ def test_subspace_spectrum_projection():
     assert np.all(np.abs(np.mean(np.abs(c - truth) < e, axis=0) - 0.6827) < 0.035)
     assert np.all(np.abs(np.mean(c - truth, axis=0)) < 4.7 * e / np.sqrt(len(c)))
     assert np.all(e < 2e-4)
+
+
+def test_subspace_limit_does_not_depend_on_eigenvector_signs(monkeypatch):
+    """The correlated noise of the subspace limit is drawn through the symmetric square
+    root of its covariance: eigenvectors returned with other signs (as another CPU's
+    LAPACK may) give the same limits, not another set of draws."""
+    rng = np.random.default_rng(11)
+    q, r, npos = 6, 3, 40
+    n2 = rng.uniform(1e5, 1e6, (q, 5, 8))
+    w = rng.normal(0, 1, (r, q, 5, 8))
+    x = rng.normal(0, 1, (npos, q, q))
+    corr = (np.matmul(x, x.transpose(0, 2, 1)) / q + np.eye(q)).reshape(5, 8, q, q)
+    before = limit_subspace(w, n2, 12.0, 0.5, correlation=corr)
+    eigh = np.linalg.eigh
+
+    def flipped(a):
+        val, vec = eigh(a)
+        return val, vec * np.where(np.arange(vec.shape[-1]) % 2, -1.0, 1.0)
+    monkeypatch.setattr(np.linalg, "eigh", flipped)
+    after = limit_subspace(w, n2, 12.0, 0.5, correlation=corr)
+    assert np.all(np.isfinite(before))
+    assert np.allclose(after, before, rtol=1e-10)

@@ -396,8 +396,11 @@ def limit_subspace(weights, norm2, threshold, pd, *, spectrum=None, correlation=
             wt = w[:, :, s:s + 512].transpose(2, 1, 0)               # (n, q, r)
             cov = np.matmul(wt.transpose(0, 2, 1), np.matmul(corr[s:s + 512], wt))
             val, vec = np.linalg.eigh(np.nan_to_num(cov))
-            root = vec * np.sqrt(np.clip(val, 0, None))[:, None, :]
-            e = np.matmul(xi[None], root.transpose(0, 2, 1))          # (n, N, r)
+            # the symmetric square root: unique, so that the fixed draws map to the same
+            # noise whatever signs (or basis of a repeated eigenvalue) eigh returns
+            root = np.matmul(vec * np.sqrt(np.clip(val, 0, None))[:, None, :],
+                             vec.transpose(0, 2, 1))
+            e = np.matmul(xi[None], root)                               # (n, N, r)
         m2 = np.sum(mm ** 2, axis=1)[:, None]
         me = np.einsum("nkj,nj->nk", e, mm)
         slack = threshold - _sum_squares(e)
