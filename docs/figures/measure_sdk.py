@@ -55,6 +55,8 @@ from kpifs.workflow import ExtractOptions, extract_observation
 
 PFA, DRAWS = 1e-2, 1000
 BASIS = "static"
+#: Channel profiles of the static basis (``--n-static``; the default's 3 unless given).
+N_STATIC = {"n": None}
 
 
 def _seeds(text):
@@ -80,7 +82,8 @@ def _sdk(kpd, tkp, basis=BASIS):
     if key not in _ROWS and basis != "poly":
         _ROWS[key] = static_residual_rows(tkp.kernel_model, tkp.wavelengths, tkp.pixscale,
                                           window=tkp.window)
-    return spectral_differential(tkp, kpd, basis=basis, static_rows=_ROWS.get(key))
+    extra = {} if N_STATIC["n"] is None else {"n_static": N_STATIC["n"]}
+    return spectral_differential(tkp, kpd, basis=basis, static_rows=_ROWS.get(key), **extra)
 
 
 def _search(kpd, **kw):
@@ -214,12 +217,14 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("case", choices=("null", "companion", "inject", "sphere", "bench"))
     ap.add_argument("--no-cal", action="store_true", help="null: no calibrated searches")
+    ap.add_argument("--n-static", type=int, help="profiles of the static basis")
     ap.add_argument("--seeds", default="1-3")
     ap.add_argument("--tmp", default="/tmp/measure_sdk")
     ap.add_argument("--limits", help="JSON of a null run: the sdk limit curve of its first seed")
     ap.add_argument("--out")
     a = ap.parse_args()
     seeds = _seeds(a.seeds)
+    N_STATIC["n"] = a.n_static
     if a.case == "null":
         res = null(seeds, a.tmp, with_cal=not a.no_cal)
     elif a.case == "inject":
