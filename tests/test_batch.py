@@ -311,11 +311,15 @@ def test_batch_ctrl_c_to_the_process_group(small_archive, tmp_path):
     cmd = [sys.executable, "-m", "kpifs", "batch", str(_long_manifest(small_archive, tmp_path)),
            *SMALL,
            "-o", str(out)]
+    # SIGINT as a terminal delivers it, even when this test runs in the background
+    # (where the shell ignores SIGINT and the child would inherit that)
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+                            start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     t0 = time.time()
     while not (out / "e0" / "detection.fits").exists() and time.time() - t0 < 120:
         time.sleep(0.05)
+    assert proc.poll() is None, "the batch finished before it could be interrupted"
     os.killpg(proc.pid, signal.SIGINT)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err
