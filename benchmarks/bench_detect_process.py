@@ -42,11 +42,12 @@ def prepare(tmp):
     return cal
 
 
-def null_versus_products(cal, repeat=3):
-    from kpifs.covariance import whiten, whitening_matrix
+def search_model(cal):
+    """The calibrated file *cal* as `kpifs.detect.detect` prepares it: the data, their
+    whitening and rank, and the search's `DetectionModel` on the default grid."""
+    from kpifs.covariance import whitening_matrix
     from kpifs.data import KernelPhaseData
-    from kpifs.detect import DetectionModel, NullCalibration, pipeline
-    from kpifs.detect.null import _CACHE
+    from kpifs.detect import DetectionModel, pipeline
     kpd = KernelPhaseData.read(cal)
     kp, cov, kpd = pipeline._prepare(kpd, "auto", False)
     w, rank = whitening_matrix(cov, return_rank=True)
@@ -54,6 +55,14 @@ def null_versus_products(cal, repeat=3):
     model = DetectionModel(kpd.kernel_model, kpd.wavelengths, w,
                            pipeline.default_grid(kpd, frame=frame), pixscale=kpd.pixscale,
                            window=kpd.window, dof=np.atleast_1d(rank), detpa=poses)
+    return kpd, w, rank, model
+
+
+def null_versus_products(cal, repeat=3):
+    from kpifs.covariance import whiten
+    from kpifs.detect import NullCalibration
+    from kpifs.detect.null import _CACHE
+    kpd, w, rank, model = search_model(cal)
     rows = whiten(kpd.covariance_rows, w)
     valid, z = model.row_projections(rows)
     positions = model.half_positions()[0]

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_detect_process import prepare  # noqa: E402
+from bench_detect_process import prepare, search_model  # noqa: E402
 from bench_process import ROOT  # noqa: E402
 
 NO_LIMITS = ("import sys; from kpifs.data import KernelPhaseData; from kpifs.detect import "
@@ -72,18 +72,10 @@ def export_base(commit):
 def _run_nulls(cal):
     """What the run's nulls are drawn from: the model, the whitened covariance rows and
     time blocks, and the most empirical draws."""
-    from kpifs.covariance import whiten, whitening_matrix
-    from kpifs.data import KernelPhaseData
-    from kpifs.detect import DetectionModel, pipeline
+    from kpifs.covariance import whiten
     from kpifs.detect.channels import scale_block_rows
     from kpifs.detect.null import EMPIRICAL_DRAWS
-    kpd = KernelPhaseData.read(cal)
-    kp, cov, kpd = pipeline._prepare(kpd, "auto", False)
-    w, rank = whitening_matrix(cov, return_rank=True)
-    frame, poses, _ = pipeline._frame_and_poses(kpd, "auto", None)
-    model = DetectionModel(kpd.kernel_model, kpd.wavelengths, w,
-                           pipeline.default_grid(kpd, frame=frame), pixscale=kpd.pixscale,
-                           window=kpd.window, dof=np.atleast_1d(rank), detpa=poses)
+    kpd, w, rank, model = search_model(cal)
     rows = whiten(kpd.covariance_rows, w)
     model.correlate(rows)
     blocks = scale_block_rows(whiten(kpd.block_rows, w), np.atleast_1d(rank))[0]

@@ -38,6 +38,7 @@ Run from the project root, e.g.::
 Results go to a JSON file (``--out``) and a summary is printed.
 """
 import argparse
+import copy
 import json
 import time
 import warnings
@@ -147,7 +148,6 @@ def companion(seeds, tmp, limit, shape=80):
 def _found(kpd, xy, c, pa_model, radius=5.0):
     """Is a companion of contrast *c* at *xy* (mas), added to *kpd* as the model's kernel
     phases (the window's attenuation included), found within *radius* mas?"""
-    import copy
     att = float(kpd.window.at(np.hypot(*xy), kpd.pixscale)) if kpd.window is not None else 1.0
     sig = np.asarray(pa_model.binary_kernel_phases(np.asarray(xy) * u.mas,
                                                    np.full(kpd.n_wave, c * att),
