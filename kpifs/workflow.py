@@ -30,7 +30,7 @@ from . import _checks
 from .extraction import filters as _filters
 from ._defaults import DETECT as _DETECT, EXTRACT as _EXTRACT
 from ._utils import check_output_dir, check_output_path, to_quantity
-from .calibration.adi import angular_differential
+from .calibration.adi import angular_differential, target_blocks
 from .calibration.spectral_diff import SDK_BASES, spectral_differential
 from .calibration.calibrate import calibrate, check_calibration
 from .covariance import empirical_covariance
@@ -513,13 +513,14 @@ def reduce_observation(target, calibrators=(), options=None, *, progress=False):
                              f"sequence; JWST files in several filters make one calibrated "
                              f"frame per filter (reduce each filter on its own)")
         return extract_filters(target, calibrators, options, progress=progress), []
-    if options.spectral_differential and options.angular_differential:
-        raise KpifsError(f"{target[0]}: --spectral-differential with --angular-differential "
-                         f"(ASDI) is not implemented yet: use one of the two")
     tkp = extract_observation(target, options, progress=progress)
     cals = [extract_observation(files, calibrator_options(options), model=tkp.kernel_model,
                                 progress=progress) for files in calibrators]
     kpd = calibrate_observation(tkp, cals, options)
+    if options.spectral_differential and options.angular_differential and not cals:
+        # ASDI (issue 39): the frames' spectral-differential product and their time blocks
+        target_blocks(tkp)                         # refused before the work if they do not turn
+        return angular_differential(tkp, _spectral_step(tkp, None, options)), [tkp]
     if options.angular_differential:               # issue 29
         kpd = angular_differential(tkp, kpd if cals else None)
     if options.spectral_differential:              # issue 39

@@ -45,8 +45,9 @@ def test_single_channel_refused(sim1, tmp_path, capsys):
                                                               spectral_differential="poly"))
 
 
-def test_asdi_refused_clearly(sim8):
-    with pytest.raises(KpifsError, match="not implemented yet"):
+def test_asdi_needs_a_turning_sequence(sim8):
+    # ASDI (tests/test_asdi.py) needs the rotation's time blocks: these frames do not turn
+    with pytest.raises(KpifsError, match="--angular-differential needs"):
         reduce_observation(sim8["target"], [], ExtractOptions(
             step="1.2m", spectral_differential="poly", angular_differential=True))
 

@@ -96,7 +96,9 @@ def run(args):
 def _spectral_line(res):
     """What a spectral-differential search projected out, and where it starts (issue 39)."""
     sdk = res.meta.get("blocks") or {}
-    if sdk.get("mode") != "spectral-differential":
+    rotation = bool(sdk.get("spectral"))                  # ASDI: combinations' time blocks
+    sdk = sdk.get("spectral") or sdk
+    if sdk.get("profiles") is None:
         return
     inner = sdk.get("inner_separation")
     where = (f"half a companion's signal is kept from {inner:.0f} mas"
@@ -104,7 +106,8 @@ def _spectral_line(res):
              else "less than half a companion's signal is kept anywhere on the grid")
     print(f"spectral-differential: {sdk['profiles']} profile(s) along the channels "
           f"({sdk.get('basis')}) projected out of every kernel phase, "
-          f"{sdk['combinations']} channel combinations searched; {where}")
+          f"{sdk['combinations']} channel combinations searched"
+          + (" by their mean and time blocks (ASDI)" if rotation else "") + f"; {where}")
 
 
 def _aliased_line(res):

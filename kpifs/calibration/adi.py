@@ -17,7 +17,7 @@ from ..exceptions import KpifsError, KpifsWarning
 from ..rotation import (NOISE_MODES, _span, noise_whitening, rotation_blocks,
                         rotation_needed)
 
-__all__ = ["angular_differential", "inner_separation"]
+__all__ = ["angular_differential", "target_blocks", "inner_separation"]
 
 log = logging.getLogger(__name__)
 
@@ -27,7 +27,10 @@ def angular_differential(target, calibrated=None, *, n_modes=NOISE_MODES):
     --angular-differential``).
 
     With *calibrated* (the target calibrated by `~kpifs.calibration.calibrate.calibrate`) its
-    blocks are marked for the angular-differential search, which then keeps the
+    blocks are marked for the angular-differential search (the target's own
+    spectral-differential product, `~kpifs.calibration.spectral_diff.spectral_differential`
+    with no calibrator, gets the target's blocks: ASDI, searched by its channel
+    combinations' mean and blocks), which then keeps the
     calibrated mean too, scaled by its own reduced chi-square (a static
     target-calibrator difference is in the mean alone; where the rotation moves
     a companion little, the calibrator still finds it); without, the
@@ -51,6 +54,9 @@ def angular_differential(target, calibrated=None, *, n_modes=NOISE_MODES):
     """
     name = target.meta.get("source", "target")
     _check_angles_known(target, name)
+    if calibrated is not None and getattr(calibrated, "spectral", None) is not None \
+            and not calibrated.meta.get("calibrated", True) and calibrated.rotation is None:
+        return _with_own_blocks(target, calibrated, target_blocks(target))
     if calibrated is not None:
         if calibrated.rotation is None:
             raise KpifsError(f"{name}: --angular-differential needs frames whose angles turn "
@@ -58,11 +64,7 @@ def angular_differential(target, calibrated=None, *, n_modes=NOISE_MODES):
         calibrated.rotation.search = "angular-differential"
         calibrated.meta["block_search"] = "angular-differential"
         return calibrated
-    rb = rotation_blocks(target, [])
-    if rb is None:
-        raise KpifsError(f"{name}: --angular-differential needs frames whose angles turn "
-                         f"(span {_span(target):.1f} deg: no time blocks to compare)")
-    rb.search = "angular-differential"
+    rb = target_blocks(target)
     comp = noise_whitening(rb, fraction=n_modes)                 # rows v_k / sqrt(var_k)
     # the product's covariance (of the frames' mean) on those modes, for its errors
     inv = np.sum(comp ** 2, axis=-1)
@@ -86,6 +88,48 @@ def angular_differential(target, calibrated=None, *, n_modes=NOISE_MODES):
     log.info("%s: angular-differential product: %d blocks over %.1f deg, %d modes per channel",
              name, rb.n_blocks, rb.span, k)
     return out
+
+
+def target_blocks(target):
+    """The time blocks of a target's own frames (no calibrator), marked for the
+    angular-differential search; refused, saying why, when the frames' angles are not
+    known or do not turn.
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, KernelPhaseData, make_pupil
+    >>> from kpifs.calibration.adi import target_blocks
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> t = KernelPhaseData(np.zeros((24, 1, km.n_kp)), [1.6] * u.um, 10 * u.mas, km,
+    ...                     detpa=np.linspace(0, 60, 24))
+    >>> rb = target_blocks(t)
+    >>> rb.search, int(rb.frames.sum())
+    ('angular-differential', 24)
+    """
+    name = target.meta.get("source", "target")
+    _check_angles_known(target, name)
+    rb = rotation_blocks(target, [])
+    if rb is None:
+        raise KpifsError(f"{name}: --angular-differential needs frames whose angles turn "
+                         f"(span {_span(target):.1f} deg: no time blocks to compare)")
+    rb.search = "angular-differential"
+    return rb
+
+
+def _with_own_blocks(target, product, rb):
+    """ASDI without a calibrator (issue 39): the target's own spectral-differential product
+    (`~kpifs.calibration.spectral_diff.spectral_differential`: the frames' mean, whose
+    channel combinations are free of the static profiles, its covariance and rows) with
+    the target's time blocks *rb*, searched by the combinations' mean and departures."""
+    name = target.meta.get("source", "target")
+    product.rotation = rb
+    product.meta["block_search"] = "angular-differential"
+    product.meta["detpa_frames"] = [float(v) for v in target.detpa]
+    product.header["BLKSRCH"] = ("angular-differential", "searched by its time blocks")
+    log.info("%s: spectral- and angular-differential product (ASDI): %d blocks over %.1f deg",
+             name, rb.n_blocks, rb.span)
+    return product
 
 
 def _check_angles_known(target, name):

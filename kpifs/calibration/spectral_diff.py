@@ -33,7 +33,8 @@ from ..exceptions import KpifsError
 from .calibrate import block_rows, covariance_rows
 
 __all__ = ["spectral_differential", "frames_autocorrelation", "nuisance_profiles",
-           "kept_combinations", "retained_fraction", "inner_separation", "SDK_BASES", "SDK_ORDER"]
+           "kept_combinations", "retained_fraction", "retained_by_separation", "inner_separation",
+           "SDK_BASES", "SDK_ORDER"]
 
 log = logging.getLogger(__name__)
 
@@ -201,6 +202,40 @@ def inner_separation(separations, fraction, *, level=SDK_LEVEL):
     if low[-1] == len(rings) - 1:
         return float("nan")
     return float(rings[low[-1] + 1])
+
+
+def retained_by_separation(kernel_model, wavelengths, grid, combinations, *, spectrum=None,
+                           scale=None, angles=16):
+    """What the projection keeps of a companion on *grid*, ring by ring: ``{'retained':
+    [[sep, median fraction], ...], 'inner_separation': sep}`` (`retained_fraction` at
+    *angles* position angles per ring one grid step wide, `inner_separation`).
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.data import DetectionGrid
+    >>> from kpifs.calibration.spectral_diff import kept_combinations, retained_by_separation
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> wl = np.linspace(1.16, 2.37, 22) * u.um
+    >>> v = kept_combinations(np.ones((22, 1)) / np.sqrt(22), np.ones(22))
+    >>> out = retained_by_separation(km, wl, DetectionGrid.from_separation(150, 30), v)
+    >>> out["inner_separation"], out["retained"][-1]
+    (120.0, [150.0, 0.6419])
+    """
+    sel = grid.valid
+    seps = np.unique(np.round(grid.sep[sel], 6))
+    step = float(max(abs(grid.step[0]), abs(grid.step[1])))
+    rings = np.arange(seps.min(), seps.max() + step / 2, step)
+    ang = np.arange(angles) * np.pi / angles
+    pos = np.stack([np.outer(rings, np.cos(ang)).ravel(),
+                    np.outer(rings, np.sin(ang)).ravel()], axis=1)
+    frac = retained_fraction(kernel_model, wavelengths, pos, combinations, spectrum=spectrum,
+                             scale=scale)
+    sep = np.repeat(rings, len(ang))
+    med = [float(np.median(frac[sep == r])) for r in rings]
+    return {"retained": [[round(float(r), 1), round(m, 4)] for r, m in zip(rings, med)],
+            "inner_separation": inner_separation(sep, frac)}
 
 
 def frames_autocorrelation(rows, blocks):

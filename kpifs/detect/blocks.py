@@ -23,21 +23,25 @@ angles: a companion far out moves within a block.
 """
 import hashlib
 import logging
+from dataclasses import replace
 
 import numpy as np
 from astropy import units as u
 
 from .._utils import thread_map, to_quantity
 from ..calibration.adi import _check_rotation
+from ..calibration.spectral_diff import kept_combinations, retained_by_separation
+from ..covariance import whitening_matrix
 from ..exceptions import KpifsError
 from ..model.kernel import MAS
 from ..rotation import noise_whitening
 from ._blockfit import refine_stack
 from ._blocktrig import block_trig
+from .combinations import combination_contrasts, combination_table
 from ._signatures import _norm_chunks, _unit
 from .maps import UNIT_CACHE_BYTES, DetectionModel
 from .sky import sky_to_detector
-from .spectral import spectral_basis
+from .spectral import spectral_basis, spectrum_shape
 
 
 __all__ = ["BlockModel", "BlockStack", "block_stack", "MODES"]
@@ -48,6 +52,9 @@ log = logging.getLogger(__name__)
 #: at its own scale), or the mean only (the blocks ignored: the model averaged over the
 #: angles, as before issue 29).
 MODES = ("rotation", "angular-differential", "mean")
+#: Grid positions whose channel signatures are made at a time when a model mixes channels
+#: (channels x blocks x positions x kernel phases in memory, single precision).
+MIXED_CHUNK = 128
 
 
 class BlockModel(DetectionModel):
@@ -70,6 +77,12 @@ class BlockModel(DetectionModel):
         frames' mean and second moment; exact for two frames), not one pose at
         its angle, which overstates a companion that moves within the block
         (the squared norm by 1/0.69 at 300 mas for 4 frames over 6 deg).
+    mixing : ndarray (k, q), optional
+        Channel combinations (spectral-differential blocks, ASDI,
+        `kpifs.calibration.spectral_diff`): the model's ``k`` channels are
+        combinations of the data's ``q`` (*wavelengths*), combination ``i``'s
+        signature ``sum_c mixing[i, c] K sin(theta_c)``; *comp_mean* and
+        *comp_frame* are then the combinations' (k, r, p).
 
     Examples
     --------
@@ -86,9 +99,17 @@ class BlockModel(DetectionModel):
     """
 
     def __init__(self, kernel_model, wavelengths, grid, comp_mean, comp_frame, angles, frames,
-                 *, spread=None, pixscale=None, window=None, dof=None, basis=None):
+                 *, spread=None, pixscale=None, window=None, dof=None, basis=None, mixing=None):
         self.kernel_model = kernel_model
-        self.wavelengths = np.atleast_1d(to_quantity(wavelengths, u.um, name="wavelengths"))
+        real = np.atleast_1d(to_quantity(wavelengths, u.um, name="wavelengths"))
+        self._real = real
+        self.mixing = None if mixing is None else np.asarray(mixing, float)
+        if self.mixing is None:
+            self.wavelengths = real
+        else:
+            # a combination's nominal wavelength: its weights' centre (labels only)
+            wts = self.mixing ** 2 / np.sum(self.mixing ** 2, axis=1, keepdims=True)
+            self.wavelengths = wts @ real.to_value(u.um) * u.um
         self.basis = spectral_basis(basis, self.wavelengths)
         self.grid = grid
         if grid.frame != "sky":
@@ -126,35 +147,38 @@ class BlockModel(DetectionModel):
         # products over (poses x uv points)
         uv = kernel_model.uv.value
         self._trig = thread_map(lambda lam: block_trig(grid, uv, pose.ravel(), lam),
-                                self.wavelengths.to_value(u.m))
+                                real.to_value(u.m))
         self.norm2 = self._signature_norms()
+
+    def _check_grid(self):
+        # the channels' own wavelengths alias, not the combinations' nominal ones
+        nominal, self.wavelengths = self.wavelengths, self._real
+        try:
+            super()._check_grid()
+        finally:
+            self.wavelengths = nominal
 
     def _weights(self):
         """Per block: the mean's weight ``n_b / N`` and the departures' ``sqrt(n_b)``."""
         n = self.frames
         return n / n.sum(), np.sqrt(n)
 
-    def _stacked(self, i, rows, free=None):
-        """Stacked signatures ``[m, sqrt(n_b)(S_b - mean)]`` (npos, dim), unsigned; with
-        *free* (npos,), the squared norm without the mean's removal is written there."""
+    def _block_sines(self, c, rows):
+        """Per block ``b``: ``sin(theta)`` of channel *c* at flat grid positions *rows*
+        (npos, nuv), float32, summed over the block's poses (one buffer, rewritten for
+        each block: use it before the next)."""
         nx = self.grid.shape[1]
         iy, ix = np.divmod(rows, nx)
-        wm, wd = self._weights()
-        sx, cx, sy, cy = self._trig[i]
-        nuv = self._lift_f.shape[1]
-        lift = self._lift_f[i].astype(np.float32)
-        per = np.empty((len(self.frames), len(rows), lift.shape[1]))
-        sbar = np.zeros((len(rows), nuv), np.float32) if self.with_mean else None
+        sx, cx, sy, cy = self._trig[c]
+        nuv = self.kernel_model.uv.shape[0]
         # runs of consecutive positions along one grid line: slices of the x factors times
         # one line of the y factors (no gathered copies of either)
         cut = np.flatnonzero((np.diff(iy) != 0) | (np.diff(ix) != 1)) + 1
         runs = [(a, b, ix[a], iy[a]) for a, b in zip(np.r_[0, cut], np.r_[cut, len(rows)])]
         sin = np.empty((len(rows), nuv), np.float32)
         tmp = np.empty_like(sin)
-        # block by block: the work arrays (npos x nuv) stay in the processor's cache; a
-        # block's poses (two: its frames' spread) summed, their mean's 1/2 in the products
+        # block by block: the work arrays (npos x nuv) stay in the processor's cache
         ns = self._sub
-        lift = lift / np.float32(ns)
         for b in range(len(self.frames)):
             for k in range(ns):
                 uv = slice((b * ns + k) * nuv, (b * ns + k + 1) * nuv)
@@ -167,22 +191,67 @@ class BlockModel(DetectionModel):
                         sin[a:e] += tmp[a:e]
                     np.multiply(cx[xs, uv], sy[y0, uv], out=tmp[a:e])
                     sin[a:e] += tmp[a:e]
+            yield b, sin
+
+    def _stacked(self, i, rows, free=None):
+        """Stacked signatures ``[m, sqrt(n_b)(S_b - mean)]`` (npos, dim), unsigned; with
+        *free* (npos,), the squared norm without the mean's removal is written there."""
+        wm, _ = self._weights()
+        nuv = self._lift_f.shape[1]
+        lift = self._lift_f[i].astype(np.float32)
+        per = np.empty((len(self.frames), len(rows), lift.shape[1]))
+        sbar = np.zeros((len(rows), nuv), np.float32) if self.with_mean else None
+        # a block's poses (two: its frames' spread) summed, their mean's 1/2 in the products
+        ns = self._sub
+        lift = lift / np.float32(ns)
+        for b, sin in self._block_sines(i, rows):
             per[b] = sin @ lift
             if sbar is not None:
                 sin *= np.float32(wm[b] / ns)
                 sbar += sin
+        mean = None if sbar is None else (sbar @ self._lift_m[i].astype(np.float32)).astype(float)
+        return self._parts(per, mean, free)
+
+    def _stacked_mixed(self, rows, free=None):
+        """`_stacked` of every combination (k, npos, dim) when the model mixes channels:
+        each channel's block signatures ``K sin(theta_c)`` once (one product per channel
+        and block), mixed into the combinations, then whitened (*free* (k, npos))."""
+        q, nb = len(self._real), len(self.frames)
+        kt = (self.kernel_model.kernel.T / self._sub).astype(np.float32)         # (nuv, p)
+        per_c = np.empty((q, nb, len(rows), kt.shape[1]), np.float32)
+
+        def channel(c):
+            for b, sin in self._block_sines(c, rows):
+                per_c[c, b] = sin @ kt
+        thread_map(channel, range(q))
+        mixed = np.tensordot(self.mixing.astype(np.float32), per_c, axes=(1, 0))  # (k, B, ...)
+        wm, _ = self._weights()
+        out = []
+        for i in range(len(mixed)):
+            per = (mixed[i] @ self.comp_frame[i].T.astype(np.float32)).astype(float)
+            mean = None
+            if self.with_mean:
+                mean = np.tensordot(wm, mixed[i].astype(float), axes=(0, 0)) @ self.comp_mean[i].T
+            out.append(self._parts(per, mean, None if free is None else free[i]))
+        return np.stack(out)
+
+    def _parts(self, per, mean, free):
+        """``[m, sqrt(n_b)(S_b - mean)]`` from the blocks' projected signatures *per*
+        (B, npos, r_f) and the mean's *mean* (npos, r_m) or None; *free* as `_stacked`."""
+        wm, wd = self._weights()
         md = np.tensordot(wm, per, axes=(0, 0))
         parts = list(wd[:, None, None] * (per - md))
         if free is not None:
             free[:] = np.einsum("b,bkr,bkr->k", wd ** 2, per, per)
-        if self.with_mean:
-            m = (sbar @ self._lift_m[i].astype(np.float32)).astype(float)
-            parts.insert(0, m)
+        if mean is not None:
+            parts.insert(0, mean)
             if free is not None:
-                free += np.einsum("kr,kr->k", m, m)
+                free += np.einsum("kr,kr->k", mean, mean)
         return np.concatenate(parts, axis=-1)
 
     def _signature_norms(self):
+        if self.mixing is not None:
+            return self._mixed_norms()
         q = len(self.wavelengths)
         n = self.grid.valid.size
         keep, mirrored, rows = self._norm_rows()
@@ -215,6 +284,37 @@ class BlockModel(DetectionModel):
         self.norm2_free = free.reshape((q,) + self.grid.shape) * self._wfac[None] ** 2
         return out.reshape(self.norm2_free.shape) * self._wfac[None] ** 2
 
+    def _mixed_norms(self):
+        """`_signature_norms` of channel combinations: chunk by chunk, every combination
+        from the channels' signatures made once (`_stacked_mixed`)."""
+        k = len(self.wavelengths)
+        n = self.grid.valid.size
+        keep, mirrored, rows = self._norm_rows()
+        cache = k * len(keep) * self.dim * 4 <= UNIT_CACHE_BYTES
+        at = np.searchsorted(rows, keep) if not mirrored else np.arange(len(keep))
+        unit = np.empty((k, len(keep), self.dim), np.float32) if cache else None
+        wf = self._wfac.ravel()[keep]
+        out, free = np.zeros((k, n)), np.zeros((k, n))
+        for a in range(0, len(rows), MIXED_CHUNK):
+            chunk = rows[a:a + MIXED_CHUNK]
+            fb = np.empty((k, len(chunk)))
+            s = self._stacked_mixed(chunk, free=fb)
+            raw = np.einsum("kij,kij->ki", s, s)
+            out[:, chunk], free[:, chunk] = raw, fb
+            if cache:
+                sel = (at >= a) & (at < a + len(chunk))
+                for i in range(k):
+                    unit[i, sel] = _unit(s[i, at[sel] - a], raw[i, at[sel] - a], wf[sel])
+        if mirrored:
+            out[:, n - 1 - rows] = out[:, rows]
+            free[:, n - 1 - rows] = free[:, rows]
+        if cache:
+            self._unit_cache = (keep, unit)
+            self._amp = np.sqrt(out[:, keep]) * wf
+            self._mirrored = mirrored
+        self.norm2_free = free.reshape((k,) + self.grid.shape) * self._wfac[None] ** 2
+        return out.reshape(self.norm2_free.shape) * self._wfac[None] ** 2
+
     def retained(self):
         """Fraction of a companion's squared signal the search keeps (per channel and
         position): 1 minus the self-subtraction of the angular-differential part."""
@@ -228,8 +328,12 @@ class BlockModel(DetectionModel):
             if np.array_equal(keep[at], rows):
                 return unit[:, at]
         q = len(self.wavelengths)
-        out = np.empty((q, len(rows), self.dim), np.float32)
         wf = self._wfac.ravel()[rows]
+        if self.mixing is not None:
+            s = self._stacked_mixed(rows)
+            return np.stack([_unit(si, np.einsum("ij,ij->i", si, si), wf) for si in s]
+                            ).astype(np.float32)
+        out = np.empty((q, len(rows), self.dim), np.float32)
         for i in range(q):
             s = self._stacked(i, rows)
             out[i] = _unit(s, np.einsum("ij,ij->i", s, s), wf)
@@ -269,10 +373,15 @@ class BlockModel(DetectionModel):
             if self._sub == 2:                  # each block's two poses, half each
                 g = np.repeat(0.5 * g, 2, axis=1)
             g = g.reshape(m, -1).astype(np.float32)
-            sx, cx, sy, cy = self._trig[i]
             k = g.shape[1]
-            acc = (sx[None] * g[:, None, :]).reshape(m * nx, k) @ cy.T
-            acc += (cx[None] * g[:, None, :]).reshape(m * nx, k) @ sy.T
+            acc = 0.0
+            # a combination of channels: its channels' projections, weighted
+            for c, wt in (enumerate(self.mixing[i]) if self.mixing is not None
+                          else [(i, 1.0)]):
+                sx, cx, sy, cy = self._trig[c]
+                gc = g * np.float32(wt)
+                acc = acc + (sx[None] * gc[:, None, :]).reshape(m * nx, k) @ cy.T
+                acc += (cx[None] * gc[:, None, :]).reshape(m * nx, k) @ sy.T
             out[:, i] = -acc.reshape(m, nx, ny).transpose(0, 2, 1) * self._wfac
         # channels side by side, one BLAS thread each (BLAS's threads on a busy machine
         # wait for each other: 0.2 s became 10 s at a load of 9 on 2 cores)
@@ -287,7 +396,8 @@ class BlockModel(DetectionModel):
                     np.zeros(0) if self.comp_mean is None else self.comp_mean,
                     self.comp_frame, self.frames, self.detpa[0], self.spread,
                     self.wavelengths.value,
-                    self._wfac, self.basis):
+                    self._wfac, self.basis,
+                    np.zeros(0) if self.mixing is None else self.mixing, self._real.value):
             h.update(np.ascontiguousarray(arr).tobytes())
         for part in self.grid.key():
             h.update(repr(part).encode())
@@ -322,11 +432,18 @@ class BlockStack:
     is the identity), so that `~kpifs.detect.detect` handles it as any data.
     """
 
-    def __init__(self, kpd, kp, w, rank, *, mode="rotation"):
+    def __init__(self, kpd, kp, w, rank, *, mode="rotation", cov=None, spectrum=None):
         if mode not in MODES:
             raise KpifsError(f"unknown block search {mode!r}: use one of {MODES}")
         rb = kpd.rotation
-        self.kpd, self.mode, self.blocks = kpd, mode, rb
+        self.kpd, self.mode = kpd, mode
+        self.mixing, self.spectral = None, None
+        cov_rows = kpd.covariance_rows
+        if getattr(kpd, "spectral", None) is not None:
+            # ASDI (issue 39): the blocks of the channel combinations free of the static
+            # profiles (`kpifs.detect.sdk`), searched as a rotating sequence's channels
+            rb, kp, w, rank, cov_rows = self._combine(rb, kp, w, rank, cov, spectrum)
+        self.blocks = rb
         n = rb.frames.astype(int)
         frames = np.asarray(kpd.meta.get("detpa_frames") or [], float)
         if frames.size == n.sum() and np.all(np.isfinite(frames)):
@@ -339,9 +456,10 @@ class BlockStack:
         # the angular-differential search of calibrated data keeps the calibrated mean too,
         # weighted by its own excess (below): where the rotation moves a companion little
         # the calibrator still finds it, and a static residual shows in the mean alone
-        self.with_mean = mode == "rotation" or bool(rb.calibrated)
+        # so does ASDI's: its combinations' mean is free of the static profiles
+        self.with_mean = mode == "rotation" or bool(rb.calibrated) or self.mixing is not None
         rank = np.atleast_1d(rank)
-        q = kpd.n_wave
+        q = rb.data.shape[1]
         nb = rb.n_blocks
         self.comp_frame = cf = noise_whitening(rb)                              # (q, rf, p)
         rf = cf.shape[1]
@@ -373,8 +491,8 @@ class BlockStack:
                 self.comp_mean = cm = cm / np.sqrt(self.mean_scale)
                 ym = ym / np.sqrt(self.mean_scale)
             pieces.insert(0, ym)
-            rows = [_pad(_rows(cm, kpd.covariance_rows), nb * rf, after=True)] \
-                if kpd.covariance_rows is not None else []
+            rows = [_pad(_rows(cm, cov_rows), nb * rf, after=True)] \
+                if cov_rows is not None else []
             rows.append(_pad(dev_rows, rm, after=False))
         self.kp = np.concatenate(pieces, axis=-1)
         self.dim = self.kp.shape[1]
@@ -386,15 +504,52 @@ class BlockStack:
         log.info("%s: searched in %d time blocks over %.1f deg (%s), %d modes of one frame's "
                  "noise per channel", kpd.name, nb, rb.span, mode, rf)
 
+    def _combine(self, rb, kp, w, rank, cov, spectrum):
+        """The channel combinations free of the data's static profiles (``kpd.spectral``):
+        the blocks, the calibrated mean, its whitening and covariance rows mixed by
+        ``D`` (k, q) (`~kpifs.calibration.spectral_diff.kept_combinations`, each channel
+        weighted by its frames' scatter within the blocks)."""
+        kpd = self.kpd
+        prof = np.asarray(kpd.spectral["profiles"], float)
+        own = rb.noise[:rb.n_target_noise] if rb.n_target_noise else rb.noise
+        var = np.mean(own ** 2, axis=(0, 2))
+        scale = np.sqrt(np.where(var > 0, var, np.max(var)))
+        v = kept_combinations(prof, scale)
+        mix = (v / scale[:, None]).T                                           # (k, q)
+        self.spectrum = spectrum_shape(spectrum, kpd.n_wave)
+        self.mixing = mix * self.spectrum[None]
+        self.data_mixing = mix
+        self.n_comb = k = mix.shape[0]
+        rb = replace(rb, data=np.einsum("kc,bcp->bkp", mix, rb.data),
+                     noise=np.einsum("kc,ncp->nkp", mix, rb.noise))
+        rows = None if kpd.covariance_rows is None else \
+            np.einsum("kc,ncp->nkp", mix, kpd.covariance_rows)
+        kp_mix = mix @ kp
+        if cov is not None:
+            # the calibrated mean's whitening per combination (its channels' covariances
+            # summed, as the spectral-differential search's, `kpifs.detect.sdk`)
+            ccov = np.einsum("kc,cpr->kpr", mix ** 2, np.asarray(cov, float))
+            w, rank = whitening_matrix(ccov, return_rank=True,
+                                       source="covariance of the channel combinations")
+        elif rb.calibrated:
+            raise KpifsError(f"{kpd.name}: a calibrated block search of spectral-differential "
+                             f"data needs the data's covariance")
+        self.spectral = {"basis": kpd.spectral.get("basis"), "profiles": int(prof.shape[1]),
+                         "combinations": int(k)}
+        self._scale, self.combinations = scale, v
+        return rb, kp_mix, w, rank, rows
+
     def detection_model(self, grid, *, basis=None):
         """The `BlockModel` on *grid*; in the angular-differential mode, what the rotation
         lets survive is measured (``self.info['retained']``, by separation) and too
-        little of it is refused (nothing could be found) or warned about."""
+        little of it is refused (nothing could be found) or warned about; of channel
+        combinations (ASDI), what the spectral projection keeps too
+        (``self.info['spectral']``)."""
         kpd = self.kpd
         model = BlockModel(kpd.kernel_model, kpd.wavelengths, grid, self.comp_mean,
                            self.comp_frame, self.blocks.angles, self.blocks.frames,
                            spread=self.spread(), pixscale=kpd.pixscale, window=kpd.window,
-                           dof=self.rank, basis=basis)
+                           dof=self.rank, basis=basis, mixing=self.mixing)
         self.info = {"mode": self.mode, "n_blocks": int(self.blocks.n_blocks),
                      "frames": self.blocks.frames.tolist(),
                      "angles": np.round(self.blocks.angles, 4).tolist(),
@@ -402,6 +557,10 @@ class BlockStack:
                      "mean_scale": self.mean_scale}
         if not self.with_mean:
             self.info["retained"] = _check_rotation(model, kpd, self.blocks)
+        if self.mixing is not None:
+            self.info["spectral"] = dict(self.spectral, **retained_by_separation(
+                kpd.kernel_model, kpd.wavelengths, grid, self.combinations,
+                spectrum=self.spectrum, scale=self._scale))
         return model
 
     def spread(self):
@@ -421,16 +580,48 @@ class BlockStack:
         # companion's model at the block's mean angle would leave side lobes)
         x, y = sky_to_detector(float(sky[0]), float(sky[1]), self._frame_angles)   # (N,)
         lam = kpd.wavelengths.to_value(u.m)
-        c = np.broadcast_to(np.asarray(contrast, float), lam.shape)
         uv = km.uv.value
         # K arg(1 + c exp(-i theta)) per block and channel, as KernelModel.binary_kernel_phases
         theta = 2 * np.pi * MAS * (np.outer(x, uv[:, 0]) + np.outer(y, uv[:, 1]))
-        h = np.exp(-1j * theta[:, None, :] / lam[None, :, None])              # (B, q, nuv)
+        h = np.exp(-1j * theta[:, None, :] / lam[None, :, None])              # (N, q, nuv)
+        if self.mixing is not None:
+            return self._mixed_model(h, contrast, derivative)
+        c = np.broadcast_to(np.asarray(contrast, float), lam.shape)
         z = 1 + c[None, :, None] * h
         out = self._stack(self._by_block(np.angle(z)) @ km.kernel.T)
         if not derivative:
             return out
         return out, self._stack(self._by_block(np.imag(h / z)) @ km.kernel.T)   # d arg / dc
+
+    def _mixed_model(self, h, contrast, derivative):
+        """`model_kp` of channel combinations: combination ``i`` with its own contrast
+        scale ``c_i`` times the spectrum shape in every channel, mixed by ``D``."""
+        kern = self.kpd.kernel_model.kernel
+        c = np.broadcast_to(np.asarray(contrast, float), (self.n_comb,))
+        ca = c[:, None] * self.spectrum[None, :]                             # (k, q)
+        z = 1 + ca[None, :, :, None] * h[:, None]                            # (N, k, q, nuv)
+
+        def mixed(a):                   # per-frame (N, k, q, nuv) -> stacked (k, dim)
+            per = self._by_block(a) @ kern.T                                  # (B, k, q, p)
+            return self._stack(np.einsum("kc,bkcp->bkp", self.data_mixing, per))
+        out = mixed(np.angle(z))
+        if not derivative:
+            return out
+        return out, mixed(np.imag(self.spectrum[None, None, :, None] * h[:, None] / z))
+
+    def channel_contrasts(self, c, cerr):
+        """The combinations' contrast maps as the channels' (ASDI: their weighted mean times
+        the spectrum shape, `~kpifs.detect.combinations.combination_contrasts`); as they are
+        otherwise."""
+        if self.mixing is None:
+            return c, cerr
+        return combination_contrasts(self.spectrum, c, cerr)
+
+    def channel_table(self, cands):
+        """The candidates' per-combination contrast columns as per-channel ones (in place;
+        ASDI only)."""
+        if self.mixing is not None:
+            combination_table(self.spectrum, self.n_comb, cands)
 
     def _by_block(self, a):
         """Per-frame values (N, ...) averaged within each block (B, ...)."""
@@ -467,10 +658,13 @@ def _pad(rows, n, *, after):
     return np.concatenate([rows, z] if after else [z, rows], axis=-1)
 
 
-def block_stack(kpd, kp, w, rank, *, frame, mode="auto"):
+def block_stack(kpd, kp, w, rank, *, frame, mode="auto", cov=None, spectrum=None):
     """The `BlockStack` of a search, or None for the fast path (one mean, as before):
     blocks are searched on the sky when the data carry them (``kpd.rotation``); *mode*
-    ``'auto'`` takes the data's own (``meta['block_search']``, else ``'rotation'``)."""
+    ``'auto'`` takes the data's own (``meta['block_search']``, else ``'rotation'``). Data
+    with spectral-differential profiles (``kpd.spectral``) are searched by their channel
+    combinations (ASDI), with the data's covariance *cov* (q, p, p) and the companion's
+    *spectrum* shape."""
     if mode not in MODES + ("auto",):
         raise KpifsError(f"unknown block search {mode!r}: use one of {MODES} or 'auto'")
     if getattr(kpd, "rotation", None) is None or frame != "sky":
@@ -483,4 +677,4 @@ def block_stack(kpd, kp, w, rank, *, frame, mode="auto"):
         mode = kpd.rotation.search
     if mode == "mean":
         return None
-    return BlockStack(kpd, kp, w, rank, mode=mode)
+    return BlockStack(kpd, kp, w, rank, mode=mode, cov=cov, spectrum=spectrum)

@@ -330,11 +330,14 @@ def _whiten_stage(prep, opts):
     if prep.static_rows is not None and cov_rows is not None:
         cov_rows = np.concatenate([cov_rows, prep.static_rows])
     # issue 29: a rotating sequence's time blocks, stacked (None: the one mean, as before)
-    stack = block_stack(kpd, kp, w, rank, frame=frame, mode=opts.blocks)
+    stack = block_stack(kpd, kp, w, rank, frame=frame, mode=opts.blocks, cov=prep.cov,
+                        spectrum=prep.spectrum)
     if stack is None and getattr(kpd, "spectral", None) is not None:
         # issue 39: the channel combinations free of the static profiles (`kpifs.detect.sdk`)
         stack = SpectralStack(kpd, kp, prep.cov, spectrum=prep.spectrum, poses=search_poses)
-        prep.spectrum, prep.basis, prep.a = None, stack.basis, np.ones(stack.n_comb)
+    if getattr(stack, "mixing", None) is not None:       # searched by channel combinations
+        prep.spectrum, prep.basis, prep.a = None, np.ones((stack.n_comb, 1)), \
+            np.ones(stack.n_comb)
     if stack is not None:
         kp, w, rank = stack.kp, stack.whitening, stack.rank
         cov_rows, blk_rows, fit_rows = stack.rows, stack.block_rows, None

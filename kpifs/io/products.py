@@ -131,7 +131,10 @@ def _channel_cards(result, hdr, inputs):
         hdr["STATAMP"] = (float(st["amplitude"]), "static residual amplitude (ML fit)")
         hdr["STATPUP"] = (str(st["pupil"]), "pupil the static residual was imaged through")
     sdk = result.meta.get("blocks") or {}
-    if sdk.get("mode") == "spectral-differential":       # issue 39
+    if sdk.get("spectral"):                                # ASDI: the blocks' combinations
+        hdr["SDKBLOCK"] = (True, "combinations searched by time blocks (ASDI)")
+        sdk = sdk["spectral"]
+    if sdk.get("profiles") is not None:                   # issue 39
         hdr["SDKBASIS"] = (str(sdk.get("basis")), "spectral-differential profiles")
         hdr["SDKNPROF"] = (int(sdk["profiles"]), "profiles projected out")
         hdr["SDKNCOMB"] = (int(sdk["combinations"]), "channel combinations searched")
@@ -371,9 +374,10 @@ def detection_header_meta(hdr, path):
     if field_from_header(hdr):
         meta["field"] = field_from_header(hdr)
     if "SDKNPROF" in hdr:
-        meta["blocks"] = {"mode": "spectral-differential", "basis": hdr.get("SDKBASIS"),
-                          "profiles": hdr["SDKNPROF"], "combinations": hdr.get("SDKNCOMB"),
-                          "inner_separation": hdr.get("SDKINNER", -1.0)}
+        sdk = {"basis": hdr.get("SDKBASIS"), "profiles": hdr["SDKNPROF"],
+               "combinations": hdr.get("SDKNCOMB"), "inner_separation": hdr.get("SDKINNER", -1.0)}
+        meta["blocks"] = ({"mode": "angular-differential", "spectral": sdk}
+                          if hdr.get("SDKBLOCK") else dict(mode="spectral-differential", **sdk))
     if "STATSHR" in hdr:
         meta["static"] = {"share": hdr["STATSHR"], "amplitude": hdr.get("STATAMP"),
                           "pupil": hdr.get("STATPUP")}

@@ -1,0 +1,68 @@
+"""A companion's contrasts in channel combinations, reported per channel (issue 39).
+
+A spectral-differential search (`kpifs.detect.sdk`, and its rotating form in
+`kpifs.detect.blocks`) fits one contrast scale per channel combination: the
+companion's spectrum shape ``a`` (flat by default) times that scale in every
+channel. The combinations measure the same scale, so the channels' contrasts
+are the inverse-variance mean of the combinations' scales times ``a``, with its
+error.
+"""
+import numpy as np
+
+__all__ = ["combination_contrasts", "combination_table"]
+
+
+def _mean(c, err, axis):
+    """Inverse-variance mean of *c* over *axis* and its error (NaN or non-positive errors
+    carry no weight)."""
+    good = np.isfinite(err) & (err > 0)
+    wt = np.where(good, 1 / np.where(good, err, 1) ** 2, 0.0)
+    tot = wt.sum(axis=axis)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.sum(wt * np.nan_to_num(c), axis=axis) / tot, 1 / np.sqrt(tot)
+
+
+def combination_contrasts(spectrum, c, cerr):
+    """The combinations' contrast maps and errors (k, ny, nx) as the channels' (q, ny, nx):
+    their inverse-variance mean times the *spectrum* shape (q,).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.combinations import combination_contrasts
+    >>> c = np.array([1.0, 3.0]).reshape(2, 1, 1)
+    >>> e = np.array([1.0, 1.0]).reshape(2, 1, 1)
+    >>> m, s = combination_contrasts(np.array([1.0, 0.5, 2.0]), c, e)
+    >>> m.ravel().tolist(), np.round(s.ravel(), 3).tolist()
+    ([2.0, 1.0, 4.0], [0.707, 0.354, 1.414])
+    """
+    mean, err = _mean(np.asarray(c, float), np.asarray(cerr, float), 0)
+    a = np.asarray(spectrum, float)[:, None, None]
+    return a * mean[None], a * err[None]
+
+
+def combination_table(spectrum, n_comb, cands):
+    """The candidates' per-combination contrast columns (``contrast``, ``fit_contrast`` and
+    their errors, *n_comb* values per row) as per-channel ones, in place.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from astropy.table import QTable
+    >>> from kpifs.detect.combinations import combination_table
+    >>> t = QTable({"contrast": [[1.0, 3.0]], "contrast_err": [[1.0, 1.0]]})
+    >>> combination_table(np.array([1.0, 2.0, 1.0]), 2, t)
+    >>> t["contrast"][0].tolist()
+    [2.0, 4.0, 2.0]
+    """
+    a = np.asarray(spectrum, float)
+    for val, err in (("contrast", "contrast_err"), ("fit_contrast", "fit_contrast_err")):
+        if val not in cands.colnames or err not in cands.colnames or not len(cands):
+            continue
+        c = np.asarray(cands[val], float).reshape(len(cands), -1)
+        e = np.asarray(cands[err], float).reshape(len(cands), -1)
+        if c.shape[1] != n_comb:
+            continue
+        mean, sig = _mean(c, e, 1)
+        cands[val] = mean[:, None] * a[None]
+        cands[err] = sig[:, None] * a[None]
