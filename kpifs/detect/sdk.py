@@ -123,30 +123,32 @@ class SpectralModel(DetectionModel):
         return -a.reshape(m, nx, -1).transpose(0, 2, 1)
 
     def _signature_norms(self):
-        """As `~kpifs.detect.DetectionModel`'s, chunk by chunk: the channels' signatures
-        ``K sin(theta_c)`` once, mixed into the combinations, then whitened (one lift per
-        channel, not one per channel and combination)."""
+        """As `~kpifs.detect.DetectionModel`'s, chunk by chunk: the channels' ``sin(theta_c)``
+        once, mixed into the combinations in uv space (one matrix product), then each
+        combination's through its lift ``K^T W_k^T`` (one product per combination, as
+        many as without the projection, instead of one per channel and then the
+        whitening)."""
         k, p = len(self.wavelengths), self.kernel_model.n_kp
-        n = self.grid.valid.size
+        q, n = len(self._real), self.grid.valid.size
         keep, mirrored, rows = self._norm_rows()
         cache = k * len(keep) * p * 4 <= UNIT_CACHE_BYTES
         at = np.searchsorted(rows, keep) if not mirrored else np.arange(len(keep))
         unit = np.empty((k, len(keep), p), np.float32) if cache else None
         wf = self._wfac.ravel()[keep]
         out = np.zeros((k, n))
-        kt = self.kernel_model.kernel.T
-        wt = np.swapaxes(self.whitening, 1, 2)
         for a in range(0, len(rows), NORM_CHUNK):
             chunk = rows[a:a + NORM_CHUNK]
-            per = np.stack(thread_map(lambda c: self._channel_sin(c, chunk) @ kt,
-                                      range(len(self._real))))            # (q, n, p)
-            white = np.matmul(np.einsum("kc,cnp->knp", self._mix, per), wt)   # (k, n, p)
-            raw = np.einsum("knp,knp->kn", white, white)
-            out[:, chunk] = raw
-            if cache:
-                sel = (at >= a) & (at < a + len(chunk))
-                for i in range(k):
-                    unit[i, sel] = _unit(white[i, at[sel] - a], raw[i, at[sel] - a], wf[sel])
+            sins = np.stack(thread_map(lambda c: self._channel_sin(c, chunk), range(q)))
+            mixed = (self._mix @ sins.reshape(q, -1)).reshape(k, len(chunk), -1)
+            sel = (at >= a) & (at < a + len(chunk))
+
+            def combination(i):
+                white = mixed[i] @ self._lift[i]                                # (n, p)
+                raw = np.einsum("np,np->n", white, white)
+                out[i, chunk] = raw
+                if cache:
+                    unit[i, sel] = _unit(white[at[sel] - a], raw[at[sel] - a], wf[sel])
+            thread_map(combination, range(k))
         if mirrored:
             out[:, n - 1 - rows] = out[:, rows]
         if cache:
