@@ -40,7 +40,7 @@ log = logging.getLogger(__name__)
 RETAINED_ANGLES = 16
 #: Grid positions whose signatures are made at a time (channels x positions x kernel
 #: phases in memory).
-NORM_CHUNK = 512
+NORM_CHUNK = 256
 
 
 class SpectralModel(DetectionModel):
@@ -122,6 +122,31 @@ class SpectralModel(DetectionModel):
                 a = a + (cx[None] * gw[:, None, :]).reshape(m * nx, nuv) @ sy.T
         return -a.reshape(m, nx, -1).transpose(0, 2, 1)
 
+    def _channel_sins(self, rows):
+        """``sin(theta_c)`` of every channel at flat grid positions *rows*, (q, n, nuv): the
+        parent's separable products (`_sin_from`, the same operations), written in place
+        from slices of the x factors along each grid row (no gathered copies); with
+        several poses, the parent's."""
+        q = len(self._real)
+        if any(len(t) != 1 or t[0][4] != 1.0 for t in self._channel_trig):
+            return np.stack(thread_map(lambda c: self._channel_sin(c, rows), range(q)))
+        iy, ix = np.divmod(rows, self.grid.shape[1])
+        cuts = np.flatnonzero((np.diff(iy) != 0) | (np.diff(ix) != 1)) + 1
+        runs = list(zip(np.r_[0, cuts], np.r_[cuts, len(rows)]))
+        nuv = self._channel_trig[0][0][0].shape[1]
+        out = np.empty((q, len(rows), nuv))
+
+        def channel(c):
+            sx, cx, sy, cy, _ = self._channel_trig[c][0]
+            o = out[c]
+            tmp = np.empty((max(b - a for a, b in runs), nuv))
+            for a, b in runs:
+                xs, y = slice(ix[a], ix[a] + b - a), iy[a]
+                np.multiply(sx[xs], cy[y], out=o[a:b])
+                o[a:b] += np.multiply(cx[xs], sy[y], out=tmp[:b - a])
+        thread_map(channel, range(q))
+        return out
+
     def _signature_norms(self):
         """As `~kpifs.detect.DetectionModel`'s, chunk by chunk: the channels' ``sin(theta_c)``
         once, mixed into the combinations in uv space (one matrix product), then each
@@ -138,7 +163,7 @@ class SpectralModel(DetectionModel):
         out = np.zeros((k, n))
         for a in range(0, len(rows), NORM_CHUNK):
             chunk = rows[a:a + NORM_CHUNK]
-            sins = np.stack(thread_map(lambda c: self._channel_sin(c, chunk), range(q)))
+            sins = self._channel_sins(chunk)
             mixed = (self._mix @ sins.reshape(q, -1)).reshape(k, len(chunk), -1)
             sel = (at >= a) & (at < a + len(chunk))
 
