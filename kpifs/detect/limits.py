@@ -198,15 +198,25 @@ def _limit_binary_draws(m, corr, thresholds, pd, powers, n_draws, seed):
 
 
 def _draw_starts(z, m, threshold, power):
-    """Per draw of *z* (k, q, N), a contrast at or right of its crossing (k, N), where
-    Newton's steps of `_crossings` fall monotonically onto it: ``T(c)`` is at least
-    ``sum_i (z_i + c m_i)`` (power 1) or its square over ``q`` (power 2, Cauchy-Schwarz,
-    where that sum is positive), which reach the threshold at the returned ``c``
-    (0 at least). One sum over the channels: no per-position search of a start."""
+    """Per draw of *z* (k, q, N), where Newton's steps of `_crossings` start (k, N): the
+    crossing of a bound of ``T(c) = sum_i max(z_i + c m_i, 0)^power`` with every channel
+    on (one pass over the channels; no per-position search of a start). Power 1:
+    ``T >= sum_i (z_i + c m_i)``, crossing right of the draw's; power 2: ``T <= sum_i
+    (z_i + c m_i)^2``, whose larger crossing is left of it (the first step lands right of
+    the crossing, as from any start), or where that stays above the threshold,
+    ``T >= (sum_i (z_i + c m_i))^2 / q`` (Cauchy-Schwarz), right of it. At least 0."""
     q = z.shape[1]
-    reach = np.float32(threshold if power == 1 else np.sqrt(q * threshold))
-    total = m.astype(np.float32).sum(axis=1)[:, None]
-    return np.maximum((reach - z.sum(axis=1)) / total, 0)
+    m32 = m.astype(np.float32)
+    total, zsum = m32.sum(axis=1)[:, None], z.sum(axis=1)
+    if power == 1:
+        return np.maximum((np.float32(threshold) - zsum) / total, 0)
+    lin = np.matmul(m32[:, None, :], z)[:, 0]                   # sum m z
+    quad = np.sum(m32 ** 2, axis=1)[:, None]
+    disc = lin * lin - quad * (np.einsum("kqn,kqn->kn", z, z) - np.float32(threshold))
+    with np.errstate(invalid="ignore"):
+        low = (np.sqrt(disc) - lin) / quad
+    high = (np.float32(np.sqrt(q * threshold)) - zsum) / total
+    return np.maximum(np.where(disc >= 0, low, high), 0)
 
 
 def _moment_guess(m, sigma, threshold, power, pd):
