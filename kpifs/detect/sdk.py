@@ -41,6 +41,8 @@ RETAINED_ANGLES = 16
 #: Grid positions whose signatures are made at a time (channels x positions x kernel
 #: phases in memory).
 NORM_CHUNK = 256
+#: Largest data (values) whose detection maps `SpectralModel.dot_maps` keeps for reuse.
+DOT_MEMO_SIZE = 16 * 1024
 
 
 class SpectralModel(DetectionModel):
@@ -186,12 +188,26 @@ class SpectralModel(DetectionModel):
     def dot_maps(self, y):
         """As `~kpifs.detect.DetectionModel.dot_maps`; from the cached unit signatures
         (positions x kernel phases per combination) when they are kept, instead of one
-        projection per channel and combination."""
+        projection per channel and combination. The search, its noise maps and its
+        products project the same data several times: the last few data sets' maps
+        are kept (copies returned)."""
         cached = self.__dict__.get("_unit_cache")
         if cached is None or "_amp" not in self.__dict__:
             return super().dot_maps(y)
-        keep, unit = cached
         y = np.asarray(y, float)
+        if y.size > DOT_MEMO_SIZE:
+            return self._dot_unit(y, *cached)
+        memo = self.__dict__.setdefault("_dot_memo", {})
+        key = (y.shape, hashlib.sha1(np.ascontiguousarray(y).tobytes()).hexdigest())
+        if key not in memo:
+            memo[key] = self._dot_unit(y, *cached)
+            while len(memo) > 4:
+                memo.pop(next(iter(memo)))
+        return memo[key].copy()
+
+    def _dot_unit(self, y, keep, unit):
+        """The maps of whitened data *y* (..., k, p) from the unit signatures *unit* of the
+        positions *keep* (and their mirror images)."""
         lead = y.shape[:-2]
         yb = y.reshape((-1,) + y.shape[-2:])
         m, q = len(yb), len(self.wavelengths)
