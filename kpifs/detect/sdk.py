@@ -154,15 +154,17 @@ class SpectralModel(DetectionModel):
         once, mixed into the combinations in uv space (one matrix product), then each
         combination's through its lift ``K^T W_k^T`` (one product per combination, as
         many as without the projection, instead of one per channel and then the
-        whitening)."""
+        whitening). Only on the searched positions (``grid.valid``; NaN elsewhere, where
+        every map and product of the search is NaN): a fifth fewer on the CHARIS grid."""
         k, p = len(self.wavelengths), self.kernel_model.n_kp
         q, n = len(self._real), self.grid.valid.size
         keep, mirrored, rows = self._norm_rows()
+        rows = rows[self.grid.valid.ravel()[rows]]          # the searched positions: NaN off
         cache = k * len(keep) * p * 4 <= UNIT_CACHE_BYTES
         at = np.searchsorted(rows, keep) if not mirrored else np.arange(len(keep))
         unit = np.empty((k, len(keep), p), np.float32) if cache else None
         wf = self._wfac.ravel()[keep]
-        out = np.zeros((k, n))
+        out = np.full((k, n), np.nan)
         for a in range(0, len(rows), NORM_CHUNK):
             chunk = rows[a:a + NORM_CHUNK]
             sins = self._channel_sins(chunk)
