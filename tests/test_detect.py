@@ -348,6 +348,29 @@ def test_correlated_binary_limit_closed_form():
     assert limit_binary(np.full((2, 1, 1), 4.0), xi, 0.5)[0, 0] < lim[0, 0]
 
 
+def test_correlated_draw_starts_reach_the_same_crossings():
+    """The correlated limits' per-draw starts bound each draw's crossing (right of it for
+    power 1; for power 2 mostly left of it, from the all-on quadratic), and Newton lands
+    from them where it lands from the per-position moment guess."""
+    from kpifs.detect.limits import _crossings, _draw_starts, _moment_guess
+    rng = np.random.default_rng(3)
+    q, n = 6, 256
+    a = rng.standard_normal((5, q, q))
+    corr = a @ a.transpose(0, 2, 1) / q + 0.1 * np.eye(q)
+    z = np.matmul(np.linalg.cholesky(corr).astype(np.float32),
+                  rng.standard_normal((q, n)).astype(np.float32))
+    m = rng.uniform(0.1, 2.0, (5, q))
+    for xi, power in ((30.0, 2), (12.0, 1)):
+        guess = _moment_guess(m, np.sqrt(np.einsum("kii->ki", corr)), xi, power, 0.5)
+        ref = _crossings(z, m, xi, power, guess)
+        start = _draw_starts(z, m, xi, power)
+        if power == 1:
+            assert np.all(start >= ref * (1 - 1e-5))
+        else:
+            assert np.mean(start <= ref * (1 + 1e-5)) > 0.9
+        assert np.allclose(_crossings(z, m, xi, power, start), ref, rtol=1e-5, atol=0)
+
+
 def test_correlated_energy_limit_matches_chi2_when_white():
     from kpifs.detect.limits import limit_energy_correlated
     rng = np.random.default_rng(4)

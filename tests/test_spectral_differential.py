@@ -149,6 +149,29 @@ def test_model_signatures_are_the_projected_ones(small):
     assert np.allclose(fast[:, sel], slow[:, sel], rtol=1e-4, atol=1e-4 * np.abs(slow).max())
 
 
+@pytest.mark.parametrize("poses", [None, ([0.0, 35.0, 70.0], [1.0, 2.0, 1.0])])
+def test_model_norms_mix_the_channels_signatures(small, poses):
+    """The combinations' norms are ``||W_k K^T sum_c V[k, c] sin(theta_c)||^2`` (each
+    channel's sine from `DetectionModel`, whitened by a combination's own operator), on
+    the detector or on the sky through several poses."""
+    km, p = small, small.n_kp
+    q = len(WL)
+    frame = "detector" if poses is None else "sky"
+    grid = DetectionGrid.from_separation(95 * u.mas, 10 * u.mas, min_sep=20 * u.mas,
+                                         frame=frame)
+    rng = np.random.default_rng(5)
+    mix = rng.standard_normal((3, q))
+    white = np.eye(p) + 0.1 * rng.standard_normal((3, p, p))
+    sm = SpectralModel(km, WL, white, mix, grid, detpa=poses)
+    eye = np.eye(p)[None]
+    rows = np.flatnonzero(grid.valid.ravel())
+    sins = np.stack([DetectionModel(km, WL[c:c + 1], eye, grid, detpa=poses)._sin_rows(0, rows)
+                     for c in range(q)])                                  # (q, n, nuv)
+    for k in range(3):
+        s = np.tensordot(mix[k], sins, axes=(0, 0)) @ km.kernel.T @ white[k].T
+        assert np.allclose(sm.norm2[k].ravel()[rows], np.sum(s ** 2, axis=1), rtol=1e-9)
+
+
 @pytest.mark.slow
 def test_detect_finds_companion_under_static(km):
     """No calibrator, a static residual 30 times the frames' noise in the profiles' span:

@@ -183,9 +183,11 @@ def _limit_binary_draws(m, corr, thresholds, pd, powers, n_draws, seed):
             # single precision: P_D from ~1e3 draws does not need more
             z = np.matmul(np.linalg.cholesky(corr[sl] + 1e-9 * np.eye(q)).astype(np.float32),
                           eps)
-            sigma = np.sqrt(np.einsum("kii->ki", corr[sl]))
+            sigma = None            # each draw starts from its own bound (`_draw_starts`)
         return [order_quantile(_crossings(z, m[sl], threshold, power,
-                                          _moment_guess(m[sl], sigma, threshold, power, pd)),
+                                          _moment_guess(m[sl], sigma, threshold, power, pd)
+                                          if corr is None else
+                                          _draw_starts(z, m[sl], threshold, power)),
                                pd) for threshold, power in zip(thresholds, powers)]
     todo = np.flatnonzero(good)
     blocks = [todo[a:a + 64] for a in range(0, len(todo), 64)]
@@ -193,6 +195,28 @@ def _limit_binary_draws(m, corr, thresholds, pd, powers, n_draws, seed):
         for out, lim in zip(outs, lims):
             out[sl] = lim
     return outs
+
+
+def _draw_starts(z, m, threshold, power):
+    """Per draw of *z* (k, q, N), where Newton's steps of `_crossings` start (k, N): the
+    crossing of a bound of ``T(c) = sum_i max(z_i + c m_i, 0)^power`` with every channel
+    on (one pass over the channels; no per-position search of a start). Power 1:
+    ``T >= sum_i (z_i + c m_i)``, crossing right of the draw's; power 2: ``T <= sum_i
+    (z_i + c m_i)^2``, whose larger crossing is left of it (the first step lands right of
+    the crossing, as from any start), or where that stays above the threshold,
+    ``T >= (sum_i (z_i + c m_i))^2 / q`` (Cauchy-Schwarz), right of it. At least 0."""
+    q = z.shape[1]
+    m32 = m.astype(np.float32)
+    total, zsum = m32.sum(axis=1)[:, None], z.sum(axis=1)
+    if power == 1:
+        return np.maximum((np.float32(threshold) - zsum) / total, 0)
+    lin = np.matmul(m32[:, None, :], z)[:, 0]                   # sum m z
+    quad = np.sum(m32 ** 2, axis=1)[:, None]
+    disc = lin * lin - quad * (np.einsum("kqn,kqn->kn", z, z) - np.float32(threshold))
+    with np.errstate(invalid="ignore"):
+        low = (np.sqrt(disc) - lin) / quad
+    high = (np.float32(np.sqrt(q * threshold)) - zsum) / total
+    return np.maximum(np.where(disc >= 0, low, high), 0)
 
 
 def _moment_guess(m, sigma, threshold, power, pd):
@@ -225,7 +249,7 @@ def _crossings(z, m, threshold, power, start, n_iter=12, rtol=1e-4, chunk=4):
 
     For draws *z* (k, q, N) and the signal per unit contrast *m* (k, q) (``m >= 0``),
     ``T(c) = sum_i max(z_i + c m_i, 0)^power`` is convex and non-decreasing in
-    ``c``, so Newton's method from *start* (k,) lands right of the crossing in one
+    ``c``, so Newton's method from *start* (k,) or (k, N) lands right of the crossing in one
     step and then falls monotonically onto it (at most a few steps where ``T`` is
     piecewise polynomial). Returns (k, N), 0 for draws above the threshold
     without a companion. ``P_D(c)`` is the fraction of draws crossing below ``c``
@@ -235,7 +259,7 @@ def _crossings(z, m, threshold, power, start, n_iter=12, rtol=1e-4, chunk=4):
     """
     k, q, n = z.shape
     m32 = m.astype(np.float32)
-    c = np.repeat(np.asarray(start, np.float32)[:, None], n, axis=1)
+    c = np.array(np.broadcast_to(np.asarray(start, np.float32).reshape(k, -1), (k, n)))
     u = np.empty((min(chunk, k), q, n), z.dtype)
     todo = list(range(0, k, chunk))
     for _ in range(n_iter):
