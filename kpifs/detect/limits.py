@@ -237,12 +237,14 @@ def _crossings(z, m, threshold, power, start, n_iter=12, rtol=1e-4, chunk=4):
     m32 = m.astype(np.float32)
     c = np.repeat(np.asarray(start, np.float32)[:, None], n, axis=1)
     u = np.empty((min(chunk, k), q, n), z.dtype)
+    zero = np.zeros_like(u)          # max(u, zero), not max(u, 0): numpy's faster loop
     todo = list(range(0, k, chunk))
     for _ in range(n_iter):
         left = []
         for a in todo:
             sl = slice(a, a + chunk)
-            new = _newton_step(z[sl], m32[sl], c[sl], threshold, power, u[:len(c[sl])])
+            n_sl = len(c[sl])
+            new = _newton_step(z[sl], m32[sl], c[sl], threshold, power, u[:n_sl], zero[:n_sl])
             if not np.all(np.abs(new - c[sl]) <= rtol * np.maximum(new, 1e-30)):
                 left.append(a)
             c[sl] = new
@@ -252,11 +254,12 @@ def _crossings(z, m, threshold, power, start, n_iter=12, rtol=1e-4, chunk=4):
     return c
 
 
-def _newton_step(z, m32, c, threshold, power, u):
-    """One Newton step of `_crossings` from contrasts *c* (k, N); *u* a work array."""
+def _newton_step(z, m32, c, threshold, power, u, zero):
+    """One Newton step of `_crossings` from contrasts *c* (k, N); *u* a work array and
+    *zero* zeros of its shape."""
     np.einsum("kq,kn->kqn", m32, c, out=u)          # m c (an outer product: no sum)
     u += z
-    np.maximum(u, 0, out=u)
+    np.maximum(u, zero, out=u)
     if power == 2:
         f = np.einsum("kqn,kqn->kn", u, u) - threshold
         g = 2 * np.matmul(m32[:, None, :], u)[:, 0]
