@@ -175,23 +175,27 @@ def _limit_binary_draws(m, corr, thresholds, pd, powers, n_draws, seed):
     if corr is not None:
         good &= np.all(np.isfinite(corr.reshape(npos, -1)), axis=1)
     outs = [np.full(npos, np.nan) for _ in thresholds]
+    todo = np.flatnonzero(good)
+    # the starts of every position at once (position by position the same numbers; a
+    # few calls on long arrays, not one per block and form)
+    sigma = np.ones((len(todo), q)) if corr is None else \
+        np.sqrt(np.einsum("kii->ki", corr[todo]))
+    starts = [_moment_guess(m[todo], sigma, t, p, pd) for t, p in zip(thresholds, powers)]
 
-    def block(sl):
+    def block(at):
+        sl = todo[at]
         if corr is None:
-            z, sigma = np.broadcast_to(eps, (len(sl),) + eps.shape), np.ones((len(sl), q))
+            z = np.broadcast_to(eps, (len(sl),) + eps.shape)
         else:
             # single precision: P_D from ~1e3 draws does not need more
             z = np.matmul(np.linalg.cholesky(corr[sl] + 1e-9 * np.eye(q)).astype(np.float32),
                           eps)
-            sigma = np.sqrt(np.einsum("kii->ki", corr[sl]))
-        return [order_quantile(_crossings(z, m[sl], threshold, power,
-                                          _moment_guess(m[sl], sigma, threshold, power, pd)),
-                               pd) for threshold, power in zip(thresholds, powers)]
-    todo = np.flatnonzero(good)
-    blocks = [todo[a:a + 64] for a in range(0, len(todo), 64)]
-    for sl, lims in zip(blocks, thread_map(block, blocks)):
+        return [order_quantile(_crossings(z, m[sl], threshold, power, start[at]), pd)
+                for threshold, power, start in zip(thresholds, powers, starts)]
+    blocks = [slice(a, a + 64) for a in range(0, len(todo), 64)]
+    for at, lims in zip(blocks, thread_map(block, blocks)):
         for out, lim in zip(outs, lims):
-            out[sl] = lim
+            out[todo[at]] = lim
     return outs
 
 
