@@ -402,14 +402,15 @@ class DetectionModel:
         if todo:
             rows = self.half_positions()[0]
             q = len(self.wavelengths)
-            outs = {j: np.empty((len(rows), len(sets[j]), q)) for j in todo}
+            # written channel-major (contiguous rows), turned to (npos, nrow, q) at the end
+            outs = {j: np.empty((q, len(sets[j]), len(rows))) for j in todo}
             for a in range(0, len(rows), chunk):
                 unit = self._unit_signatures(rows[a:a + chunk]).astype(float)   # (q, n, p)
                 for i in range(q):
                     for j in todo:
-                        outs[j][a:a + chunk, :, i] = (sets[j][:, i, :] @ unit[i].T).T
+                        np.matmul(sets[j][:, i, :], unit[i].T, out=outs[j][i, :, a:a + chunk])
             for j in todo:
-                cache[keys[j]] = (rows, outs[j])
+                cache[keys[j]] = (rows, np.ascontiguousarray(outs[j].transpose(2, 1, 0)))
             while len(cache) > 3:
                 cache.pop(next(iter(cache)))
         return cache[keys[0]]
