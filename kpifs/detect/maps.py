@@ -178,8 +178,9 @@ class DetectionModel:
         *trig* (``sin``/``cos`` along x and y and the pose weight, per pose):
         ``sin(a + b) = sin a cos b + cos a sin b``."""
         iy, ix = np.divmod(rows, self.grid.shape[1])
-        # runs of one grid row (the rows come sorted): its y factors broadcast, not gathered
-        cuts = np.flatnonzero(np.diff(iy)) + 1
+        # runs of consecutive positions of one grid row (the rows come sorted): its y
+        # factors broadcast and its x factors sliced, not gathered
+        cuts = np.flatnonzero((np.diff(iy) != 0) | (np.diff(ix) != 1)) + 1
         runs = list(zip(np.r_[0, cuts], np.r_[cuts, len(rows)])) \
             if len(cuts) < len(rows) // 8 else None
         out = None
@@ -189,9 +190,11 @@ class DetectionModel:
                 part += cx[ix] * sy[iy]
             else:
                 part = np.empty((len(rows), sx.shape[1]), np.result_type(sx, cy))
+                tmp = np.empty((max(b - a for a, b in runs), sx.shape[1]), part.dtype)
                 for a, b in runs:
-                    np.multiply(sx[ix[a:b]], cy[iy[a]], out=part[a:b])
-                    part[a:b] += cx[ix[a:b]] * sy[iy[a]]
+                    xs = slice(ix[a], ix[a] + b - a)
+                    np.multiply(sx[xs], cy[iy[a]], out=part[a:b])
+                    part[a:b] += np.multiply(cx[xs], sy[iy[a]], out=tmp[:b - a])
             if wt != 1.0:
                 part = wt * part          # (a float64 weight: float64, as the sum is)
             out = part if out is None else out + part
