@@ -175,25 +175,30 @@ def _limit_binary_draws(m, corr, thresholds, pd, powers, n_draws, seed):
     if corr is not None:
         good &= np.all(np.isfinite(corr.reshape(npos, -1)), axis=1)
     outs = [np.full(npos, np.nan) for _ in thresholds]
+    todo = np.flatnonzero(good)
+    # independent channels: the starts of every position at once (position by position
+    # the same numbers; a few calls on long arrays, not one per block and form);
+    # correlated: each draw starts from its own bound (`_draw_starts`)
+    starts = [None] * len(thresholds) if corr is not None else \
+        [_moment_guess(m[todo], np.ones((len(todo), q)), t, p, pd)
+         for t, p in zip(thresholds, powers)]
 
-    def block(sl):
+    def block(at):
+        sl = todo[at]
         if corr is None:
-            z, sigma = np.broadcast_to(eps, (len(sl),) + eps.shape), np.ones((len(sl), q))
+            z = np.broadcast_to(eps, (len(sl),) + eps.shape)
         else:
             # single precision: P_D from ~1e3 draws does not need more
             z = np.matmul(np.linalg.cholesky(corr[sl] + 1e-9 * np.eye(q)).astype(np.float32),
                           eps)
-            sigma = None            # each draw starts from its own bound (`_draw_starts`)
         return [order_quantile(_crossings(z, m[sl], threshold, power,
-                                          _moment_guess(m[sl], sigma, threshold, power, pd)
-                                          if corr is None else
-                                          _draw_starts(z, m[sl], threshold, power)),
-                               pd) for threshold, power in zip(thresholds, powers)]
-    todo = np.flatnonzero(good)
-    blocks = [todo[a:a + 64] for a in range(0, len(todo), 64)]
-    for sl, lims in zip(blocks, thread_map(block, blocks)):
+                                          start[at] if start is not None else
+                                          _draw_starts(z, m[sl], threshold, power)), pd)
+                for threshold, power, start in zip(thresholds, powers, starts)]
+    blocks = [slice(a, a + 64) for a in range(0, len(todo), 64)]
+    for at, lims in zip(blocks, thread_map(block, blocks)):
         for out, lim in zip(outs, lims):
-            out[sl] = lim
+            out[todo[at]] = lim
     return outs
 
 
@@ -261,12 +266,14 @@ def _crossings(z, m, threshold, power, start, n_iter=12, rtol=1e-4, chunk=4):
     m32 = m.astype(np.float32)
     c = np.array(np.broadcast_to(np.asarray(start, np.float32).reshape(k, -1), (k, n)))
     u = np.empty((min(chunk, k), q, n), z.dtype)
+    zero = np.zeros_like(u)          # max(u, zero), not max(u, 0): numpy's faster loop
     todo = list(range(0, k, chunk))
     for _ in range(n_iter):
         left = []
         for a in todo:
             sl = slice(a, a + chunk)
-            new = _newton_step(z[sl], m32[sl], c[sl], threshold, power, u[:len(c[sl])])
+            n_sl = len(c[sl])
+            new = _newton_step(z[sl], m32[sl], c[sl], threshold, power, u[:n_sl], zero[:n_sl])
             if not np.all(np.abs(new - c[sl]) <= rtol * np.maximum(new, 1e-30)):
                 left.append(a)
             c[sl] = new
@@ -276,11 +283,12 @@ def _crossings(z, m, threshold, power, start, n_iter=12, rtol=1e-4, chunk=4):
     return c
 
 
-def _newton_step(z, m32, c, threshold, power, u):
-    """One Newton step of `_crossings` from contrasts *c* (k, N); *u* a work array."""
+def _newton_step(z, m32, c, threshold, power, u, zero):
+    """One Newton step of `_crossings` from contrasts *c* (k, N); *u* a work array and
+    *zero* zeros of its shape."""
     np.einsum("kq,kn->kqn", m32, c, out=u)          # m c (an outer product: no sum)
     u += z
-    np.maximum(u, 0, out=u)
+    np.maximum(u, zero, out=u)
     if power == 2:
         f = np.einsum("kqn,kqn->kn", u, u) - threshold
         g = 2 * np.matmul(m32[:, None, :], u)[:, 0]

@@ -178,8 +178,9 @@ class DetectionModel:
         *trig* (``sin``/``cos`` along x and y and the pose weight, per pose):
         ``sin(a + b) = sin a cos b + cos a sin b``."""
         iy, ix = np.divmod(rows, self.grid.shape[1])
-        # runs of one grid row (the rows come sorted): its y factors broadcast, not gathered
-        cuts = np.flatnonzero(np.diff(iy)) + 1
+        # runs of consecutive positions of one grid row (the rows come sorted): its y
+        # factors broadcast and its x factors sliced, not gathered
+        cuts = np.flatnonzero((np.diff(iy) != 0) | (np.diff(ix) != 1)) + 1
         runs = list(zip(np.r_[0, cuts], np.r_[cuts, len(rows)])) \
             if len(cuts) < len(rows) // 8 else None
         out = None
@@ -189,9 +190,11 @@ class DetectionModel:
                 part += cx[ix] * sy[iy]
             else:
                 part = np.empty((len(rows), sx.shape[1]), np.result_type(sx, cy))
+                tmp = np.empty((max(b - a for a, b in runs), sx.shape[1]), part.dtype)
                 for a, b in runs:
-                    np.multiply(sx[ix[a:b]], cy[iy[a]], out=part[a:b])
-                    part[a:b] += cx[ix[a:b]] * sy[iy[a]]
+                    xs = slice(ix[a], ix[a] + b - a)
+                    np.multiply(sx[xs], cy[iy[a]], out=part[a:b])
+                    part[a:b] += np.multiply(cx[xs], sy[iy[a]], out=tmp[:b - a])
             if wt != 1.0:
                 part = wt * part          # (a float64 weight: float64, as the sum is)
             out = part if out is None else out + part
@@ -402,14 +405,15 @@ class DetectionModel:
         if todo:
             rows = self.half_positions()[0]
             q = len(self.wavelengths)
-            outs = {j: np.empty((len(rows), len(sets[j]), q)) for j in todo}
+            # written channel-major (contiguous rows), turned to (npos, nrow, q) at the end
+            outs = {j: np.empty((q, len(sets[j]), len(rows))) for j in todo}
             for a in range(0, len(rows), chunk):
                 unit = self._unit_signatures(rows[a:a + chunk]).astype(float)   # (q, n, p)
                 for i in range(q):
                     for j in todo:
-                        outs[j][a:a + chunk, :, i] = (sets[j][:, i, :] @ unit[i].T).T
+                        np.matmul(sets[j][:, i, :], unit[i].T, out=outs[j][i, :, a:a + chunk])
             for j in todo:
-                cache[keys[j]] = (rows, outs[j])
+                cache[keys[j]] = (rows, np.ascontiguousarray(outs[j].transpose(2, 1, 0)))
             while len(cache) > 3:
                 cache.pop(next(iter(cache)))
         return cache[keys[0]]

@@ -263,12 +263,13 @@ class NullCalibration:
         return keys[form] if form in keys else keys.setdefault(form, self._digest(form))
 
     def _digest(self, form):
-        h = hashlib.sha1(self.model.key().encode())
-        h.update(f"{form}|{self.n_draws}|{self.seed}|{self.spectrum!r}|"
-                 f"{self.coefficients}".encode())
-        if self.noise_rows is not None:
-            h.update(np.ascontiguousarray(self.noise_rows).tobytes())
-        return h.hexdigest()
+        if "_rows_key" not in self.__dict__:     # the rows hashed once, whatever the forms
+            h = hashlib.sha1(self.model.key().encode())
+            if self.noise_rows is not None:
+                h.update(np.ascontiguousarray(self.noise_rows).tobytes())
+            self._rows_key = h.hexdigest()
+        return hashlib.sha1(f"{self._rows_key}|{form}|{self.n_draws}|{self.seed}|"
+                            f"{self.spectrum!r}|{self.coefficients}".encode()).hexdigest()
 
     @property
     def draws(self):

@@ -34,6 +34,8 @@ class _Batch:
         shape = (n, reducer.npos)
         self.acc = {f: np.zeros(shape, np.float32) for f in reducer.forms}
         self.w = np.empty((TILE, reducer.npos), np.float32)
+        # against an array of zeros, not the scalar 0: numpy's faster loop (same values)
+        self.zero = np.zeros_like(self.w)
         # mirrored positions: sum max(-z, 0)^2 = sum min(z, 0)^2 (B), and
         # sum max(-z, 0) = sum max(z, 0) - sum z (B-paper: one product for the channel sum)
         self.neg = np.zeros(shape, np.float32) if reducer.mirrored and "B" in self.acc else None
@@ -46,8 +48,8 @@ class _Batch:
         for a in range(0, len(z), TILE):
             zt = z[a:a + TILE]
             b = a + len(zt)
-            w = self.w[:len(zt)]
-            np.maximum(zt, 0, out=w)
+            w, zero = self.w[:len(zt)], self.zero[:len(zt)]
+            np.maximum(zt, zero, out=w)
             if self.paper is not None:
                 self.paper[a:b] += w
             if self.square is not None:
@@ -55,7 +57,7 @@ class _Batch:
                 self.square[a:b] += w
             if self.neg is not None:
                 v = self.v[:len(zt)]
-                np.minimum(zt, 0, out=v)
+                np.minimum(zt, zero, out=v)
                 v *= v
                 self.neg[a:b] += v
 
