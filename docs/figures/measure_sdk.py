@@ -39,7 +39,10 @@ Results go to a JSON file (``--out``) and a summary is printed.
 """
 import argparse
 import copy
+import hashlib
 import json
+import pathlib
+import pickle
 import time
 import warnings
 
@@ -66,12 +69,23 @@ def _seeds(text):
 
 
 def _reduce(preset, seed, tmp, shape, **kw):
+    """The target and calibrator of one simulated sequence, extracted; cached under *tmp*
+    (a pickle per preset, seed, shape and simulation options)."""
+    key = hashlib.sha1(repr((preset, seed, shape, sorted(
+        (k, str(v)) for k, v in kw.items()))).encode()).hexdigest()[:12]
+    path = pathlib.Path(tmp) / f"{preset}{seed}_{shape}_{key}.pkl"
+    if path.exists():
+        with open(path, "rb") as f:
+            return pickle.load(f)
+    path.parent.mkdir(parents=True, exist_ok=True)
     obs = simulate_scene(preset, seed=seed, shape=(shape, shape), n_frames=20,
                          **dict(TYPICAL_STATIC, **kw))
     files = write_observation(obs, f"{tmp}/{preset}{seed}", overwrite=True)
     opts = ExtractOptions()
     tkp = extract_observation(files["target"], opts)
     ckp = extract_observation(files["calibrator"], opts, model=tkp.kernel_model)
+    with open(path, "wb") as f:
+        pickle.dump((tkp, ckp), f)
     return tkp, ckp
 
 
@@ -168,16 +182,17 @@ def _local_limit(res, xy):
     return float(res.limit[np.argmin(np.abs(g.y - xy[1])), np.argmin(np.abs(g.x - xy[0]))])
 
 
-def inject(seeds, tmp, shape=80, seps=(150.0, 250.0), factors=(0.5, 1.0, 2.0), n_pa=8):
+def inject(seeds, tmp, shape=80, seps=(150.0, 250.0), factors=(0.5, 1.0, 1.5, 2.0), n_pa=8,
+           kinds=("local",)):
     """Injection-recovery against the stated limits, per companion-free sequence: the
     model's kernel phases (which the simulator's companions follow: correlation 0.999
     in noise-free simulations, the window's attenuation aside) added to the
     spectral-differential product at *n_pa* position angles and *factors* times the
-    limit map's value there (``local``) and times the median limit at that separation
+    limit map's value there (``local``) and/or times the median limit at that separation
     (``median``, the radial curve); the fractions found within 5 mas."""
     out = []
     for seed in seeds:
-        tkp, _ = _reduce("charis", seed, tmp, shape, contrasts=0.0)
+        tkp, _ = _reduce("charis", seed, tmp, shape, static_diff_rms=0 * u.nm, contrasts=0.0)
         kpd = _sdk(None, tkp)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -189,10 +204,11 @@ def inject(seeds, tmp, shape=80, seps=(150.0, 250.0), factors=(0.5, 1.0, 2.0), n
             med = float(np.interp(sep, *curve))
             pos = [(sep * np.cos(a), sep * np.sin(a))
                    for a in np.deg2rad(7.0 + 360.0 * np.arange(n_pa) / n_pa)]
-            row = {"seed": seed, "sep": sep, "median_limit": med, "factors": list(factors),
-                   "n_candidates_null": len(res.candidates),
+            row = {"seed": seed, "sep": sep, "shape": shape, "median_limit": med,
+                   "factors": list(factors), "n_candidates_null": len(res.candidates),
+                   "noise_scale": res.energy["noise_scale"], "energy_pfa": res.energy["pfa"],
                    "local_limits": [_local_limit(res, xy) for xy in pos]}
-            for kind in ("local", "median"):
+            for kind in kinds:
                 row[kind] = [float(np.mean([
                     _found(kpd, xy, f * (loc if kind == "local" else med), tkp.kernel_model)
                     for xy, loc in zip(pos, row["local_limits"])])) for f in factors]
@@ -222,13 +238,20 @@ def main():
     ap.add_argument("--tmp", default="/tmp/measure_sdk")
     ap.add_argument("--limits", help="JSON of a null run: the sdk limit curve of its first seed")
     ap.add_argument("--out")
+    ap.add_argument("--shape", type=int, default=80, help="simulated image side (pixels)")
+    ap.add_argument("--seps", default="150,250", help="inject: separations (mas)")
+    ap.add_argument("--factors", default="0.5,1,1.5,2", help="inject: times the limit")
+    ap.add_argument("--kinds", default="local", help="inject: local and/or median")
     a = ap.parse_args()
     seeds = _seeds(a.seeds)
     N_STATIC["n"] = a.n_static
     if a.case == "null":
-        res = null(seeds, a.tmp, with_cal=not a.no_cal)
+        res = null(seeds, a.tmp, with_cal=not a.no_cal, shape=a.shape)
     elif a.case == "inject":
-        res = inject(seeds, a.tmp)
+        res = inject(seeds, a.tmp, shape=a.shape,
+                     seps=[float(v) for v in a.seps.split(",")],
+                     factors=[float(v) for v in a.factors.split(",")],
+                     kinds=tuple(a.kinds.split(",")))
     elif a.case == "sphere":
         res = null(seeds, a.tmp, preset="sphere", shape=64)
     elif a.case == "bench":
