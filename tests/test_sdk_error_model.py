@@ -43,12 +43,17 @@ def test_rows_hold_the_whitened_variance(km):
     the cancellation in a combination)."""
     rng = np.random.default_rng(11)
     frames = _frames(rng, km, 80, rng.normal(0, 2, len(WL)))
-    st = _stack(km, frames, static="none")
+    st = _stack(km, frames, static="none", normalise="combination")
     assert np.allclose(np.sum(st.rows ** 2, axis=(0, 2)), st.rank, rtol=1e-9)
     raw = _stack(km, frames, static="none", normalise="none")
     assert raw.rows_variance is None
     spread = np.sum(raw.rows ** 2, axis=(0, 2)) / raw.rank
     assert spread.max() / spread.min() > 2
+    one = _stack(km, frames, static="none")
+    total = np.sum(one.rows ** 2, axis=(0, 2))
+    assert np.isclose(total.sum(), one.rank.sum(), rtol=1e-9)
+    # one scale for all: the combinations keep the unscaled whitening's relative weights
+    assert np.allclose(total / one.rank, spread * one.rank.sum() / np.sum(spread * raw.rank))
     with pytest.raises(KpifsError, match="normalise"):
         _stack(km, frames, normalise="yes")
 

@@ -197,6 +197,27 @@ class SpectralModel(DetectionModel):
         return self._digest
 
 
+_STATIC_CACHE = {}
+
+
+def _imaged_static(kpd):
+    """`~kpifs.simulation.aberrations.static_residual_rows` of *kpd*'s pupil, channels,
+    pixels and window, the last one kept (a sequence searched again: injections, a
+    batch of the same instrument)."""
+    h = hashlib.sha1(np.ascontiguousarray(kpd.kernel_model.kernel).tobytes())
+    h.update(np.ascontiguousarray(kpd.wavelengths.to_value(u.m)).tobytes())
+    h.update(repr((float(kpd.pixscale.to_value(u.mas)), kpd.meta.get("telescope"),
+                   None if kpd.window is None else (kpd.window.size, repr(kpd.window)),
+                   STATIC_SEED)).encode())
+    key = h.hexdigest()
+    if key not in _STATIC_CACHE:
+        _STATIC_CACHE.clear()
+        _STATIC_CACHE[key] = static_residual_rows(
+            kpd.kernel_model, kpd.wavelengths, kpd.pixscale, window=kpd.window,
+            telescope=kpd.meta.get("telescope"), seed=STATIC_SEED)
+    return _STATIC_CACHE[key]
+
+
 class SpectralStack:
     """Whitened channel combinations of a spectral-differential search, their noise rows,
     models and fits (the interface of `~kpifs.detect.blocks.BlockStack`: ``kp`` (k, p)
@@ -289,15 +310,18 @@ class SpectralStack:
                                    source="covariance of the channel combinations")
         rank = np.atleast_1d(rank)
         frames = not kpd.meta.get("calibrated", True) and kpd.covariance_rows is not None
-        if normalise not in ("auto", "none"):
-            raise KpifsError(f"normalise must be 'auto' or 'none', got {normalise!r}")
-        if normalise == "auto" and frames:
+        if normalise not in ("auto", "combination", "none"):
+            raise KpifsError(f"normalise must be 'auto', 'combination' or 'none', got "
+                             f"{normalise!r}")
+        if normalise != "none" and frames:
             # the shrunk sum holds more variance than the frames' rows (20 frames for
             # hundreds of kernel phases): scaled to the rows', the data's reduced
             # chi-square reads the rows' scale, and the noise scale measured on the
             # data acts when they scatter more (a static residual, a drift)
             g = np.sum(self._rows(kpd.covariance_rows, w) ** 2, axis=(0, 2))
             f = np.where(g > 0, g / np.maximum(rank, 1), 1.0)
+            if normalise == "auto":
+                f = np.full_like(f, np.sum(g) / max(np.sum(rank), 1))
             ccov, w = ccov * f[:, None, None], w / np.sqrt(f)[:, None, None]
             self.rows_variance = f
         static = self._static_term(y, w, static, frames)
@@ -324,9 +348,7 @@ class SpectralStack:
                 raise KpifsError(f"static must be 'auto', 'none' or rows, got {how!r}")
             if how == "none" or not frames:
                 return None
-            how = static_residual_rows(kpd.kernel_model, kpd.wavelengths, kpd.pixscale,
-                                       window=kpd.window, telescope=kpd.meta.get("telescope"),
-                                       seed=STATIC_SEED)
+            how = _imaged_static(kpd)
         how = np.asarray(how, float)
         if how.shape[1:] != (len(self.scale), y.shape[1]):
             # the imaged residual lost uv points the data keep (beyond Nyquist at the
