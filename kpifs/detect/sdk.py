@@ -291,7 +291,7 @@ class SpectralStack:
                      "profiles": int(prof.shape[1]), "combinations": int(k),
                      "dof": int(self.rank.sum()), "static_amplitude": self.static_amplitude,
                      "rows_variance": None if self.rows_variance is None else
-                     [round(float(v), 4) for v in self.rows_variance]}
+                     round(float(np.median(self.rows_variance)), 4)}
         log.info("%s: spectral-differential search: %d profile(s) out of %d channels, %d "
                  "combinations", kpd.name, prof.shape[1], q, k)
 
