@@ -62,9 +62,10 @@ def test_whitened_energy_of_noise_is_its_dof(km):
     """Companion-free sequences whose noise is shared across the channels, whitened by
     a covariance independent of their frames (4000 other frames): the whitened energy
     over the degrees of freedom, times the frames' autocorrelation time that scales
-    the rows (`frames_autocorrelation`), has mean 1. 200 sequences of 80 frames; each
-    ratio's spread is about sqrt(2 / n_eff) with n_eff ~ 80 effective rows, so the
-    mean of 200 ratios has a standard deviation of about 0.011: 0.06 is 5 sigma.
+    the rows (`frames_autocorrelation`), has mean 1 (a little more: the rows' variance
+    divides, so by Jensen about 1 + 2 / n_eff, measured 1.02). 200 sequences of 80
+    frames; each ratio's spread is measured 0.23, so the mean of 200 has a standard
+    deviation of 0.016: 0.1 is 4.7 sigma from the mean measured.
     (Whitened by their own frames' covariance, the energy exceeds the rows' variance:
     the search's noise scale, measured on the data, takes that up.)"""
     rng = np.random.default_rng(5)
@@ -78,7 +79,7 @@ def test_whitened_energy_of_noise_is_its_dof(km):
                                     shrinkage="none")
         st = SpectralStack(sdk, sdk.kp[0], cov, static="none")
         ratio.append(np.sum(st.kp ** 2) / st.rank.sum() * sdk.meta["error_model"]["tau"])
-    assert abs(np.mean(ratio) - 1) < 0.06
+    assert abs(np.mean(ratio) - 1) < 0.1
 
 
 def test_static_amplitude_recovered(km):
@@ -99,3 +100,17 @@ def test_static_amplitude_recovered(km):
         assert len(st.rows) == 80 + 30
     assert 4 / 1.6 < np.median(fits) < 4 * 1.6
     assert np.median(none) < 0.5
+
+
+def test_error_model_survives_kpfits(km, tmp_path):
+    """A product written and read back (``kpifs extract`` then ``kpifs detect``) gets the
+    same error model: no calibrator (CALFLAG) and its covariance rows (KP-COVROWS)."""
+    rng = np.random.default_rng(4)
+    sdk = spectral_differential(KernelPhaseData(_frames(rng, km, 80, np.ones(len(WL))), WL,
+                                                16.2 * u.mas, km), order=2, shrinkage="none")
+    sdk.write(tmp_path / "sdk.fits")
+    back = KernelPhaseData.read(tmp_path / "sdk.fits")
+    one, two = (SpectralStack(k, k.kp[0], k.covariance, static="none") for k in (sdk, back))
+    assert one.rows_variance is not None
+    assert np.allclose(two.rows_variance, one.rows_variance)
+    assert np.allclose(two.kp, one.kp)
