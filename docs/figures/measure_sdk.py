@@ -19,10 +19,12 @@ calibrator differ by 15 nm), extracted as ``kpifs extract`` does
     the ``sdk`` limit measured on the first seed of ``null``: found, and how far
     from the truth.
 ``inject``
-    Injection-recovery per companion-free sequence (`inject`): the fraction of
-    model companions at 0.5, 1 and 2 times the stated limit (the limit map's
-    value at the position, and the radial curve's median), 8 position angles,
-    found within 5 mas at 150 and 250 mas.
+    Injection-recovery per companion-free sequence (`inject`): model companions
+    at 0.5, 1, 1.5 and 2 times the stated limit (the limit map's value at the
+    position; ``--kinds median``: the radial curve's median), 8 position angles
+    (``--n-pa``), at ``--seps`` (150 and 250 mas): the fractions whose reported
+    (fitted) position is within 5 mas, and within 30 mas (detected). 400 mas
+    needs ``--step 0.27m`` (the default pupil step stops the grid at 299 mas).
 ``sphere``
     The same for SPHERE-IFS YJ (39 channels, 0.957-1.329 um; ``null`` only, one
     seed): inner separation and limits.
