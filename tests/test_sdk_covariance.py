@@ -59,7 +59,7 @@ def test_combination_rows_carry_the_shared_noise(km):
     sdk = spectral_differential(t, order=2)
     assert sdk.covariance_rows.shape == (n, q, p) and sdk.block_rows is not None
     assert sdk.meta["calibrated"] is False
-    st = SpectralStack(sdk, sdk.kp[0], sdk.covariance)
+    st = SpectralStack(sdk, sdk.kp[0], sdk.covariance, static="none", normalise="none")
     tau = sdk.meta["error_model"]["tau"]            # independent frames: batch means ~1
     assert 1.0 <= tau < 1.5
     joint = tau * np.cov(frames.reshape(n, -1), rowvar=False) / n

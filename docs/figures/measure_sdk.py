@@ -19,10 +19,12 @@ calibrator differ by 15 nm), extracted as ``kpifs extract`` does
     the ``sdk`` limit measured on the first seed of ``null``: found, and how far
     from the truth.
 ``inject``
-    Injection-recovery per companion-free sequence (`inject`): the fraction of
-    model companions at 0.5, 1 and 2 times the stated limit (the limit map's
-    value at the position, and the radial curve's median), 8 position angles,
-    found within 5 mas at 150 and 250 mas.
+    Injection-recovery per companion-free sequence (`inject`): model companions
+    at 0.5, 1, 1.5 and 2 times the stated limit (the limit map's value at the
+    position; ``--kinds median``: the radial curve's median), 8 position angles
+    (``--n-pa``), at ``--seps`` (150 and 250 mas): the fractions whose reported
+    (fitted) position is within 5 mas, and within 30 mas (detected). 400 mas
+    needs ``--step 0.27m`` (the default pupil step stops the grid at 299 mas).
 ``sphere``
     The same for SPHERE-IFS YJ (39 channels, 0.957-1.329 um; ``null`` only, one
     seed): inner separation and limits.
@@ -39,7 +41,11 @@ Results go to a JSON file (``--out``) and a summary is printed.
 """
 import argparse
 import copy
+import functools
+import hashlib
 import json
+import pathlib
+import pickle
 import time
 import warnings
 
@@ -49,15 +55,21 @@ from astropy import units as u
 from kpifs.calibration.calibrate import calibrate
 from kpifs.calibration.spectral_diff import spectral_differential
 from kpifs.detect import detect
+from kpifs.detect.sdk import SpectralStack
 from kpifs.io.layouts import write_observation
 from kpifs.simulation.aberrations import static_residual_rows
 from kpifs.simulation.simulate import TYPICAL_STATIC, simulate_scene
 from kpifs.workflow import ExtractOptions, extract_observation
 
 PFA, DRAWS = 1e-2, 1000
+#: A candidate this close (mas, a resolution element at 1.16 um) counts as detected.
+DETECTED = 30.0
 BASIS = "static"
 #: Channel profiles of the static basis (``--n-static``; the default's 3 unless given).
 N_STATIC = {"n": None}
+#: The pupil model's grid step (``--step``; the default's unless given): the grid reaches
+#: ``0.95 lambda_min / (2 step)`` (299 mas at 1.16 um with the default 0.38 m).
+STEP = {"step": None}
 
 
 def _seeds(text):
@@ -66,12 +78,25 @@ def _seeds(text):
 
 
 def _reduce(preset, seed, tmp, shape, **kw):
+    """The target and calibrator of one simulated sequence, extracted; cached under *tmp*
+    (a pickle per preset, seed, shape and simulation options)."""
+    what = (preset, seed, shape, sorted((k, str(v)) for k, v in kw.items()))
+    if STEP["step"] is not None:
+        what += (STEP["step"],)
+    key = hashlib.sha1(repr(what).encode()).hexdigest()[:12]
+    path = pathlib.Path(tmp) / f"{preset}{seed}_{shape}_{key}.pkl"
+    if path.exists():
+        with open(path, "rb") as f:
+            return pickle.load(f)
+    path.parent.mkdir(parents=True, exist_ok=True)
     obs = simulate_scene(preset, seed=seed, shape=(shape, shape), n_frames=20,
                          **dict(TYPICAL_STATIC, **kw))
     files = write_observation(obs, f"{tmp}/{preset}{seed}", overwrite=True)
-    opts = ExtractOptions()
+    opts = ExtractOptions() if STEP["step"] is None else ExtractOptions(step=STEP["step"])
     tkp = extract_observation(files["target"], opts)
     ckp = extract_observation(files["calibrator"], opts, model=tkp.kernel_model)
+    with open(path, "wb") as f:
+        pickle.dump((tkp, ckp), f)
     return tkp, ckp
 
 
@@ -102,6 +127,7 @@ def _search(kpd, **kw):
              for r in res.candidates] if len(res.candidates) else []
     blocks = res.meta.get("blocks") or {}
     return {"test": res.test, "n_candidates": len(res.candidates), "candidates": cands,
+            "positions": _positions(res),
             "energy_pfa": res.energy["pfa"], "energy_raw": res.energy["raw"],
             "dof": res.energy["dof"], "noise_scale": res.energy["noise_scale"],
             "limit_200_400": lim, "seconds": dt, "max_sep": float(res.grid.max_sep),
@@ -137,7 +163,7 @@ def companion(seeds, tmp, limit, shape=80):
             tkp, _ = _reduce("charis", seed, tmp, shape, contrasts=c,
                              companion_offset=xy * u.mas)
             r = _search(_sdk(None, tkp))
-            d = min((np.hypot(x - xy[0], y - xy[1]) for x, y, _ in r["candidates"]),
+            d = min((np.hypot(x - xy[0], y - xy[1]) for x, y in r["positions"]),
                     default=float("nan"))
             out.append({"seed": seed, "sep": sep, "contrast": c, "found_within": d,
                         "n_candidates": r["n_candidates"]})
@@ -145,9 +171,11 @@ def companion(seeds, tmp, limit, shape=80):
     return out
 
 
-def _found(kpd, xy, c, pa_model, radius=5.0):
-    """Is a companion of contrast *c* at *xy* (mas), added to *kpd* as the model's kernel
-    phases (the window's attenuation included), found within *radius* mas?"""
+def _found(kpd, xy, c, pa_model):
+    """How far (mas) from *xy* the nearest candidate is reported (its fitted position,
+    the grid point where the fit failed; inf with none) when a companion of contrast
+    *c* at *xy* (mas) is added to *kpd* as the model's kernel phases (the window's
+    attenuation included)."""
     att = float(kpd.window.at(np.hypot(*xy), kpd.pixscale)) if kpd.window is not None else 1.0
     sig = np.asarray(pa_model.binary_kernel_phases(np.asarray(xy) * u.mas,
                                                    np.full(kpd.n_wave, c * att),
@@ -157,9 +185,17 @@ def _found(kpd, xy, c, pa_model, radius=5.0):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = detect(q, pfa=PFA, n_draws=DRAWS, limits=False)
-    d = [np.hypot(float(r["x"].value) - xy[0], float(r["y"].value) - xy[1])
-         for r in res.candidates]
-    return bool(d) and min(d) < radius
+    return min((np.hypot(x - xy[0], y - xy[1]) for x, y in _positions(res)), default=np.inf)
+
+
+def _positions(res):
+    """The candidates' reported positions (mas): fitted, or the grid point."""
+    out = []
+    for r in res.candidates:
+        fx, fy = (float(r[k].value) if k in r.colnames else np.nan for k in ("fit_x", "fit_y"))
+        ok = np.isfinite(fx) and np.isfinite(fy)
+        out.append((fx, fy) if ok else (float(r["x"].value), float(r["y"].value)))
+    return out
 
 
 def _local_limit(res, xy):
@@ -168,16 +204,17 @@ def _local_limit(res, xy):
     return float(res.limit[np.argmin(np.abs(g.y - xy[1])), np.argmin(np.abs(g.x - xy[0]))])
 
 
-def inject(seeds, tmp, shape=80, seps=(150.0, 250.0), factors=(0.5, 1.0, 2.0), n_pa=8):
+def inject(seeds, tmp, shape=80, seps=(150.0, 250.0), factors=(0.5, 1.0, 1.5, 2.0), n_pa=8,
+           kinds=("local",)):
     """Injection-recovery against the stated limits, per companion-free sequence: the
     model's kernel phases (which the simulator's companions follow: correlation 0.999
     in noise-free simulations, the window's attenuation aside) added to the
     spectral-differential product at *n_pa* position angles and *factors* times the
-    limit map's value there (``local``) and times the median limit at that separation
+    limit map's value there (``local``) and/or times the median limit at that separation
     (``median``, the radial curve); the fractions found within 5 mas."""
     out = []
     for seed in seeds:
-        tkp, _ = _reduce("charis", seed, tmp, shape, contrasts=0.0)
+        tkp, _ = _reduce("charis", seed, tmp, shape, static_diff_rms=0 * u.nm, contrasts=0.0)
         kpd = _sdk(None, tkp)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -189,13 +226,18 @@ def inject(seeds, tmp, shape=80, seps=(150.0, 250.0), factors=(0.5, 1.0, 2.0), n
             med = float(np.interp(sep, *curve))
             pos = [(sep * np.cos(a), sep * np.sin(a))
                    for a in np.deg2rad(7.0 + 360.0 * np.arange(n_pa) / n_pa)]
-            row = {"seed": seed, "sep": sep, "median_limit": med, "factors": list(factors),
-                   "n_candidates_null": len(res.candidates),
+            row = {"seed": seed, "sep": sep, "shape": shape, "median_limit": med,
+                   "factors": list(factors), "n_candidates_null": len(res.candidates),
+                   "noise_scale": res.energy["noise_scale"], "energy_pfa": res.energy["pfa"],
                    "local_limits": [_local_limit(res, xy) for xy in pos]}
-            for kind in ("local", "median"):
-                row[kind] = [float(np.mean([
-                    _found(kpd, xy, f * (loc if kind == "local" else med), tkp.kernel_model)
-                    for xy, loc in zip(pos, row["local_limits"])])) for f in factors]
+            for kind in kinds:
+                dist = [[_found(kpd, xy, f * (loc if kind == "local" else med),
+                                tkp.kernel_model) for xy, loc in zip(pos, row["local_limits"])]
+                        for f in factors]
+                row[kind + "_distance"] = [[float(min(d, 1e9)) for d in r] for r in dist]
+                row[kind] = [float(np.mean(np.asarray(r) < 5)) for r in dist]
+                row[kind + "_detected"] = [float(np.mean(np.asarray(r) < DETECTED))
+                                           for r in dist]
             out.append(row)
             print(json.dumps(out[-1]), flush=True)
     return out
@@ -222,13 +264,28 @@ def main():
     ap.add_argument("--tmp", default="/tmp/measure_sdk")
     ap.add_argument("--limits", help="JSON of a null run: the sdk limit curve of its first seed")
     ap.add_argument("--out")
+    ap.add_argument("--shape", type=int, default=80, help="simulated image side (pixels)")
+    ap.add_argument("--seps", default="150,250", help="inject: separations (mas)")
+    ap.add_argument("--factors", default="0.5,1,1.5,2", help="inject: times the limit")
+    ap.add_argument("--kinds", default="local", help="inject: local and/or median")
+    ap.add_argument("--step", help="pupil model grid step, e.g. 0.27m (reaches 420 mas)")
+    ap.add_argument("--n-pa", type=int, default=8, help="inject: position angles")
+    ap.add_argument("--stack", default="", help="SpectralStack options, e.g. "
+                    "'normalise=none,static=none' (the defaults unless given)")
     a = ap.parse_args()
     seeds = _seeds(a.seeds)
+    if a.stack:
+        opts = dict(kv.split("=") for kv in a.stack.split(","))
+        SpectralStack.__init__ = functools.partialmethod(SpectralStack.__init__, **opts)
     N_STATIC["n"] = a.n_static
+    STEP["step"] = a.step
     if a.case == "null":
-        res = null(seeds, a.tmp, with_cal=not a.no_cal)
+        res = null(seeds, a.tmp, with_cal=not a.no_cal, shape=a.shape)
     elif a.case == "inject":
-        res = inject(seeds, a.tmp)
+        res = inject(seeds, a.tmp, shape=a.shape,
+                     seps=[float(v) for v in a.seps.split(",")],
+                     factors=[float(v) for v in a.factors.split(",")],
+                     kinds=tuple(a.kinds.split(",")), n_pa=a.n_pa)
     elif a.case == "sphere":
         res = null(seeds, a.tmp, preset="sphere", shape=64)
     elif a.case == "bench":

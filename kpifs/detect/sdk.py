@@ -25,7 +25,10 @@ from astropy import units as u
 from ..calibration.spectral_diff import inner_separation, kept_combinations, retained_fraction
 from .._utils import thread_map
 from ..covariance import whiten, whitening_matrix
+from ..exceptions import KpifsError
 from ..model.kernel import MAS
+from ..simulation.aberrations import fit_static_amplitude, leading_static_rows, \
+    static_residual_rows
 from ._blockfit import refine_stack
 from ._signatures import _unit
 from .maps import UNIT_CACHE_BYTES, DetectionModel
@@ -38,6 +41,10 @@ log = logging.getLogger(__name__)
 
 #: Position angles per separation at which the retained fraction is measured.
 RETAINED_ANGLES = 16
+#: Random screens of the static term (`SpectralStack`): not those of the profiles
+#: (`kpifs.workflow` images seed 0), so that what the profiles leave of them is not
+#: fitted on themselves.
+STATIC_SEED = 1
 #: Grid positions whose signatures are made at a time (channels x positions x kernel
 #: phases in memory).
 NORM_CHUNK = 256
@@ -235,6 +242,27 @@ class SpectralModel(DetectionModel):
         return self._digest
 
 
+_STATIC_CACHE = {}
+
+
+def _imaged_static(kpd):
+    """`~kpifs.simulation.aberrations.static_residual_rows` of *kpd*'s pupil, channels,
+    pixels and window, the last one kept (a sequence searched again: injections, a
+    batch of the same instrument)."""
+    h = hashlib.sha1(np.ascontiguousarray(kpd.kernel_model.kernel).tobytes())
+    h.update(np.ascontiguousarray(kpd.wavelengths.to_value(u.m)).tobytes())
+    h.update(repr((float(kpd.pixscale.to_value(u.mas)), kpd.meta.get("telescope"),
+                   None if kpd.window is None else (kpd.window.size, repr(kpd.window)),
+                   STATIC_SEED)).encode())
+    key = h.hexdigest()
+    if key not in _STATIC_CACHE:
+        _STATIC_CACHE.clear()
+        _STATIC_CACHE[key] = static_residual_rows(
+            kpd.kernel_model, kpd.wavelengths, kpd.pixscale, window=kpd.window,
+            telescope=kpd.meta.get("telescope"), seed=STATIC_SEED)
+    return _STATIC_CACHE[key]
+
+
 class SpectralStack:
     """Whitened channel combinations of a spectral-differential search, their noise rows,
     models and fits (the interface of `~kpifs.detect.blocks.BlockStack`: ``kp`` (k, p)
@@ -252,6 +280,14 @@ class SpectralStack:
         The companion's contrast shape (flat by default).
     poses : tuple, optional
         ``(angles, weights)`` of a sky search (`~kpifs.detect.sky.pa_bins`).
+    static : {'auto', 'none'} or ndarray (n, q, p), optional
+        The static residual's term, its amplitude fitted in the combinations: 'auto'
+        for data with no calibrator, from the imaged static residual
+        (`~kpifs.simulation.aberrations.static_residual_rows`); 'none' leaves it out;
+        or the channel rows to fit.
+    normalise : {'auto', 'none'}, optional
+        'auto': with no calibrator, each combination's covariance scaled to the
+        variance its covariance rows hold.
 
     Examples
     --------
@@ -271,8 +307,10 @@ class SpectralStack:
 
     mode = "spectral-differential"
 
-    def __init__(self, kpd, kp, cov, *, spectrum=None, poses=None):
+    def __init__(self, kpd, kp, cov, *, spectrum=None, poses=None, static="auto",
+                 normalise="auto"):
         self.kpd, self.poses = kpd, poses
+        self.static_amplitude = self.rows_variance = None
         q, p = kp.shape
         prof = np.asarray(kpd.spectral["profiles"], float)
         cov = np.asarray(cov, float)
@@ -283,18 +321,12 @@ class SpectralStack:
         self.spectrum = spectrum_shape(spectrum, q)
         self.mixing = self.data_mixing * self.spectrum[None]
         k = v.shape[1]
-        # a whitening of each combination (its channels' covariances summed): what the
-        # channels share (most of a static or drifting aberration cancels in a
-        # combination, not all of it) reaches the null and the limits by the covariance
-        # rows (`_rows`); measured on CHARIS simulations, whitening with the rows'
-        # own (shrunk) covariance of each combination gives a less sensitive search
-        ccov = np.einsum("kc,cpr->kpr", self.data_mixing ** 2, cov)
-        w, rank = whitening_matrix(ccov, return_rank=True,
-                                   source="covariance of the channel combinations")
-        self._w = w
-        self.rank = np.atleast_1d(rank)
-        self.kp = whiten(self.data_mixing @ kp, w)
+        y = self.data_mixing @ kp
+        static = self._whitening(cov, y, static, normalise)
+        self.kp = whiten(y, self._w)
         self.rows = self._rows(kpd.covariance_rows)
+        if static is not None and self.rows is not None:
+            self.rows = np.concatenate([self.rows, whiten(static, self._w)])
         self.block_rows = self._rows(kpd.block_rows)
         self.whitening = np.broadcast_to(np.eye(p), (k, p, p))
         self.basis = np.ones((k, 1))
@@ -302,14 +334,84 @@ class SpectralStack:
         self.inner = float("nan")
         self.info = {"mode": self.mode, "basis": kpd.spectral.get("basis"),
                      "profiles": int(prof.shape[1]), "combinations": int(k),
-                     "dof": int(self.rank.sum())}
+                     "dof": int(self.rank.sum()), "static_amplitude": self.static_amplitude,
+                     "rows_variance": None if self.rows_variance is None else
+                     round(float(np.median(self.rows_variance)), 4)}
         log.info("%s: spectral-differential search: %d profile(s) out of %d channels, %d "
                  "combinations", kpd.name, prof.shape[1], q, k)
 
-    def _rows(self, rows):
+    def _whitening(self, cov, y, static, normalise):
+        """Each combination's whitening (``self._w``, ``self.rank``) from its channels'
+        covariances *cov* summed; with no calibrator (*normalise* 'auto') scaled to the
+        variance its covariance rows hold, and with the static term (`_static_term`,
+        fitted to the combinations *y*), which is returned (None without)."""
+        kpd = self.kpd
+        # what the channels share (most of a static or drifting aberration cancels in a
+        # combination, not all of it) reaches the null and the limits by the covariance
+        # rows (`_rows`); measured on CHARIS simulations, whitening with the rows' own
+        # (shrunk) covariance of each combination gives a less sensitive search
+        ccov = np.einsum("kc,cpr->kpr", self.data_mixing ** 2, cov)
+        w, rank = whitening_matrix(ccov, return_rank=True,
+                                   source="covariance of the channel combinations")
+        rank = np.atleast_1d(rank)
+        frames = not kpd.meta.get("calibrated", True) and kpd.covariance_rows is not None
+        if normalise not in ("auto", "combination", "none"):
+            raise KpifsError(f"normalise must be 'auto', 'combination' or 'none', got "
+                             f"{normalise!r}")
+        if normalise != "none" and frames:
+            # the shrunk sum holds more variance than the frames' rows (20 frames for
+            # hundreds of kernel phases): scaled to the rows', the data's reduced
+            # chi-square reads the rows' scale, and the noise scale measured on the
+            # data acts when they scatter more (a static residual, a drift)
+            g = np.sum(self._rows(kpd.covariance_rows, w) ** 2, axis=(0, 2))
+            f = np.where(g > 0, g / np.maximum(rank, 1), 1.0)
+            if normalise == "auto":
+                f = np.full_like(f, np.sum(g) / max(np.sum(rank), 1))
+            ccov, w = ccov * f[:, None, None], w / np.sqrt(f)[:, None, None]
+            self.rows_variance = f
+        static = self._static_term(y, w, static, frames)
+        if static is not None:
+            # what the profiles leave of the static residual, at its fitted amplitude:
+            # in each combination's whitening, and (across combinations) in the rows
+            ccov = ccov + np.einsum("nkp,nkr->kpr", static, static)
+            w, rank = whitening_matrix(ccov, return_rank=True,
+                                       source="covariance of the channel combinations")
+        self._w, self.rank = w, np.atleast_1d(rank)
+        return static
+
+    def _static_term(self, y, w, how, frames):
+        """The static residual's rows in the combinations (n, k, p), scaled by the
+        maximum-likelihood amplitude fitted to the combinations *y* (k, p) whitened by
+        *w* (`~kpifs.simulation.aberrations.fit_static_amplitude`, on the term's
+        leading modes): with *how* 'auto', for a product with no calibrator (the
+        frames' scatter holds nothing static, and the profiles do not remove all of
+        it), from `~kpifs.simulation.aberrations.static_residual_rows`; with rows
+        (n, q, p), from those; None with 'none' or an amplitude of 0."""
+        kpd = self.kpd
+        if isinstance(how, str):
+            if how not in ("auto", "none"):
+                raise KpifsError(f"static must be 'auto', 'none' or rows, got {how!r}")
+            if how == "none" or not frames:
+                return None
+            how = _imaged_static(kpd)
+        how = np.asarray(how, float)
+        if how.shape[1:] != (len(self.scale), y.shape[1]):
+            # the imaged residual lost uv points the data keep (beyond Nyquist at the
+            # short wavelengths): no term rather than a wrong one
+            log.info("%s: static term left out: its rows have shape %s, the data (%d, %d)",
+                     kpd.name, how.shape[1:], len(self.scale), y.shape[1])
+            return None
+        rows = np.einsum("kc,ncp->nkp", self.data_mixing, how)
+        a = fit_static_amplitude(y, w, leading_static_rows(rows, w))
+        self.static_amplitude = a
+        log.info("%s: spectral-differential static term: amplitude %.3g", kpd.name, a)
+        return rows * np.sqrt(a) if a > 0 else None
+
+    def _rows(self, rows, w=None):
         if rows is None:
             return None
-        return whiten(np.einsum("kc,ncp->nkp", self.data_mixing, rows), self._w)
+        return whiten(np.einsum("kc,ncp->nkp", self.data_mixing, rows),
+                      self._w if w is None else w)
 
     def detection_model(self, grid, *, basis=None):
         """The `SpectralModel` on *grid*; what the projection keeps of a companion is
