@@ -366,7 +366,14 @@ def whiten(kp, w):
     kp = np.asarray(kp, float)
     nw, nk = kp.shape[-2:]
     if w.shape == (nw, nk, nk):
-        return np.einsum("wij,...wj->...wi", w, kp)
+        lead = kp.shape[:-2]
+        if int(np.prod(lead)) < 8:
+            return np.einsum("wij,...wj->...wi", w, kp)
+        # many rows (noise rows, a term's rows): one matrix product per channel (BLAS),
+        # not einsum's loop
+        flat = np.moveaxis(kp.reshape((-1, nw, nk)), 1, 0)                  # (nw, M, nk)
+        out = np.matmul(flat, np.swapaxes(w, 1, 2))
+        return np.moveaxis(out, 0, 1).reshape(kp.shape)
     if w.shape == (nw * nk, nw * nk):
         flat = kp.reshape(kp.shape[:-2] + (nw * nk,))
         return (flat @ w.T).reshape(kp.shape)

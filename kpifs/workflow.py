@@ -36,7 +36,7 @@ from .calibration.calibrate import calibrate, check_calibration
 from .covariance import empirical_covariance
 from .data import KernelPhaseData
 from .detect import null as _null, pipeline as _pipeline, sky as _sky
-from .detect import spectral as _spectral, stats as _stats
+from .detect import sdk as _sdk, spectral as _spectral, stats as _stats
 from .detect import statistics as _statistics
 from .exceptions import KpifsError, KpifsWarning
 from .extraction.extract import extract_kernel_phases
@@ -543,8 +543,13 @@ def _spectral_step(target, product, options):
     if basis in ("static", "both"):
         rows = static_residual_rows(target.kernel_model, target.wavelengths, target.pixscale,
                                     window=target.window)
-    return spectral_differential(target, product, basis=basis, static_rows=rows,
-                                 shrinkage=options.shrinkage)
+    out = spectral_differential(target, product, basis=basis, static_rows=rows,
+                                shrinkage=options.shrinkage)
+    if product is None:
+        # the search's static term (no calibrator), imaged once with the product, not at
+        # every search of it (`kpifs.detect.sdk.static_term_rows`)
+        out.spectral["static_rows"] = _sdk.static_term_rows(target)
+    return out
 
 
 def _mas(value, name):

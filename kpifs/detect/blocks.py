@@ -30,8 +30,7 @@ from astropy import units as u
 
 from .._utils import thread_map, to_quantity
 from ..calibration.adi import _check_rotation
-from ..calibration.spectral_diff import kept_combinations, retained_by_separation
-from ..covariance import whitening_matrix
+from ..calibration.spectral_diff import retained_by_separation
 from ..exceptions import KpifsError
 from ..model.kernel import MAS
 from ..rotation import noise_whitening
@@ -40,8 +39,9 @@ from ._blocktrig import block_trig
 from .combinations import combination_contrasts, combination_table
 from ._signatures import _norm_chunks, _unit
 from .maps import UNIT_CACHE_BYTES, DetectionModel
+from .sdk import SpectralStack
 from .sky import sky_to_detector
-from .spectral import spectral_basis, spectrum_shape
+from .spectral import spectral_basis
 
 
 __all__ = ["BlockModel", "BlockStack", "block_stack", "MODES"]
@@ -506,38 +506,29 @@ class BlockStack:
 
     def _combine(self, rb, kp, w, rank, cov, spectrum):
         """The channel combinations free of the data's static profiles (``kpd.spectral``):
-        the blocks, the calibrated mean, its whitening and covariance rows mixed by
-        ``D`` (k, q) (`~kpifs.calibration.spectral_diff.kept_combinations`, each channel
-        weighted by its frames' scatter within the blocks)."""
+        the blocks, the mean and its covariance rows mixed by ``D`` (k, q), the mean
+        whitened as the spectral-differential search's
+        (`~kpifs.detect.sdk.SpectralStack`: the same combinations, channel weights,
+        error model and static term)."""
         kpd = self.kpd
-        prof = np.asarray(kpd.spectral["profiles"], float)
-        own = rb.noise[:rb.n_target_noise] if rb.n_target_noise else rb.noise
-        var = np.mean(own ** 2, axis=(0, 2))
-        scale = np.sqrt(np.where(var > 0, var, np.max(var)))
-        v = kept_combinations(prof, scale)
-        mix = (v / scale[:, None]).T                                           # (k, q)
-        self.spectrum = spectrum_shape(spectrum, kpd.n_wave)
-        self.mixing = mix * self.spectrum[None]
-        self.data_mixing = mix
+        if cov is None:
+            raise KpifsError(f"{kpd.name}: a block search of spectral-differential data needs "
+                             f"the data's covariance")
+        sst = SpectralStack(kpd, kp, cov, spectrum=spectrum)
+        mix = sst.data_mixing                                                  # (k, q)
+        self.spectrum, self.data_mixing = sst.spectrum, mix
+        self.mixing = sst.mixing
         self.n_comb = k = mix.shape[0]
         rb = replace(rb, data=np.einsum("kc,bcp->bkp", mix, rb.data),
                      noise=np.einsum("kc,ncp->nkp", mix, rb.noise))
         rows = None if kpd.covariance_rows is None else \
             np.einsum("kc,ncp->nkp", mix, kpd.covariance_rows)
-        kp_mix = mix @ kp
-        if cov is not None:
-            # the calibrated mean's whitening per combination (its channels' covariances
-            # summed, as the spectral-differential search's, `kpifs.detect.sdk`)
-            ccov = np.einsum("kc,cpr->kpr", mix ** 2, np.asarray(cov, float))
-            w, rank = whitening_matrix(ccov, return_rank=True,
-                                       source="covariance of the channel combinations")
-        elif rb.calibrated:
-            raise KpifsError(f"{kpd.name}: a calibrated block search of spectral-differential "
-                             f"data needs the data's covariance")
-        self.spectral = {"basis": kpd.spectral.get("basis"), "profiles": int(prof.shape[1]),
-                         "combinations": int(k)}
-        self._scale, self.combinations = scale, v
-        return rb, kp_mix, w, rank, rows
+        if rows is not None and sst.static_rows is not None:
+            rows = np.concatenate([rows, sst.static_rows])
+        self.spectral = {"basis": kpd.spectral.get("basis"), "profiles": sst.info["profiles"],
+                         "combinations": int(k), "static_amplitude": sst.static_amplitude}
+        self._scale, self.combinations = sst.scale, sst.combinations
+        return rb, mix @ kp, sst.combination_whitening, sst.rank, rows
 
     def detection_model(self, grid, *, basis=None):
         """The `BlockModel` on *grid*; in the angular-differential mode, what the rotation

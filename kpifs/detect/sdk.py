@@ -35,7 +35,7 @@ from .maps import UNIT_CACHE_BYTES, DetectionModel
 from .sky import sky_to_detector
 from .spectral import spectrum_shape
 
-__all__ = ["SpectralModel", "SpectralStack"]
+__all__ = ["SpectralModel", "SpectralStack", "static_term_rows", "compact_rows"]
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +45,8 @@ RETAINED_ANGLES = 16
 #: (`kpifs.workflow` images seed 0), so that what the profiles leave of them is not
 #: fitted on themselves.
 STATIC_SEED = 1
+#: The static term's rows kept: singular values above this fraction of the largest.
+STATIC_FLOOR = 1e-4
 #: Grid positions whose signatures are made at a time (channels x positions x kernel
 #: phases in memory).
 NORM_CHUNK = 256
@@ -245,10 +247,15 @@ class SpectralModel(DetectionModel):
 _STATIC_CACHE = {}
 
 
-def _imaged_static(kpd):
-    """`~kpifs.simulation.aberrations.static_residual_rows` of *kpd*'s pupil, channels,
-    pixels and window, the last one kept (a sequence searched again: injections, a
-    batch of the same instrument)."""
+def static_term_rows(kpd):
+    """The static term's channel rows (n, q, p) of *kpd* (`SpectralStack`): the product's
+    own (``kpd.spectral['static_rows']``, imaged once when the product was made), else
+    `~kpifs.simulation.aberrations.static_residual_rows` of its pupil, channels, pixels
+    and window (screens of seed `STATIC_SEED`), the last one kept (a sequence searched
+    again: injections, a batch of the same instrument)."""
+    own = (getattr(kpd, "spectral", None) or {}).get("static_rows")
+    if own is not None:
+        return np.asarray(own, float)
     h = hashlib.sha1(np.ascontiguousarray(kpd.kernel_model.kernel).tobytes())
     h.update(np.ascontiguousarray(kpd.wavelengths.to_value(u.m)).tobytes())
     h.update(repr((float(kpd.pixscale.to_value(u.mas)), kpd.meta.get("telescope"),
@@ -257,10 +264,34 @@ def _imaged_static(kpd):
     key = h.hexdigest()
     if key not in _STATIC_CACHE:
         _STATIC_CACHE.clear()
-        _STATIC_CACHE[key] = static_residual_rows(
+        rows = static_residual_rows(
             kpd.kernel_model, kpd.wavelengths, kpd.pixscale, window=kpd.window,
             telescope=kpd.meta.get("telescope"), seed=STATIC_SEED)
+        _STATIC_CACHE[key] = compact_rows(rows)
     return _STATIC_CACHE[key]
+
+
+def compact_rows(rows, *, floor=STATIC_FLOOR):
+    """Rows (n, q, p) as fewer rows with the same Gram matrix ``R^T R`` (their singular
+    vectors times singular values), leaving out the directions below *floor* times the
+    largest singular value (a variance below ``floor**2`` of the leading one): what the
+    static term reads of them (its covariance and its leading modes) unchanged.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.sdk import compact_rows
+    >>> r = np.random.default_rng(0).normal(size=(50, 2, 3))
+    >>> c = compact_rows(r)
+    >>> c.shape, bool(np.allclose(np.einsum("nqp,nrs->qprs", c, c),
+    ...                           np.einsum("nqp,nrs->qprs", r, r)))
+    ((6, 2, 3), True)
+    """
+    rows = np.asarray(rows, float)
+    n = rows.shape[0]
+    _, sv, vt = np.linalg.svd(rows.reshape(n, -1), full_matrices=False)
+    keep = sv > floor * sv[0] if sv.size and sv[0] > 0 else np.zeros(sv.size, bool)
+    return (sv[keep, None] * vt[keep]).reshape((-1,) + rows.shape[1:])
 
 
 class SpectralStack:
@@ -323,6 +354,9 @@ class SpectralStack:
         k = v.shape[1]
         y = self.data_mixing @ kp
         static = self._whitening(cov, y, static, normalise)
+        #: what the profiles leave of the static residual at its fitted amplitude (n, k, p),
+        #: in the combinations, unwhitened (None: no static term)
+        self.static_rows = static
         self.kp = whiten(y, self._w)
         self.rows = self._rows(kpd.covariance_rows)
         if static is not None and self.rows is not None:
@@ -350,7 +384,7 @@ class SpectralStack:
         # combination, not all of it) reaches the null and the limits by the covariance
         # rows (`_rows`); measured on CHARIS simulations, whitening with the rows' own
         # (shrunk) covariance of each combination gives a less sensitive search
-        ccov = np.einsum("kc,cpr->kpr", self.data_mixing ** 2, cov)
+        ccov = np.tensordot(self.data_mixing ** 2, cov, axes=(1, 0))
         w, rank = whitening_matrix(ccov, return_rank=True,
                                    source="covariance of the channel combinations")
         rank = np.atleast_1d(rank)
@@ -373,7 +407,7 @@ class SpectralStack:
         if static is not None:
             # what the profiles leave of the static residual, at its fitted amplitude:
             # in each combination's whitening, and (across combinations) in the rows
-            ccov = ccov + np.einsum("nkp,nkr->kpr", static, static)
+            ccov = ccov + np.matmul(static.transpose(1, 2, 0), static.transpose(1, 0, 2))
             w, rank = whitening_matrix(ccov, return_rank=True,
                                        source="covariance of the channel combinations")
         self._w, self.rank = w, np.atleast_1d(rank)
@@ -393,7 +427,7 @@ class SpectralStack:
                 raise KpifsError(f"static must be 'auto', 'none' or rows, got {how!r}")
             if how == "none" or not frames:
                 return None
-            how = _imaged_static(kpd)
+            how = static_term_rows(kpd)
         how = np.asarray(how, float)
         if how.shape[1:] != (len(self.scale), y.shape[1]):
             # the imaged residual lost uv points the data keep (beyond Nyquist at the
@@ -406,6 +440,12 @@ class SpectralStack:
         self.static_amplitude = a
         log.info("%s: spectral-differential static term: amplitude %.3g", kpd.name, a)
         return rows * np.sqrt(a) if a > 0 else None
+
+    @property
+    def combination_whitening(self):
+        """Each combination's whitening (k, p, p): its channels' covariances summed, with
+        no calibrator scaled to its rows' variance and with the static term."""
+        return self._w
 
     def _rows(self, rows, w=None):
         if rows is None:

@@ -141,7 +141,14 @@ def _spectral_hdus(kpd):
     h.header["SDKORDER"] = (int(sdk.get("order", -1)), "degree of the 1/lambda polynomials")
     h.header["COMMENT"] = ("profiles along the channels (nwave, nprofile) projected out of "
                            "every kernel phase before the search")
-    return [h]
+    out = [h]
+    if sdk.get("static_rows") is not None:
+        hs = fits.ImageHDU(np.asarray(sdk["static_rows"], np.float32), name="KP-SDKSTAT")
+        hs.header["BUNIT"] = "rad"
+        hs.header["COMMENT"] = ("the search's static term: rows (nrow, nwave, nkp) whose "
+                                "Gram matrix is the static residual's covariance")
+        out.append(hs)
+    return out
 
 
 def _primary_header(kpd, inputs, history):

@@ -456,5 +456,14 @@ def _spectral_from_hdul(hdul, n_wave, path):
             or not np.all(np.isfinite(prof)):
         raise KpifsError(f"{path}: KP-SDK must hold finite profiles (nwave={n_wave}, "
                          f"nprofile), got {None if prof is None else prof.shape}")
-    return {"profiles": prof, "basis": str(h.header.get("SDKBASIS", "")),
-            "order": int(h.header.get("SDKORDER", -1))}
+    out = {"profiles": prof, "basis": str(h.header.get("SDKBASIS", "")),
+           "order": int(h.header.get("SDKORDER", -1))}
+    if "KP-SDKSTAT" in hdul:
+        rows = hdul["KP-SDKSTAT"].data
+        rows = None if rows is None else np.asarray(rows, float)
+        if rows is None or rows.ndim != 3 or rows.shape[1] != n_wave \
+                or not np.all(np.isfinite(rows)):
+            raise KpifsError(f"{path}: KP-SDKSTAT must hold finite rows (nrow, nwave={n_wave}, "
+                             f"nkp), got {None if rows is None else rows.shape}")
+        out["static_rows"] = rows
+    return out

@@ -222,7 +222,7 @@ def leading_static_rows(rows, whitening, *, variance=STATIC_VARIANCE, max_rank=S
     w = np.asarray(whitening, float)
     r = np.asarray(rows, float)
     n, q, p = r.shape
-    rw = np.stack([whiten(x, w).ravel() for x in r])
+    rw = whiten(r, w).reshape(n, -1)
     _, sv, vt = np.linalg.svd(rw, full_matrices=False)
     e = np.cumsum(sv ** 2)
     if not len(e) or e[-1] <= 0:
@@ -232,7 +232,7 @@ def leading_static_rows(rows, whitening, *, variance=STATIC_VARIANCE, max_rank=S
     lead = (sv[:k, None] * vt[:k]).reshape(k, q, p)
     # back to the data's space: C^(1/2) on the whitened range
     back = np.stack([np.linalg.pinv(wi, hermitian=True) for wi in w])
-    return np.einsum("qij,kqj->kqi", back, lead)
+    return whiten(lead, back)
 
 
 def fit_static_amplitude(y, whitening, rows):
@@ -254,7 +254,8 @@ def fit_static_amplitude(y, whitening, rows):
     True
     """
     yw = whiten(np.asarray(y, float), whitening).ravel()
-    rw = np.stack([whiten(r, whitening).ravel() for r in np.asarray(rows, float)])
+    rows = np.asarray(rows, float)
+    rw = whiten(rows, whitening).reshape(len(rows), -1)
     s2, vec = np.linalg.eigh(rw @ rw.T)
     good = s2 > 1e-12 * max(s2.max(), 1e-300)
     s2, vec = s2[good], vec[:, good]
