@@ -31,6 +31,7 @@ from ..simulation.aberrations import fit_static_amplitude, leading_static_rows, 
     static_residual_rows
 from ._blockfit import refine_stack
 from ._signatures import _unit
+from .combinations import combination_contrasts, combination_table
 from .maps import UNIT_CACHE_BYTES, DetectionModel
 from .sky import sky_to_detector
 from .spectral import spectrum_shape
@@ -522,28 +523,11 @@ class SpectralStack:
 
     def channel_contrasts(self, c, cerr):
         """The combinations' contrast maps (k, ny, nx) and errors as the channels' (q, ...):
-        their weighted mean (the companion's one scale) times the spectrum shape."""
-        wt = np.where(np.isfinite(cerr) & (cerr > 0), 1 / np.where(cerr > 0, cerr, 1) ** 2, 0)
-        tot = wt.sum(axis=0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mean = np.sum(wt * np.nan_to_num(c), axis=0) / tot
-            err = 1 / np.sqrt(tot)
-        a = self.spectrum[:, None, None]
-        return a * mean[None], a * err[None]
+        their weighted mean (the companion's one scale) times the spectrum shape
+        (`~kpifs.detect.combinations.combination_contrasts`)."""
+        return combination_contrasts(self.spectrum, c, cerr)
 
     def channel_table(self, cands):
-        """The candidates' per-combination contrast columns as per-channel ones (in place)."""
-        a = self.spectrum
-        for val, err in (("contrast", "contrast_err"), ("fit_contrast", "fit_contrast_err")):
-            if val not in cands.colnames or err not in cands.colnames or not len(cands):
-                continue
-            c = np.asarray(cands[val], float).reshape(len(cands), -1)
-            e = np.asarray(cands[err], float).reshape(len(cands), -1)
-            if c.shape[1] != self.n_comb:
-                continue
-            wt = np.where(e > 0, 1 / np.where(e > 0, e, 1) ** 2, 0.0)
-            tot = wt.sum(axis=1)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                mean, sig = np.sum(wt * c, axis=1) / tot, 1 / np.sqrt(tot)
-            cands[val] = mean[:, None] * a[None]
-            cands[err] = sig[:, None] * a[None]
+        """The candidates' per-combination contrast columns as per-channel ones (in place;
+        `~kpifs.detect.combinations.combination_table`)."""
+        combination_table(self.spectrum, self.n_comb, cands)
