@@ -36,7 +36,7 @@ from ..model.kernel import MAS
 from ..rotation import noise_whitening
 from ._blockfit import refine_stack
 from ._blocktrig import block_trig
-from .combinations import combination_contrasts, combination_table
+from .combinations import combination_contrasts, combination_table, nominal_wavelengths
 from ._signatures import _norm_chunks, _unit
 from .maps import UNIT_CACHE_BYTES, DetectionModel
 from .sdk import SpectralStack
@@ -107,9 +107,7 @@ class BlockModel(DetectionModel):
         if self.mixing is None:
             self.wavelengths = real
         else:
-            # a combination's nominal wavelength: its weights' centre (labels only)
-            wts = self.mixing ** 2 / np.sum(self.mixing ** 2, axis=1, keepdims=True)
-            self.wavelengths = wts @ real.to_value(u.um) * u.um
+            self.wavelengths = nominal_wavelengths(self.mixing, real)      # labels only
         self.basis = spectral_basis(basis, self.wavelengths)
         self.grid = grid
         if grid.frame != "sky":
@@ -150,13 +148,8 @@ class BlockModel(DetectionModel):
                                 real.to_value(u.m))
         self.norm2 = self._signature_norms()
 
-    def _check_grid(self):
-        # the channels' own wavelengths alias, not the combinations' nominal ones
-        nominal, self.wavelengths = self.wavelengths, self._real
-        try:
-            super()._check_grid()
-        finally:
-            self.wavelengths = nominal
+    def _channel_wavelengths(self):
+        return self._real
 
     def _weights(self):
         """Per block: the mean's weight ``n_b / N`` and the departures' ``sqrt(n_b)``."""

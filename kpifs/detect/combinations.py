@@ -8,8 +8,26 @@ are the inverse-variance mean of the combinations' scales times ``a``, with its
 error.
 """
 import numpy as np
+from astropy import units as u
 
-__all__ = ["combination_contrasts", "combination_table"]
+__all__ = ["combination_contrasts", "combination_table", "nominal_wavelengths"]
+
+
+def nominal_wavelengths(mixing, wavelengths):
+    """Each combination's nominal wavelength (k,): the centre of its squared weights
+    *mixing* (k, q) on the channels' *wavelengths* (labels only; the signatures are
+    made at the channels' own).
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs.detect.combinations import nominal_wavelengths
+    >>> nominal_wavelengths(np.array([[1.0, -1.0], [1.0, 0.0]]), [1.6, 2.2] * u.um)
+    <Quantity [1.9, 1.6] um>
+    """
+    mix = np.asarray(mixing, float)
+    wts = mix ** 2 / np.sum(mix ** 2, axis=1, keepdims=True)
+    return wts @ u.Quantity(wavelengths, u.um).value * u.um
 
 
 def _mean(c, err, axis):

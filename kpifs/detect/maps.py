@@ -128,7 +128,7 @@ class DetectionModel:
     def _check_grid(self):
         g = self.grid
         far = float(np.max(g.sep[g.valid]))
-        lam_min = self.wavelengths.to_value(u.m).min()
+        lam_min = self._channel_wavelengths().to_value(u.m).min()
         # signatures are periodic with the uv grid: beyond lambda / (2 step) positions alias
         step = self.kernel_model.pupil.step
         if step is not None:
@@ -143,6 +143,11 @@ class DetectionModel:
                 raise KpifsError(f"the grid reaches {far:.0f} mas, beyond the extraction "
                                  f"window (radius {self.window.radius * self.pixscale:.0f} "
                                  f"mas): reduce the maximum separation to < {edge:.0f} mas")
+
+    def _channel_wavelengths(self):
+        """The wavelengths the signatures are made at (a model of channel combinations:
+        the channels', not the combinations' nominal ones), which set the aliasing."""
+        return self.wavelengths
 
     def _axis_trig(self, lam):
         """Per pose (detector angle): the separable factors of ``sin(theta)`` on the grid.

@@ -22,7 +22,7 @@ import logging
 import numpy as np
 from astropy import units as u
 
-from ..calibration.spectral_diff import inner_separation, kept_combinations, retained_fraction
+from ..calibration.spectral_diff import kept_combinations, retained_by_separation
 from .._utils import thread_map
 from ..covariance import whiten, whitening_matrix
 from ..exceptions import KpifsError
@@ -31,7 +31,7 @@ from ..simulation.aberrations import fit_static_amplitude, leading_static_rows, 
     static_residual_rows
 from ._blockfit import refine_stack
 from ._signatures import _unit
-from .combinations import combination_contrasts, combination_table
+from .combinations import combination_contrasts, combination_table, nominal_wavelengths
 from .maps import UNIT_CACHE_BYTES, DetectionModel
 from .sky import sky_to_detector
 from .spectral import spectrum_shape
@@ -90,20 +90,14 @@ class SpectralModel(DetectionModel):
         mix = np.asarray(mixing, float)
         self._real = real
         self._mix = mix
-        # a combination's nominal wavelength: its weights' centre (labels only)
-        wts = mix ** 2 / np.sum(mix ** 2, axis=1, keepdims=True)
-        nominal = wts @ real.to_value(u.um) * u.um
+        nominal = nominal_wavelengths(mix, real)          # labels only
         self._init = True
         super().__init__(kernel_model, nominal, whitening, grid, pixscale=pixscale,
                          window=window, dof=dof, detpa=detpa,
                          basis=np.ones((len(mix), 1)) if basis is None else basis)
 
-    def _check_grid(self):
-        nominal, self.wavelengths = self.wavelengths, self._real
-        try:
-            super()._check_grid()
-        finally:
-            self.wavelengths = nominal
+    def _channel_wavelengths(self):
+        return self._real
 
     def _axis_trig(self, lam):
         # called once per combination by the parent: the channels' factors are made once
@@ -466,20 +460,11 @@ class SpectralStack:
         return model
 
     def _retained(self, grid):
-        sel = grid.valid
-        seps = np.unique(np.round(grid.sep[sel], 6))
-        step = float(max(abs(grid.step[0]), abs(grid.step[1])))
-        rings = np.arange(seps.min(), seps.max() + step / 2, step)
-        ang = np.arange(RETAINED_ANGLES) * np.pi / RETAINED_ANGLES
-        pos = np.stack([np.outer(rings, np.cos(ang)).ravel(),
-                        np.outer(rings, np.sin(ang)).ravel()], axis=1)
-        frac = retained_fraction(self.kpd.kernel_model, self.kpd.wavelengths, pos,
-                                 self.combinations, spectrum=self.spectrum, scale=self.scale)
-        sep = np.repeat(rings, len(ang))
-        self.inner = inner_separation(sep, frac)
-        med = [float(np.median(frac[sep == r])) for r in rings]
-        self.info["retained"] = [[round(float(r), 1), round(m, 4)] for r, m in zip(rings, med)]
-        self.info["inner_separation"] = self.inner
+        out = retained_by_separation(self.kpd.kernel_model, self.kpd.wavelengths, grid,
+                                     self.combinations, spectrum=self.spectrum,
+                                     scale=self.scale, angles=RETAINED_ANGLES)
+        self.inner = out["inner_separation"]
+        self.info.update(out)
 
     def model_kp(self, pos, contrast, *, derivative=False):
         """Whitened model (k, p) of a companion at *pos* (mas, the search's frame) with one
