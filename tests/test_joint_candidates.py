@@ -13,7 +13,7 @@ from kpifs import KernelModel, KernelPhaseData, make_pupil
 from kpifs.data import DetectionGrid
 from kpifs.detect import DetectionModel
 from kpifs.detect.fit import refine_candidates
-from kpifs.detect.search import _joint_check
+from kpifs.detect.search import _joint_check, _Search
 
 WL = [1.6] * u.um
 SIGMA = 1e-3
@@ -34,10 +34,22 @@ def setup():
     return km, w, model, noise, kpd
 
 
-def _ctx(model, kpd, w):
+def _search(model, kpd, w):
+    """The search's setting: test B, threshold 25, each residual's reduced chi-square
+    its noise scale (never below 1), no annulus."""
     null = SimpleNamespace(form="B", noise_rows=None)
-    return dict(model=model, kpd=kpd, null=null, w=w, poses=None, characterise=None,
-                stack=None, fit=True)
+    return _Search(model, kpd, null, w, fit=True, threshold=25.0, spectrum=None,
+                   scaler=_scaler(w, kpd.kernel_model.n_kp),
+                   ring=lambda res, peak: 1.0)
+
+
+def test_the_search_setting_is_frozen(setup):
+    """What every step of a search reads is one frozen object, not a shared dict."""
+    km, w, model, noise, kpd = setup
+    search = _search(model, kpd, w)
+    with pytest.raises(AttributeError):
+        search.threshold = 1.0
+    assert not hasattr(search, "__dict__") and search.power == 1.0
 
 
 def _scaler(w, dof):
@@ -79,8 +91,7 @@ def test_a_candidate_the_others_explain_is_left_out(setup):
     assert abs(biased / CA - 1) > 0.1
     dof = km.n_kp
     rows, resid = _joint_check([row_b, row_a], [m_b, m_a], [1.0, 1.0], kp,
-                               _ctx(model, kpd, w), threshold=25.0, spectrum=None,
-                               scaler=_scaler(w, dof), ring=lambda res, peak: 1.0)
+                               _search(model, kpd, w))
     # one candidate is left: the two described one companion (which of the two rows
     # stays matters not: the one left is refitted without the other's model, and its
     # fit is A, with A's contrast back)
@@ -103,8 +114,6 @@ def test_two_real_companions_both_kept(setup):
     kp = (km.binary_kernel_phases(A * u.mas, [CA], WL)
           + km.binary_kernel_phases([-50.0, 70.0] * u.mas, [4e-3], WL) + noise)
     rows, models = _sequential(km, kp, w, kpd, ((-50.0, 70.0), 4e-3))
-    out, resid = _joint_check(rows, models, [1.0, 1.0], kp, _ctx(model, kpd, w),
-                              threshold=25.0, spectrum=None, scaler=_scaler(w, km.n_kp),
-                              ring=lambda res, peak: 1.0)
+    out, resid = _joint_check(rows, models, [1.0, 1.0], kp, _search(model, kpd, w))
     assert len(out) == 2
     np.testing.assert_allclose(resid, kp - models[0] - models[1], rtol=0, atol=1e-15)
