@@ -228,7 +228,7 @@ def default_pupil(instrument="generic", header=None):
     'niriss_clearp'
     """
     return (header_pupil(header) if header is not None else None) or \
-        DEFAULT_PUPIL.get(instrument, "subaru")
+        DEFAULT_PUPIL.get(instrument, DEFAULT_PUPIL["generic"])
 
 
 def kernel_model_for(options, instrument="generic", header=None):
@@ -437,7 +437,8 @@ def extract_filters(targets, calibrators, options=None, *, progress=False):
     order, groups, cal_groups, scales = _filters.filter_groups(
         list(targets), list(calibrators), pixscale=options.pixscale)
     per_filter = _filters.filter_options(options, groups, order, scales)
-    km = kernel_model_for(options, "jwst", _filters.file_headers(groups[order[0]][0])[0])
+    km = kernel_model_for(options, _filters.INSTRUMENT.name,
+                          _filters.file_headers(groups[order[0]][0])[0])
     model, own = _filters.filter_models(km, order, groups, scales,
                                         filter_kernels=options.filter_kernels)
     radius = _filters.filter_window_radius(order, scales, options.window_radius)

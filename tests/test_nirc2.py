@@ -1,12 +1,16 @@
 """Keck/NIRC2 imaging (issue 38, item 4): the instrument added as a plug-in, its headers,
 its angle convention, and a companion found where it was put on the sky."""
+import ast
+import inspect
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
 from astropy import units as u
 from astropy.io import fits
 
+import kpifs
 from kpifs.cli import main
 from kpifs.exceptions import KpifsError, KpifsWarning, MissingInformation
 from kpifs.io import read_cube, write_observation
@@ -172,3 +176,66 @@ def test_companion_found_where_it_was_put_on_the_sky(tmp_path, capsys):
     assert np.hypot(fdra - dra, fddec - ddec) < 4
     pa = np.degrees(np.arctan2(dra, ddec)) % 360                 # 53.13 deg, East of North
     assert abs((cand["fit_pa_sky"][0].to_value(u.deg) - pa + 180) % 360 - 180) < 1
+
+
+# --- nothing of an instrument outside its module ---------------------------------------
+PACKAGE = Path(kpifs.__file__).parent
+
+#: Where a registered instrument's name is another thing's name, and stays: the pupil
+#: library names telescopes' pupils (``'jwst'``, ``'gpi'``; ``'charis'`` and
+#: ``'sphere'`` are aliases of ``'subaru'`` and ``'vlt'``); the demo picks the CHARIS
+#: scene and layout, and ``kpifs roc --preset`` offers some scenes (their choices of a
+#: scene, as a user's ``--preset`` is; the parser imports no instrument module, so
+#: that ``kpifs --version`` stays fast, and the names it offers are checked below).
+NAMED_ELSEWHERE = {"model/apertures.py": {"charis", "sphere", "gpi", "jwst"},
+                   "model/_segmented.py": {"jwst"},
+                   "demo.py": {"charis"},
+                   "_cli/_parser.py": {"charis", "sphere", "sphere-sam"}}
+
+
+def _instrument_words():
+    """Every name a registered instrument is known by: its name, its ``INSTRUME`` values,
+    its simulator layout and the simulator scenes it adds (lower and upper case)."""
+    words = set()
+    for inst in INSTRUMENTS.values():
+        if inst.name == "generic":
+            continue
+        words |= {inst.name, inst.layout, *inst.instrume, *inst.scenes}
+    return {w for word in words if word for w in (word.lower(), word.upper())}
+
+
+def _code_strings(path):
+    """The string constants of a module's code (its docstrings left out)."""
+    tree = ast.parse(path.read_text())
+    docs = {id(node.body[0].value) for node in ast.walk(tree)
+            if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef,
+                                 ast.AsyncFunctionDef))
+            and node.body and isinstance(node.body[0], ast.Expr)
+            and isinstance(node.body[0].value, ast.Constant)}
+    return {node.value for node in ast.walk(tree) if isinstance(node, ast.Constant)
+            and isinstance(node.value, str) and id(node) not in docs}
+
+
+def test_no_instrument_is_spelled_outside_its_module():
+    """Adding an instrument touches its module and one registry line: no other module of
+    kpifs spells a registered instrument's name, ``INSTRUME``, layout or scene as a
+    string of its code (the simulator's presets, the angles of its simulated sequences,
+    its field, the injector's file layout, the KPFITS cards of its products, the default
+    pupil: all read through `kpifs.io.instruments.INSTRUMENTS`)."""
+    own = {Path(inspect.getsourcefile(i.identify)).resolve() for i in INSTRUMENTS.values()}
+    own.add(PACKAGE.joinpath("io", "instruments.py").resolve())
+    assert len(own) == len(INSTRUMENTS) + 1
+    words = _instrument_words()
+    assert {"nirc2", "NIRC2", "charis", "sphere-sam", "niriss", "NIRCAM"} <= words
+    found = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if path.resolve() in own:
+            continue
+        rel = path.relative_to(PACKAGE).as_posix()
+        spelled = (_code_strings(path) & words) - NAMED_ELSEWHERE.get(rel, set())
+        if spelled:
+            found[rel] = sorted(spelled)
+    assert found == {}
+    from kpifs._cli._parser import ROC_PRESETS
+    from kpifs.simulation.simulate import PRESETS
+    assert set(ROC_PRESETS) <= set(PRESETS)

@@ -92,7 +92,7 @@ def test_bad_preset():
 
 def test_charis_field_matches_real_lenslet_flat(real_data):
     from astropy.io import fits
-    from kpifs.simulation.simulate import charis_field
+    from kpifs.io.charis import charis_field
     flat = fits.getdata(real_data / "charis_lensletflat_Broadband.fits") > 0
     model = charis_field(flat.shape)
     overlap = (flat & model).sum() / (flat | model).sum()

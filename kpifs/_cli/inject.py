@@ -15,6 +15,7 @@ from ..inject import inject_companion, injection_brackets, injection_limits
 from ..io import parse_wavelengths, read_cube
 from ..io._kpfits_common import ascii_text
 from ..io.angles import frame_detpa, parse_angles
+from ..io.instruments import INSTRUMENTS
 from ..io.layouts_like import source_layout, write_added
 from ..plotting import _save, analytic_column, plot_injection_limits
 from ..workflow import (calibrate_observation, calibrator_options, detect_observation,
@@ -155,9 +156,9 @@ def _write(read_from, data, out, outputs, instrument, wl, ps, cards, name, args)
     outputs[0].parent.mkdir(parents=True, exist_ok=True)
     write_added(sources, data, out - data, outputs, cards=cards, overwrite=args.overwrite,
                 history=f"kpifs {VERSION}: companion injected into {ascii_text(name)}")
-    if instrument == "sphere":
-        warnings.warn(f"{outputs[0]}: a SPHERE-IFS cube: its wavelengths and frame angles are "
-                      f"in the files beside {name}; copy them beside it, or give them "
+    note = INSTRUMENTS.get_instrument(instrument).copy_note
+    if note:                                  # its reader reads files beside the cube
+        warnings.warn(f"{outputs[0]}: {note} {name}; copy them beside it, or give them "
                       f"(--wavelengths, --pa) to read it", KpifsWarning, stacklevel=2)
 
 

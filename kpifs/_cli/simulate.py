@@ -77,10 +77,16 @@ def run(args):
     return 0
 
 
-#: Detector angle at parallactic angle 0 and the site, per preset (issue 29).
-_INSTRUMENT_ANGLES = {"charis": (113.0, "maunakea"), "sphere": (33.76, "paranal"),
-                      "sphere-sam": (33.76, "paranal"), "gpi": (-66.5, "pachon"),
-                      "paper": (0.0, "maunakea")}
+#: Detector angle at parallactic angle 0 and the site of a preset that no instrument's
+#: ``sequence`` gives (issue 29).
+_SEQUENCE = (0.0, "maunakea")
+
+
+def _sequence(preset):
+    """The detector angle at parallactic angle 0 and the site of *preset*'s sequences:
+    those of the instrument that adds it (`kpifs.io.instrument.Instrument.sequence`)."""
+    inst = INSTRUMENTS.of_scene(preset)
+    return _SEQUENCE if inst is None or inst.sequence is None else inst.sequence
 
 
 def _rotation(args, over):
@@ -91,7 +97,7 @@ def _rotation(args, over):
         return
     if args.rotation is not None and args.hour_angle is not None:
         raise KpifsError("give --rotation or --hour-angle, not both")
-    offset, site = _INSTRUMENT_ANGLES.get(args.preset, (0.0, "maunakea"))
+    offset, site = _sequence(args.preset)
     params = dict(PRESETS[args.preset])
     params.update(over)
     n = params.get("n_frames", SceneParameters().n_frames)

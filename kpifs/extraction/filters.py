@@ -45,13 +45,14 @@ from ..data import KernelPhaseData
 from .._utils import to_quantity
 from ..exceptions import KpifsError, KpifsWarning
 from ..io.cube import open_fits
-from ..io.jwst import JWST_FILTERS, jwst_mode, own_pixscale, pixscale_fits
+from ..io.jwst import INSTRUMENT     # the instrument whose filters these are
+from ..io.jwst import JWST_FILTERS, is_jwst_header, jwst_mode, own_pixscale, pixscale_fits
 from ..model.kernel import KernelModel, nyquist_usable
 from ..model.sampling import nested_kernel
 from ..model.window import DEFAULT_WINDOW_RADIUS, ExtractionWindow
 
 __all__ = ["jwst_filters", "filter_groups", "filter_models", "filter_window_radius",
-           "stack_filters"]
+           "stack_filters", "INSTRUMENT"]
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +75,7 @@ def jwst_filters(paths):
             hdr = file_headers(p)[0]
         except KpifsError:                     # the reader names unreadable files
             return {}
-        if str(hdr.get("TELESCOP", "")).strip().upper() != "JWST":
+        if not is_jwst_header(hdr):
             return {}
         out.setdefault(jwst_mode(hdr, source=str(p))[1], []).append(str(p))
     return out

@@ -9,8 +9,6 @@ from astropy.io import fits
 #: cost 16 MB per frame, 1.6 GB for 100 frames.
 KPCOV_COPY_LIMIT = 64 * 2 ** 20
 
-# INSTRUME and TELESCOP of kpifs's instrument readers (when the header has none)
-_INSTRUMENT_CARDS = {"charis": ("CHARIS", "Subaru"), "sphere": ("SPHERE", "ESO-VLT-U3")}
 #: Error-model parameters (``meta['error_model']``) <-> primary header cards.
 _ERROR_MODEL_CARDS = {
     "model": ("EMMODEL", "error model: modes (fitted model) or frames"),

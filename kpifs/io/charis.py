@@ -30,7 +30,7 @@ from .instrument import Instrument, frame_angles, header_card, simulated_header
 from .wavelengths import check_wavelengths, parse_wavelengths
 
 __all__ = ["read_charis", "is_charis", "charis_wavelengths", "charis_setup", "CHARIS_PIXSCALE",
-           "CHARIS_DETPA_OFFSET", "write_charis_exposures", "INSTRUMENT"]
+           "CHARIS_DETPA_OFFSET", "write_charis_exposures", "charis_field", "INSTRUMENT"]
 
 log = logging.getLogger(__name__)
 
@@ -319,6 +319,37 @@ def write_charis_exposures(outdir, cube, ivar, wavelengths, pixscale, *, prefix=
     return paths
 
 
+def charis_field(shape=(201, 201), *, side=133.0, angle=27.0):
+    """The CHARIS lenslet array's illuminated field: a square tilted by *angle* deg.
+
+    Approximates the real pipeline's Broadband lenslet flat (a ~133-spaxel
+    square turned by ~27 degrees in the 201x201 cube); the simulator blanks its
+    ``charis`` scene outside it.
+
+    Examples
+    --------
+    >>> from kpifs.io.charis import charis_field
+    >>> field = charis_field()
+    >>> field.shape, bool(field[100, 100]), bool(field[0, 0])
+    ((201, 201), True, False)
+    """
+    ny, nx = shape
+    y, x = np.mgrid[:ny, :nx]
+    x = x - (nx - 1) / 2
+    y = y - (ny - 1) / 2
+    c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
+    xr, yr = c * x + s * y, -s * x + c * y
+    return (np.abs(xr) <= side / 2) & (np.abs(yr) <= side / 2)
+
+
+#: The simulator's CHARIS scene: 22 broadband channels (1159.56-2369.34 nm,
+#: log-uniform), 16.2 mas, the 201x201 cube with its tilted field and 12 dead spaxels.
+SCENE = dict(wavelengths=1.15956 * np.exp(np.arange(22) * np.log(2.36934 / 1.15956) / 21) * u.um,
+             pixscale=16.2 * u.mas, shape=(201, 201), n_frames=20, instrument="charis",
+             field="charis", n_dead=12, contrasts=10 ** (-8 / 2.5) * np.linspace(1.4, 0.6, 22),
+             companion_offset=[120.0, 90.0] * u.mas)
+
+
 def _write(obs, role, outdir, common):
     """`Instrument.write`: one ``*_cube.fits`` per frame in ``outdir/role``."""
     p = obs.params
@@ -348,4 +379,5 @@ INSTRUMENT = Instrument(
     instrume=("CHARIS",), keywords=("CAL_BAND",), pupils=("subaru", "scexao", "charis"),
     setup=charis_setup, pixscale=f"{CHARIS_PIXSCALE.value:g} mas (--pixscale)",
     angles=f"PARANG + {CHARIS_DETPA_OFFSET:g} deg", layout="charis", write=_write,
-    hint=_hint)
+    scenes={"charis": SCENE}, hint=_hint, telescop="Subaru", field_mask=charis_field,
+    sequence=(CHARIS_DETPA_OFFSET, "maunakea"), data_hdu=1)

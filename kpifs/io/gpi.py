@@ -435,8 +435,26 @@ def _read(paths, *, wavelengths=None, pixscale=None, pa_given=False, **_):
                     keep_unknown_angles=pa_given)
 
 
+#: The simulator's GPI scene: H band, 37 channels (DRP grid), 8 exposures over 40 deg of
+#: parallactic angle, the companion fixed on the sky.
+SCENE = dict(telescope="gpi", wavelengths=(1.4904 + (np.arange(37) + 0.5) * 0.3112 / 37) * u.um,
+             pixscale=14.161 * u.mas, shape=(281, 281), n_frames=8, instrument="gpi",
+             contrasts=1e-2 * np.linspace(1.2, 0.8, 37), wavefront_rms=20 * u.nm,
+             exptime=60 * u.s,   # 60 s exposures: AO averaged
+             detpa=np.linspace(-86.5, -46.5, 8), sky_offset=[120.0, 160.0] * u.mas)
+
+
+def _to_file(source, block, shape):
+    """A block of the cube in a GPI file: put back in its crop (*source*'s ``ys``,
+    ``xs``) of the image, then mirrored in x."""
+    full = np.zeros(shape)
+    full[:, source.ys, source.xs] = block[0]
+    return full[:, :, ::-1]
+
+
 INSTRUMENT = Instrument(
     name="gpi", title="Gemini/GPI", identify=is_gpi, read=_read, pupil="gpi",
     instrume=("GPI",), header_pupil=gpi_pupil, pupils=("gpi", "gemini_south", "gpi_nrm"),
     setup=gpi_setup, pixscale=f"{GPI_PIXSCALE.value:g} mas (--pixscale)",
-    angles="AVPARANG + IFSROTAT - 90 deg (x mirrored)", layout="gpi", write=_write)
+    angles="AVPARANG + IFSROTAT - 90 deg (x mirrored)", layout="gpi", write=_write,
+    scenes={"gpi": SCENE}, sequence=(-66.5, "pachon"), data_hdu="SCI", to_file=_to_file)

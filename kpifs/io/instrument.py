@@ -89,6 +89,27 @@ class Instrument:
     hint : callable or None
         ``hint(hdul, path)``: called for a file no instrument claims, to warn when
         its header almost names this one.
+    telescop : str
+        The ``TELESCOP`` of its products when its headers have none ('': unknown).
+    field_mask : callable or None
+        ``field_mask(shape) -> bool array``: the illuminated field of its cubes, which the
+        simulator blanks outside (a scene's ``field``, named after the instrument).
+    sequence : tuple or None
+        ``(detector angle at parallactic angle 0 in deg, site)`` of the pupil-tracking
+        sequences simulated with its scenes (``kpifs simulate --rotation`` or
+        ``--hour-angle``; a site of `kpifs.rotation.SITES`); None: 0 deg at Maunakea.
+    data_hdu : int, str or None
+        The HDU of its files that holds the frames, for a copy of them (the injector,
+        `kpifs.io.layouts_like`); None: the first image of at least `data_ndim` axes.
+    data_ndim : int
+        The fewest axes of its frames' image (with `data_hdu` None).
+    to_file : callable or None
+        ``to_file(source, block, shape) -> array``: a block ``(nframe, nwave, ny, nx)``
+        of the cube as the array of its file (a `~kpifs.io.layouts_like.SourceFile`,
+        *shape*); None: the cube's own axes, reshaped.
+    copy_note : str or None
+        What a copy of one of its files lacks, said by the injector before the input's
+        name (its reader finds more in the files beside the cube).
 
     Examples
     --------
@@ -113,6 +134,13 @@ class Instrument:
     write: object = None
     scenes: dict = field(default_factory=dict)
     hint: object = None
+    telescop: str = ""
+    field_mask: object = None
+    sequence: tuple = None
+    data_hdu: object = None
+    data_ndim: int = 2
+    to_file: object = None
+    copy_note: str = None
 
     def names(self, header):
         """True when *header*'s ``INSTRUME`` is this instrument's."""

@@ -14,6 +14,8 @@ Examples
 ('Keck/NIRC2', 'generic')
 >>> INSTRUMENTS.by_layout("nirc2") is INSTRUMENTS["nirc2"]
 True
+>>> INSTRUMENTS.of_scene("sphere-sam").name, INSTRUMENTS.of_scene("paper")
+('sphere', None)
 """
 from ..exceptions import KpifsError
 from . import charis, generic, gpi, jwst, nirc2, sphere
@@ -66,6 +68,10 @@ class Registry(dict):
     def scenes(self):
         """The simulator presets the instruments add (name -> scene parameters)."""
         return {k: v for i in self.values() for k, v in i.scenes.items()}
+
+    def of_scene(self, scene):
+        """The instrument that adds the simulator preset *scene*, or None."""
+        return next((i for i in self.values() if scene in i.scenes), None)
 
 
 #: Every instrument, in the order a file's headers are tried (one line each).

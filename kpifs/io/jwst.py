@@ -49,7 +49,8 @@ from ..exceptions import KpifsError, KpifsWarning
 from .cube import FrameStack, IFSCube, open_fits
 from .instrument import Instrument, add_truth
 
-__all__ = ["read_jwst", "is_jwst", "jwst_mode", "jwst_pupil", "jwst_setup", "jwst_detpa",
+__all__ = ["read_jwst", "is_jwst", "is_jwst_header", "jwst_mode", "jwst_pupil", "jwst_setup",
+           "jwst_detpa",
            "JWST_FILTERS", "JWST_PIXSCALES", "PUPIL_ELEMENTS", "PIXSCALE_TOLERANCE",
            "own_pixscale", "pixscale_fits", "SUPPORTED_EXP_TYPES", "DO_NOT_USE", "DQ_FLAGS",
            "parse_dq_bits", "write_jwst_calints", "JWST_GEOMETRY", "INSTRUMENT"]
@@ -170,7 +171,20 @@ def is_jwst(hdul):
     >>> is_jwst(fits.HDUList([fits.PrimaryHDU(header=hdr), fits.ImageHDU(name="SCI")]))
     True
     """
-    return _card(hdul[0].header, "TELESCOP") == "JWST" and "SCI" in hdul
+    return is_jwst_header(hdul[0].header) and "SCI" in hdul
+
+
+def is_jwst_header(header):
+    """True for a primary header of JWST's (``TELESCOP = 'JWST'``).
+
+    Examples
+    --------
+    >>> from astropy.io import fits
+    >>> from kpifs.io.jwst import is_jwst_header
+    >>> is_jwst_header(fits.Header({"TELESCOP": " jwst"})), is_jwst_header(fits.Header())
+    (True, False)
+    """
+    return _card(header, "TELESCOP") == "JWST"
 
 
 def jwst_mode(header, *, source="JWST file"):
@@ -689,9 +703,26 @@ def _read(paths, *, wavelengths=None, pixscale=None, dq_bits=DO_NOT_USE, **_):
     return read_jwst(paths, wavelengths=wavelengths, pixscale=pixscale, dq_bits=dq_bits)
 
 
+#: The simulator's JWST scenes (issue 27): one filter per scene, one integration per
+#: frame, ROLL_REF 250 deg (DETPA 249.44 for NIRISS: FORMATS.md); the companion fixed
+#: on the sky.
+SCENES = {
+    "niriss": dict(telescope="niriss_clearp", wavelengths=[4.8196] * u.um,
+                   pixscale=65.55 * u.mas, shape=(80, 80), n_frames=10, instrument="niriss",
+                   wavefront_rms=20 * u.nm, jitter=0.05, star_mag=6.0, exptime=1 * u.s,
+                   contrasts=[1e-2], detpa=[249.44], sky_offset=[-150.0, 200.0] * u.mas,
+                   n_dead=6),
+    "nircam": dict(telescope="jwst", wavelengths=[4.8213] * u.um, pixscale=63.0 * u.mas,
+                   shape=(64, 64), n_frames=10, instrument="nircam", wavefront_rms=20 * u.nm,
+                   jitter=0.05, star_mag=6.0, exptime=1 * u.s, contrasts=[0.19],
+                   detpa=[250.0], sky_offset=[-76.1, 35.5] * u.mas, n_dead=6),
+}
+
+
 INSTRUMENT = Instrument(
     name="jwst", title="JWST NIRISS/NIRCam", identify=is_jwst, read=_read, pupil="jwst",
     instrume=("NIRISS", "NIRCAM"), header_pupil=jwst_pupil,
     pupils=("jwst", "niriss_clearp", "niriss_nrm", "nircam_clear"), setup=jwst_setup,
     pixscale="NIRISS 65.55 mas, NIRCam 31/63 mas (checked against PIXAR_A2)",
-    angles="ROLL_REF - V3I_YANG * VPARITY (SCI header)", layout="jwst", write=_write)
+    angles="ROLL_REF - V3I_YANG * VPARITY (SCI header)", layout="jwst", write=_write,
+    scenes=SCENES, data_hdu="SCI")

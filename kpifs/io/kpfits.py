@@ -54,8 +54,9 @@ from .._meta import VERSION
 from .._utils import write_hdulist
 from ..covariance import filled_covariance
 from ..rotation import rotation_hdus
-from ._kpfits_common import (_ERROR_MODEL_CARDS, _INSTRUMENT_CARDS, KPCOV_COPY_LIMIT, _clean_header,
+from ._kpfits_common import (_ERROR_MODEL_CARDS, KPCOV_COPY_LIMIT, _clean_header,
                              _label_columns, _number, _table_hdu, ascii_text, card)
+from .instruments import INSTRUMENTS
 from .kpfits_model import (has_kernel_model, model_hdulist, model_hdus, read_model_file,
                            read_model_parts)
 from .kpfits_read import is_kpfits, read_kpfits_parts  # noqa: F401 (the registry's identifier)
@@ -68,10 +69,12 @@ log = logging.getLogger(__name__)
 
 
 def _instrument_cards(kpd):
-    """INSTRUME and TELESCOP: the input header's, else those of kpifs's reader, else UNKNOWN."""
+    """INSTRUME and TELESCOP: the input header's, else those of kpifs's reader (its
+    instrument's first ``instrume`` and its ``telescop``), else UNKNOWN."""
     hdr = kpd.header
-    inst, tel = _INSTRUMENT_CARDS.get(str(kpd.meta.get("instrument", "")).lower(),
-                                      ("UNKNOWN", "UNKNOWN"))
+    reader = INSTRUMENTS.get(str(kpd.meta.get("instrument", "")).lower())
+    inst, tel = (reader.instrume[0], reader.telescop) if reader is not None \
+        and reader.telescop else ("UNKNOWN", "UNKNOWN")
     for key in ("INSTRUME", "CURRINST"):
         if str(hdr.get(key, "")).strip():
             inst = str(hdr[key]).strip()

@@ -20,6 +20,7 @@ from astropy.io import fits
 from .._utils import write_hdulist
 from ..exceptions import KpifsError
 from .cube import FrameStack
+from .instruments import INSTRUMENTS
 
 __all__ = ["SourceFile", "source_layout", "write_added"]
 
@@ -39,14 +40,12 @@ class SourceFile:
     xs: slice = None
 
     def to_file(self, block, shape):
-        """A block ``(nframe, nwave, ny, nx)`` of the cube as an array of the file's *shape*."""
-        if self.kind == "sphere":                 # (nwave, nframe, ny, nx) or (nwave, ny, nx)
-            return np.swapaxes(block, 0, 1).reshape(shape)
-        if self.kind == "gpi":                    # x mirrored, then cut around the star
-            full = np.zeros(shape)
-            full[:, self.ys, self.xs] = block[0]
-            return full[:, :, ::-1]
-        return block.reshape(shape)               # a view of the file's own axes
+        """A block ``(nframe, nwave, ny, nx)`` of the cube as an array of the file's *shape*
+        (its instrument's ``to_file``, else a view of the file's own axes)."""
+        inst = INSTRUMENTS.get(self.kind)
+        if inst is not None and inst.to_file is not None:
+            return inst.to_file(self, block, shape)
+        return block.reshape(shape)
 
 
 def _parts(cube):
@@ -73,14 +72,15 @@ def source_layout(cube):
     if len(parts) != len(cube.source):
         raise KpifsError(f"{cube.name}: cannot tell which frames came from which file")
     kind = cube.instrument
+    inst = INSTRUMENTS.get(kind, INSTRUMENTS["generic"])
     out, start = [], 0
     for path, part in zip(cube.source, parts):
         n = part.shape[0]
-        hdu = {"jwst": "SCI", "gpi": "SCI", "charis": 1}.get(kind)
+        hdu = inst.data_hdu
         if hdu is None:
             with fits.open(path) as hdul:
                 hdu = next(i for i, h in enumerate(hdul) if h.is_image and h.data is not None
-                           and h.data.ndim >= (3 if kind == "sphere" else 2))
+                           and h.data.ndim >= inst.data_ndim)
         out.append(SourceFile(str(path), hdu, start, n, kind, getattr(part, "ys", None),
                               getattr(part, "xs", None)))
         start += n

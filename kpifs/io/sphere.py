@@ -244,9 +244,36 @@ def _read(paths, *, wavelengths=None, pixscale=None, angles=None, **_):
                                                  angles=angles))(paths)
 
 
+#: The simulator's SPHERE scenes: ``sphere``, 39 IFS YJ channels (0.957-1.329 um),
+#: 7.46 mas, VLT pupil; ``sphere-yjh`` (issue 39), the same in YJH (39 channels over
+#: 0.957-1.636 um, a factor of 1.7 in lambda); ``sphere-sam`` (issue 28), the 7-hole SAM
+#: mask behind the IFS (YJ, 50 nm of residual wavefront), a companion of 2 % brighter in
+#: the blue at (60, -40) mas, in plain cubes.
+SCENES = {"sphere": dict(telescope="vlt", wavelengths=np.linspace(0.957, 1.329, 39) * u.um,
+                         pixscale=7.46 * u.mas, shape=(64, 64), n_frames=20, instrument="sphere",
+                         contrasts=10 ** (-8 / 2.5) * np.linspace(1.3, 0.7, 39),
+                         companion_offset=[80.0, 60.0] * u.mas)}
+SCENES["sphere-yjh"] = dict(SCENES["sphere"], wavelengths=np.linspace(0.957, 1.636, 39) * u.um)
+SCENES["sphere-sam"] = dict(telescope="sphere_sam7",
+                            wavelengths=np.linspace(0.957, 1.329, 39) * u.um,
+                            pixscale=7.46 * u.mas, shape=(64, 64), n_frames=20,
+                            wavefront_rms=50 * u.nm,
+                            contrasts=2e-2 * np.linspace(1.3, 0.7, 39),
+                            companion_offset=[60.0, -40.0] * u.mas)
+
+
+def _to_file(source, block, shape):
+    """A block of the cube in a SPHERE cube's wave-first order, ``(nwave, nframe, ny,
+    nx)`` or ``(nwave, ny, nx)``."""
+    return np.swapaxes(block, 0, 1).reshape(shape)
+
+
 INSTRUMENT = Instrument(
     name="sphere", title="VLT/SPHERE-IFS", identify=is_sphere, read=_read, pupil="vlt",
     instrume=("SPHERE",), keywords=("HIERARCH ESO INS2 COMB IFS",),
     pupils=("vlt", "sphere", "sphere_sam7"), setup=sphere_setup,
     pixscale=f"{SPHERE_PIXSCALE.value:g} mas (--pixscale)",
-    angles=f"angle file + {SPHERE_DETPA_OFFSET:.2f} deg", layout="sphere", write=_write)
+    angles=f"angle file + {SPHERE_DETPA_OFFSET:.2f} deg", layout="sphere", write=_write,
+    scenes=SCENES, telescop="ESO-VLT-U3", data_ndim=3, to_file=_to_file,
+    sequence=(33.76, "paranal"),      # SPHERE_DETPA_OFFSET to 0.01 deg
+    copy_note="a SPHERE-IFS cube: its wavelengths and frame angles are in the files beside")

@@ -30,7 +30,7 @@ from ..model.pupil import MASKS, TELESCOPES, pupil_image
 
 __all__ = ["simulate_psf", "phase_screens", "SceneParameters", "PRESETS", "TYPICAL_STATIC",
            "simulate_scene",
-           "SimulatedObservation", "charis_field"]
+           "SimulatedObservation"]
 
 log = logging.getLogger(__name__)
 
@@ -184,7 +184,7 @@ class SceneParameters:
     jitter: float = 0.2
     npup: int = 128
     instrument: str = "generic"
-    field: str = None          # 'charis': the lenslet array's tilted square field
+    field: str = None          # an instrument's field (its `field_mask`), e.g. 'charis'
     n_dead: int = 0            # dead spaxels (garbage values, zero inverse variance)
     # quasi-static aberrations, as on sky: a part that drifts from frame to frame (AR(1)
     # screens of this rms, correlation exp(-1/drift_time) between consecutive frames,
@@ -222,36 +222,16 @@ class SceneParameters:
                 * self.bandwidths().to_value(u.um) * self.exptime.to_value(u.s))
 
 
-def charis_field(shape=(201, 201), *, side=133.0, angle=27.0):
-    """The CHARIS lenslet array's illuminated field: a square tilted by *angle* deg.
-
-    Approximates the real pipeline's Broadband lenslet flat (a ~133-spaxel
-    square turned by ~27 degrees in the 201x201 cube).
-
-    Examples
-    --------
-    >>> from kpifs.simulation.simulate import charis_field
-    >>> field = charis_field()
-    >>> field.shape, bool(field[100, 100]), bool(field[0, 0])
-    ((201, 201), True, False)
-    """
-    ny, nx = shape
-    y, x = np.mgrid[:ny, :nx]
-    x = x - (nx - 1) / 2
-    y = y - (ny - 1) / 2
-    c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
-    xr, yr = c * x + s * y, -s * x + c * y
-    return (np.abs(xr) <= side / 2) & (np.abs(yr) <= side / 2)
-
-
 def _apply_field(out, params, rng):
     """Blank spaxels outside the field (0, zero inverse variance) and add dead ones."""
     shape = tuple(params.shape)
     bad = np.zeros(shape, bool)
-    if params.field == "charis":
-        bad |= ~charis_field(shape)
-    elif params.field is not None:
-        raise KpifsError(f"unknown field {params.field!r}")
+    if params.field is not None:
+        # the field of the instrument it names (`kpifs.io.instrument.Instrument.field_mask`)
+        inst = INSTRUMENTS.get(params.field)
+        if inst is None or inst.field_mask is None:
+            raise KpifsError(f"unknown field {params.field!r}")
+        bad |= ~inst.field_mask(shape)
     dead = np.zeros(shape, bool)
     if params.n_dead:
         good = np.flatnonzero(~bad)
@@ -262,47 +242,13 @@ def _apply_field(out, params, rng):
         out["var_" + k][..., bad | dead] = np.inf
 
 
-def _log_grid(lmin, lmax, n):
-    return lmin * np.exp(np.arange(n) * np.log(lmax / lmin) / (n - 1))
-
-
 #: Scene presets. ``paper``: the seed paper's scene (Subaru, 40x40 spaxels of
 #: 10.42 mas, channels 1.52/1.60/1.68 um, T-type companion with mean contrast
-#: 10^(-8/2.5) = 6.3e-4, brighter in the blue, at 100 mas). ``charis``: 22
-#: broadband CHARIS channels (1159.56-2369.34 nm, log-uniform), 16.2 mas,
-#: 201x201 field. ``sphere``: 39 SPHERE-IFS YJ channels (0.957-1.329 um),
-#: 7.46 mas, VLT pupil.
-PRESETS = {
-    "paper": dict(),
-    "charis": dict(wavelengths=_log_grid(1.15956, 2.36934, 22) * u.um, pixscale=16.2 * u.mas,
-                   shape=(201, 201), n_frames=20, instrument="charis", field="charis",
-                   n_dead=12,
-                   contrasts=10 ** (-8 / 2.5) * np.linspace(1.4, 0.6, 22),
-                   companion_offset=[120.0, 90.0] * u.mas),
-    "sphere": dict(telescope="vlt", wavelengths=np.linspace(0.957, 1.329, 39) * u.um,
-                   pixscale=7.46 * u.mas, shape=(64, 64), n_frames=20, instrument="sphere",
-                   contrasts=10 ** (-8 / 2.5) * np.linspace(1.3, 0.7, 39),
-                   companion_offset=[80.0, 60.0] * u.mas),
-    # JWST (issue 27): one filter per scene, one integration per frame, ROLL_REF 250 deg
-    # (DETPA 249.44 for NIRISS: FORMATS.md); the companion fixed on the sky
-    "niriss": dict(telescope="niriss_clearp", wavelengths=[4.8196] * u.um,
-                   pixscale=65.55 * u.mas, shape=(80, 80), n_frames=10, instrument="niriss",
-                   wavefront_rms=20 * u.nm, jitter=0.05, star_mag=6.0, exptime=1 * u.s,
-                   contrasts=[1e-2], detpa=[249.44], sky_offset=[-150.0, 200.0] * u.mas,
-                   n_dead=6),
-    "nircam": dict(telescope="jwst", wavelengths=[4.8213] * u.um, pixscale=63.0 * u.mas,
-                   shape=(64, 64), n_frames=10, instrument="nircam", wavefront_rms=20 * u.nm,
-                   jitter=0.05, star_mag=6.0, exptime=1 * u.s, contrasts=[0.19],
-                   detpa=[250.0], sky_offset=[-76.1, 35.5] * u.mas, n_dead=6),
-    # GPI H band: 37 channels (DRP grid), 8 exposures over 40 deg of parallactic angle
-    "gpi": dict(telescope="gpi", wavelengths=(1.4904 + (np.arange(37) + 0.5) * 0.3112 / 37)
-                * u.um, pixscale=14.161 * u.mas, shape=(281, 281), n_frames=8,
-                instrument="gpi", contrasts=1e-2 * np.linspace(1.2, 0.8, 37),
-                wavefront_rms=20 * u.nm, exptime=60 * u.s,   # 60 s exposures: AO averaged
-                detpa=np.linspace(-86.5, -46.5, 8), sky_offset=[120.0, 160.0] * u.mas),
-}
-#: The presets the registered instruments add (`kpifs.io.nirc2`: ``nirc2``).
-PRESETS.update(INSTRUMENTS.scenes())
+#: 10^(-8/2.5) = 6.3e-4, brighter in the blue, at 100 mas). The registered
+#: instruments add theirs (each module's ``scenes``: `kpifs.io.charis` ``charis``,
+#: `kpifs.io.sphere` ``sphere``, ``sphere-yjh`` and ``sphere-sam``, `kpifs.io.jwst`
+#: ``niriss`` and ``nircam``, `kpifs.io.gpi` ``gpi``, `kpifs.io.nirc2` ``nirc2``).
+PRESETS = {"paper": dict(), **INSTRUMENTS.scenes()}
 
 
 @dataclass
@@ -401,8 +347,8 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
 
     Parameters
     ----------
-    preset : {'paper', 'charis', 'sphere'}
-        Starting parameters (see `PRESETS`); any field of `SceneParameters`
+    preset : str
+        Starting parameters (a key of `PRESETS`); any field of `SceneParameters`
         can be overridden by keyword (e.g. ``n_frames=50``).
     seed : int
         Seed of the random generator (aberrations, jitter, noise).
@@ -491,24 +437,12 @@ def simulate_scene(preset="paper", *, seed=0, progress=False, **overrides):
                                 else -1)
 
 
-# issue 28: SPHERE's 7-hole SAM mask behind the IFS (39 YJ channels of 7.46 mas, 50 nm
-# of residual wavefront), a companion of 2 % brighter in the blue at (60, -40) mas
-# issue 39: SPHERE-IFS in YJH (39 channels over 0.957-1.636 um, a factor of 1.7 in lambda)
-PRESETS["sphere-yjh"] = dict(PRESETS["sphere"], wavelengths=np.linspace(0.957, 1.636, 39) * u.um)
-
 #: issue 39: a static aberration typical of the instruments, for sequences with no
 #: calibrator (``simulate_scene(..., **TYPICAL_STATIC)``, ``kpifs simulate
 #: --typical-static``): 50 nm common to both stars at low order, 15 nm of the target's
 #: own, 10 nm drifting (correlation time 10 frames), on top of the fast residual.
 TYPICAL_STATIC = dict(static_rms=50 * u.nm, static_low_order=True, static_own_rms=15 * u.nm,
                       drift_rms=10 * u.nm, drift_time=10.0)
-
-PRESETS["sphere-sam"] = dict(telescope="sphere_sam7",
-                             wavelengths=np.linspace(0.957, 1.329, 39) * u.um,
-                             pixscale=7.46 * u.mas, shape=(64, 64), n_frames=20,
-                             wavefront_rms=50 * u.nm,
-                             contrasts=2e-2 * np.linspace(1.3, 0.7, 39),
-                             companion_offset=[60.0, -40.0] * u.mas)
 
 
 def _frame_offsets(params):
