@@ -359,19 +359,35 @@ def _whiten_stage(prep, opts):
 
 
 class _Characterisation:
-    """The characterisation's error model ``(whitening, whitened rows, dof)`` from its
-    covariance *rows*, made on first use: only candidates need it (a search that
-    finds none skips its eigen-decompositions)."""
+    """The characterisation's error model from its covariance *rows*: its `whitening`,
+    the rows whitened (`whitened_rows`) and its degrees of freedom (`dof`), made on
+    first use: only candidates need it (a search that finds none skips its
+    eigen-decompositions)."""
 
     def __init__(self, rows):
         self._rows, self._model = rows, None
 
-    def __getitem__(self, key):
+    def _made(self):
         if self._model is None:
             fw, frank = whitening_matrix(rows_covariance(self._rows), return_rank=True,
                                          source="characterisation covariance")
             self._model = (fw, whiten(self._rows, fw), int(np.sum(frank)))
-        return self._model[key]
+        return self._model
+
+    @property
+    def whitening(self):
+        """The whitening matrices, one per channel."""
+        return self._made()[0]
+
+    @property
+    def whitened_rows(self):
+        """The covariance rows, whitened."""
+        return self._made()[1]
+
+    @property
+    def dof(self):
+        """The whitened dimension (degrees of freedom of a fit's chi-square)."""
+        return self._made()[2]
 
 
 def _search_model(prep, opts, frame, search_poses, stack, w, rank):
@@ -510,7 +526,7 @@ def _search_stage(prep, white, null, opts):
         add_sky_columns(cands, kpd.detpa if data_angles(kpd) is not None else None)
     char = white.characterise
     fit_w, fit_rows = (white.w, null.null.noise_rows) if char is None or not len(cands) \
-        else char[:2]
+        else (char.whitening, char.whitened_rows)
     if white.frame == "detector" and opts.fit and refit_on_sky(
             cands, white.kp, fit_w, kpd, noise_rows=fit_rows) and "chi2_red" in cands.colnames:
         # the rotating fit's errors, scaled like the detector fit's

@@ -56,8 +56,8 @@ class _Search:
     poses : tuple or None
         The frames' rotation for a model on the sky (`rotated_binary_kernel_phases`).
     characterise : object or None
-        The characterisation's error model, ``[0]`` whitening, ``[1]`` whitened rows,
-        ``[2]`` degrees of freedom (candidates refitted with it).
+        The characterisation's error model (its ``whitening``, ``whitened_rows`` and
+        ``dof``): candidates refitted with it.
     stack : object or None
         A stack of channel combinations or time blocks that models and refits its
         candidates itself.
@@ -95,9 +95,9 @@ def _fit_row(row, residual, search, *, from_fit=False):
                                      poses, from_fit=from_fit)[0]
         if characterise is not None:
             # from the search model's optimum (the robust start), the characterisation
-            model_kp = refine_candidates(row, residual, characterise[0], kpd,
-                                         characterise[1], poses, dof=characterise[2],
-                                         from_fit=True)[0]
+            model_kp = refine_candidates(row, residual, characterise.whitening, kpd,
+                                         characterise.whitened_rows, poses,
+                                         dof=characterise.dof, from_fit=True)[0]
         return model_kp
     r = row[0]
     x, y, c = r["x"].to_value(u.mas), r["y"].to_value(u.mas), np.asarray(r["contrast"])
