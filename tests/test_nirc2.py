@@ -239,3 +239,19 @@ def test_no_instrument_is_spelled_outside_its_module():
     from kpifs._cli._parser import ROC_PRESETS
     from kpifs.simulation.simulate import PRESETS
     assert set(ROC_PRESETS) <= set(PRESETS)
+
+
+def test_rotating_sequences_start_where_their_instrument_says():
+    """``kpifs simulate --rotation`` or ``--hour-angle`` starts a preset's sequence at the
+    detector angle (at parallactic angle 0) and site of the instrument that adds the
+    preset (`Instrument.sequence`), the others at 0 deg at Maunakea: the values of the
+    table the command kept before, and now ``sphere-yjh`` as the other SPHERE scenes
+    (that table had left it at 0 deg at Maunakea)."""
+    from kpifs._cli.simulate import _sequence
+    presets = ("paper", "charis", "sphere", "sphere-sam", "sphere-yjh", "gpi", "niriss",
+               "nircam", "nirc2")
+    assert {p: _sequence(p) for p in presets} == {
+        "paper": (0.0, "maunakea"), "charis": (113.0, "maunakea"),
+        "sphere": (33.76, "paranal"), "sphere-sam": (33.76, "paranal"),
+        "sphere-yjh": (33.76, "paranal"), "gpi": (-66.5, "pachon"),
+        "niriss": (0.0, "maunakea"), "nircam": (0.0, "maunakea"), "nirc2": (0.0, "maunakea")}
