@@ -4,9 +4,11 @@ Each instrument module (`kpifs.io.nirc2`, for one) ends with an `Instrument`
 named ``INSTRUMENT``: its recognition from a file's headers (an identifier, as
 in astropy's I/O registry), its reader to `~kpifs.io.IFSCube`, its angle
 convention, its default pupil and pixel scale, the facts its calibrator must
-share (`setup`), and its simulator layout. `kpifs.io.instruments` lists them
-once; the command line, the driver's default pupil, `header_pupil` and the
-simulator's layouts read that list.
+share (`setup`), its simulator layout, scenes, field and rotating sequences,
+how the injector writes copies of its files, and the ``TELESCOP`` of its
+products. `kpifs.io.instruments` lists them once; the command line, the
+driver's default pupil, `header_pupil`, the simulator, the injector and the
+KPFITS writer read that list, and no other module names an instrument.
 """
 from dataclasses import dataclass, field
 
