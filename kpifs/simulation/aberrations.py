@@ -223,16 +223,17 @@ def leading_static_rows(rows, whitening, *, variance=STATIC_VARIANCE, max_rank=S
     r = np.asarray(rows, float)
     n, q, p = r.shape
     rw = whiten(r, w).reshape(n, -1)
-    _, sv, vt = np.linalg.svd(rw, full_matrices=False)
-    e = np.cumsum(sv ** 2)
+    # the whitened rows' leading left singular vectors, from their Gram matrix (n x n:
+    # the screens, fewer than the kernel phases); the same combinations of the rows
+    # themselves are the modes in the data's space (whitened, ``s_i v_i``)
+    s2, vec = np.linalg.eigh(rw @ rw.T)
+    s2, vec = np.clip(s2[::-1], 0, None), vec[:, ::-1]
+    e = np.cumsum(s2)
     if not len(e) or e[-1] <= 0:
         return r[:0]
     k = int(np.searchsorted(e / e[-1], variance) + 1)
     k = max(1, min(k, int(max_rank * q * p) if max_rank < 1 else int(max_rank)))
-    lead = (sv[:k, None] * vt[:k]).reshape(k, q, p)
-    # back to the data's space: C^(1/2) on the whitened range
-    back = np.stack([np.linalg.pinv(wi, hermitian=True) for wi in w])
-    return whiten(lead, back)
+    return (vec[:, :k].T @ r.reshape(n, -1)).reshape(k, q, p)
 
 
 def fit_static_amplitude(y, whitening, rows):
