@@ -2,9 +2,10 @@
 of their times on the same 20-frame, 22-channel CHARIS file (acceptance: at most 1.3).
 
 Simulates the sequence (``kpifs simulate --preset charis --typical-static``, no
-companion), extracts it twice with ``kpifs extract`` (with the option, poly basis;
-without), then times ``kpifs detect`` on each file in turn (``--allow-uncalibrated``
-without the option), *repeat* times, and prints the ratio of the medians; with
+companion), extracts it twice with ``kpifs extract`` (with the option, its default
+basis unless ``--basis`` says otherwise; without), then times ``kpifs detect`` on each
+file in turn (``--allow-uncalibrated`` without the option), *repeat* times, and prints
+the ratio of the medians; with
 ``--cpu``, also that of the median CPU times (user + system of this process and its
 children over each call: the steadier figure on a loaded machine). Run from the
 project root: ``python benchmarks/bench_sdk.py``.
@@ -23,6 +24,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--draws", default="1000")
+    ap.add_argument("--basis", default="static", choices=("static", "poly", "both"),
+                    help="the option's basis (default: its default, static)")
     ap.add_argument("--cpu", action="store_true",
                     help="also report the CPU times (user + system) and their ratio")
     args = ap.parse_args(argv)
@@ -32,7 +35,7 @@ def main(argv=None):
                   "-o", str(root / "sim"), "-q"]) == 0
     cube = str(root / "sim" / "target.fits")
     assert kpifs(["extract", cube, "-o", str(root / "raw.fits"), "-q"]) == 0
-    assert kpifs(["extract", cube, "--spectral-differential", "poly", "-o",
+    assert kpifs(["extract", cube, "--spectral-differential", args.basis, "-o",
                   str(root / "sdk.fits"), "-q"]) == 0
     times = {"with": [], "without": []}
     cpu = {"with": [], "without": []}
@@ -45,8 +48,9 @@ def main(argv=None):
             times[name].append(time.perf_counter() - t0)
             cpu[name].append(_cpu() - c0)
     med = {k: statistics.median(v) for k, v in times.items()}
-    print(f"kpifs detect, median of {args.repeat}: without {med['without']:.1f} s, with "
-          f"--spectral-differential {med['with']:.1f} s: ratio {med['with'] / med['without']:.2f}")
+    print(f"basis {args.basis}; kpifs detect, median of {args.repeat}: without "
+          f"{med['without']:.1f} s, with --spectral-differential {med['with']:.1f} s: "
+          f"ratio {med['with'] / med['without']:.2f}")
     if args.cpu:
         med = {k: statistics.median(v) for k, v in cpu.items()}
         print(f"CPU (user + sys), median of {args.repeat}: without {med['without']:.1f} s, "

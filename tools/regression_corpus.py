@@ -17,7 +17,8 @@ exits 1 when anything differs. ``--only`` runs some cases.
 
 Cases: CHARIS and SPHERE-IFS with a calibrator (tests B and auto), a JWST
 NIRCam filter pair, GPI, an OIFITS written by kpifs and read back, the
-angular-differential mode (CHARIS, no calibrator), uncalibrated
+angular-differential mode (CHARIS, no calibrator), the spectral-differential mode
+and ASDI (CHARIS with a typical static aberration, no calibrator), uncalibrated
 single-channel data, the README's command-line examples, and the real files
 of ../shared/data/real where that folder exists (PHARO halves, alpha Oph,
 the NIRISS AMI OIFITS).
@@ -116,6 +117,24 @@ def case_adk(d):
     kpifs("extract", *_files(s / "target"), "--angular-differential", "-q",
           "-o", d / "adk_kp.fits")
     kpifs("detect", d / "adk_kp.fits", "--draws", 1000, "-q", "-o", d / "detection.fits")
+
+
+def case_sdk(d):
+    """Spectral-differential kernel phases: CHARIS with a typical static aberration and no
+    calibrator, the companion of the preset."""
+    s = _sim(d, "charis", "plain", 12, 17, "--typical-static", "--shape", 80)
+    kpifs("extract", s / "target.fits", "--spectral-differential", "-q",
+          "-o", d / "sdk_kp.fits")
+    kpifs("detect", d / "sdk_kp.fits", "--draws", 1000, "-q", "-o", d / "detection.fits")
+
+
+def case_asdi(d):
+    """Spectral- and angular-differential together (ASDI), no calibrator, 40 deg."""
+    s = _sim(d, "charis", "plain", 12, 18, "--typical-static", "--shape", 80,
+             "--rotation", "40deg")
+    kpifs("extract", s / "target.fits", "--spectral-differential", "--angular-differential",
+          "-q", "-o", d / "asdi_kp.fits")
+    kpifs("detect", d / "asdi_kp.fits", "--draws", 1000, "-q", "-o", d / "detection.fits")
 
 
 def case_single_channel(d):

@@ -582,11 +582,13 @@ class BlockStack:
         scale ``c_i`` times the spectrum shape in every channel, mixed by ``D``."""
         kern = self.kpd.kernel_model.kernel
         c = np.broadcast_to(np.asarray(contrast, float), (self.n_comb,))
-        ca = c[:, None] * self.spectrum[None, :]                             # (k, q)
-        z = 1 + ca[None, :, :, None] * h[:, None]                            # (N, k, q, nuv)
+        # each distinct contrast once: a fit's combinations share one (`refine_stack`)
+        cu, at = np.unique(c, return_inverse=True)
+        ca = cu[:, None] * self.spectrum[None, :]                            # (u, q)
+        z = 1 + ca[None, :, :, None] * h[:, None]                            # (N, u, q, nuv)
 
-        def mixed(a):                   # per-frame (N, k, q, nuv) -> stacked (k, dim)
-            per = self._by_block(a) @ kern.T                                  # (B, k, q, p)
+        def mixed(a):                   # per-frame (N, u, q, nuv) -> stacked (k, dim)
+            per = (self._by_block(a) @ kern.T)[:, at]                         # (B, k, q, p)
             return self._stack(np.einsum("kc,bkcp->bkp", self.data_mixing, per))
         out = mixed(np.angle(z))
         if not derivative:

@@ -322,9 +322,14 @@ class _Whitened:
 
 def _whiten_stage(prep, opts):
     kpd, kp = prep.kpd, prep.kp
-    w, rank = whitening_matrix(prep.cov, return_rank=True, source="covariance of the data")
-    rank = np.atleast_1d(rank)
-    _check_closure_dof(kpd, prep.test, rank, prep.n_basis, kp, w)
+    if getattr(kpd, "spectral", None) is not None and not kpd.meta.get("closure_phases"):
+        # searched by channel combinations, whitened by their own error model (`SpectralStack`,
+        # alone or in ASDI's `BlockStack`): the channels' whitening would not be used
+        w = rank = None
+    else:
+        w, rank = whitening_matrix(prep.cov, return_rank=True, source="covariance of the data")
+        rank = np.atleast_1d(rank)
+        _check_closure_dof(kpd, prep.test, rank, prep.n_basis, kp, w)
     frame, search_poses, poses = _frame_and_poses(kpd, opts.frame, opts.grid)
     cov_rows, blk_rows, fit_rows = kpd.covariance_rows, kpd.block_rows, kpd.fit_covariance_rows
     if prep.static_rows is not None and cov_rows is not None:

@@ -485,14 +485,16 @@ class SpectralStack:
         uv = km.uv.value
         theta = 2 * np.pi * MAS * (xy @ uv.T)                                 # (n, nuv)
         h = np.exp(-1j * theta[:, None, :] / lam[None, :, None])              # (n, q, nuv)
-        ca = c[:, None] * self.spectrum[None, :]                             # (k, q)
-        z = 1 + ca[None, :, :, None] * h[:, None]                            # (n, k, q, nuv)
-        phase = np.tensordot(wts, np.angle(z), axes=(0, 0)) @ km.kernel.T     # (k, q, p)
+        # each distinct contrast once: a fit's combinations share one (`refine_stack`)
+        cu, at = np.unique(c, return_inverse=True)
+        ca = cu[:, None] * self.spectrum[None, :]                            # (u, q)
+        z = 1 + ca[None, :, :, None] * h[:, None]                            # (n, u, q, nuv)
+        phase = (np.tensordot(wts, np.angle(z), axes=(0, 0)) @ km.kernel.T)[at]   # (k, q, p)
         out = whiten(np.einsum("kc,kcp->kp", self.data_mixing, phase), self._w)
         if not derivative:
             return out
         dz = np.imag(self.spectrum[None, :, None] * h[:, None] / z)
-        dphase = np.tensordot(wts, dz, axes=(0, 0)) @ km.kernel.T
+        dphase = (np.tensordot(wts, dz, axes=(0, 0)) @ km.kernel.T)[at]
         return out, whiten(np.einsum("kc,kcp->kp", self.data_mixing, dphase), self._w)
 
     def _attenuation(self, x, y):

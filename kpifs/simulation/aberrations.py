@@ -223,16 +223,17 @@ def leading_static_rows(rows, whitening, *, variance=STATIC_VARIANCE, max_rank=S
     r = np.asarray(rows, float)
     n, q, p = r.shape
     rw = whiten(r, w).reshape(n, -1)
-    _, sv, vt = np.linalg.svd(rw, full_matrices=False)
-    e = np.cumsum(sv ** 2)
+    # the whitened rows' leading left singular vectors, from their Gram matrix (n x n:
+    # the screens, fewer than the kernel phases); the same combinations of the rows
+    # themselves are the modes in the data's space (whitened, ``s_i v_i``)
+    s2, vec = np.linalg.eigh(rw @ rw.T)
+    s2, vec = np.clip(s2[::-1], 0, None), vec[:, ::-1]
+    e = np.cumsum(s2)
     if not len(e) or e[-1] <= 0:
         return r[:0]
     k = int(np.searchsorted(e / e[-1], variance) + 1)
     k = max(1, min(k, int(max_rank * q * p) if max_rank < 1 else int(max_rank)))
-    lead = (sv[:k, None] * vt[:k]).reshape(k, q, p)
-    # back to the data's space: C^(1/2) on the whitened range
-    back = np.stack([np.linalg.pinv(wi, hermitian=True) for wi in w])
-    return whiten(lead, back)
+    return (vec[:, :k].T @ r.reshape(n, -1)).reshape(k, q, p)
 
 
 def fit_static_amplitude(y, whitening, rows):
@@ -268,9 +269,20 @@ def fit_static_amplitude(y, whitening, rows):
     if not len(s2):
         return 0.0
     scale = 1.0 / np.median(s2)
-    res = optimize.minimize_scalar(nll, bounds=(np.log(scale) - 25, np.log(scale) + 25),
-                                   method="bounded")
-    return float(np.exp(res.x)) if nll(res.x) < nll(np.log(scale) - 25) - 1e-9 else 0.0
+    lo, hi = np.log(scale) - 25, np.log(scale) + 25
+    t = optimize.minimize_scalar(nll, bounds=(lo, hi), method="bounded").x
+    # polished by Newton's steps in log a to the minimum itself (the search stops within
+    # 1e-5 of it, wherever rounding led it): the same amplitude on any machine
+    for _ in range(8):
+        g = np.exp(t) * s2 / (1 + np.exp(t) * s2)
+        d1 = np.sum(g) - np.sum(proj2 * g * (1 - g))
+        d2 = np.sum(g * (1 - g)) - np.sum(proj2 * g * (1 - g) * (1 - 2 * g))
+        if not (d2 > 0 and lo < t - d1 / d2 < hi):
+            break
+        t, step = t - d1 / d2, d1 / d2
+        if abs(step) < 1e-13 * max(1.0, abs(t)):
+            break
+    return float(np.exp(t)) if nll(t) < nll(lo) - 1e-9 else 0.0
 
 
 def static_term(kpd, y, cov, whitening, *, seed=0):
