@@ -104,8 +104,7 @@ def test_retained_fraction_theory(small):
     s = np.sin(theta[None] / lam[:, None, None]) @ km.kernel.T               # (q, n, p)
     expect = 1 - np.sum(s.sum(axis=0) ** 2, axis=-1) / (q * np.sum(s ** 2, axis=(0, 2)))
     got = retained_fraction(km, WL, pos, v)
-    # computed in single precision (a fraction reported to 1e-4): exact to its rounding
-    assert np.allclose(got, expect, rtol=0, atol=1e-6)
+    assert np.allclose(got, expect, rtol=1e-10)
     kpd = KernelPhaseData(np.zeros((1, q, km.n_kp)), WL, 16.2 * u.mas, km)
     cubic = kept_combinations(nuisance_profiles(kpd, order=3), np.ones(q))
     assert retained_fraction(km, WL, [[1.0, 0.5]], cubic)[0] < 1e-3

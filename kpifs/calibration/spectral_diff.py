@@ -176,15 +176,11 @@ def retained_fraction(kernel_model, wavelengths, positions, mixing, *, spectrum=
     pos = np.atleast_2d(np.asarray(positions, float)) * np.pi / 180 / 3600e3
     uv = kernel_model.uv.value
     theta = 2 * np.pi * (pos @ uv.T)                                  # (n, nuv) x lambda
-    # single precision: a fraction, reported to 1e-4 (half the time of the largest
-    # products of a spectral-differential search's set-up)
-    sig = np.sin((theta[None] / lam[:, None, None]).astype(np.float32)) \
-        @ kernel_model.kernel.T.astype(np.float32)                     # (q, n, p)
-    sig *= (a / s).astype(np.float32)[:, None, None]
-    kept = np.tensordot(np.asarray(mixing, np.float32), sig, axes=(0, 0))    # (k, n, p)
+    sig = np.sin(theta[None] / lam[:, None, None]) @ kernel_model.kernel.T   # (q, n, p)
+    sig *= (a / s)[:, None, None]
+    kept = np.einsum("ck,cnp->knp", mixing, sig)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return (np.sum(kept ** 2, axis=(0, 2), dtype=float)
-                / np.sum(sig ** 2, axis=(0, 2), dtype=float))
+        return np.sum(kept ** 2, axis=(0, 2)) / np.sum(sig ** 2, axis=(0, 2))
 
 
 def inner_separation(separations, fraction, *, level=SDK_LEVEL):
