@@ -44,6 +44,7 @@ def dask_client(scheduler=None, *, n_workers=2, processes=True):
     Client, LocalCluster, _ = _dask()
     cluster = client = None
     quiet = _Quiet(local=scheduler is None)
+    quiet.loop()
     try:
         if scheduler is None:
             # a free port for the dashboard: never the default 8787 another cluster may hold
@@ -80,6 +81,15 @@ class _Quiet:
 
     def __init__(self, local):
         self.local, self.saved = local, {}
+
+    def loop(self):
+        """The client's event loop: a Ctrl-C that lands in one of distributed's blocking
+        calls can make its cancel callback fail on the loop ('cannot access free variable
+        future', seen with distributed 2026.8), which tornado logs as a traceback; kpifs says
+        itself what was interrupted."""
+        lg = logging.getLogger("tornado.application")
+        self.saved.setdefault("tornado.application", lg.level)
+        lg.setLevel(logging.CRITICAL)
 
     def client(self):
         for name in ("distributed.client", "distributed.core", "distributed.comm",
