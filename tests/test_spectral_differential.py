@@ -5,6 +5,7 @@ import warnings
 import numpy as np
 import pytest
 from astropy import units as u
+from astropy.table import QTable
 
 from kpifs import KernelModel, KernelPhaseData, make_pupil
 from kpifs.calibration.spectral_diff import (inner_separation, kept_combinations,
@@ -213,3 +214,37 @@ def test_kpfits_round_trip(small, tmp_path):
     assert back.spectral["basis"] == "poly" and back.spectral["order"] == 1
     sub = back.select_channels([0, 2, 4, 6])
     assert sub.spectral["profiles"].shape == (4, 2)
+
+
+def test_fit_errors_cover_the_noise_offsets(km):
+    """The fit of a candidate in the channel combinations (`refine_stack`): from a start a
+    grid step off, noise-free data give the truth (no bias, no other minimum within the
+    box), and noisy data offsets that its reported errors cover (pulls of order 1: what
+    issue 39 measured of the misses at twice the limit on CHARIS simulations)."""
+    q, sigma, c, truth = len(WL), 1e-2, 0.04, (120.0, -50.0)
+    cov = np.stack([np.eye(km.n_kp) * sigma ** 2] * q)
+    signal = km.binary_kernel_phases(list(truth) * u.mas, np.full(q, c), WL)
+    rng = np.random.default_rng(7)
+    pulls, offsets = [], []
+    for i in range(25):
+        kp = signal + (rng.normal(0, sigma, signal.shape) if i else 0.0)
+        kpd = KernelPhaseData(kp[None], WL, 16.2 * u.mas, km, covariance=cov)
+        kpd.spectral = {"profiles": nuisance_profiles(kpd, order=2)}
+        st = SpectralStack(kpd, kp, cov)
+        row = QTable({"x": [truth[0] + 6.0] * u.mas, "y": [truth[1] - 4.0] * u.mas,
+                     "contrast": np.full((1, st.n_comb), 0.8 * c)})
+        st.refine(row, st.kp)
+        d = np.array([row["fit_x"][0].to_value(u.mas) - truth[0],
+                      row["fit_y"][0].to_value(u.mas) - truth[1]])
+        err = np.array([row[k][0].to_value(u.mas) for k in ("fit_x_err", "fit_y_err")])
+        if i == 0:
+            assert np.all(np.abs(d) < 1e-3)
+            assert np.allclose(row["fit_contrast"][0], c, rtol=1e-4)
+            assert np.all((err > 0.1) & (err < 3))          # an offset of a few mas is a few sigma
+        else:
+            pulls.append(d / err)
+            offsets.append(np.hypot(*d))
+    pulls = np.array(pulls)
+    # 48 pulls: their mean square is chi2(48) / 48, outside [0.35, 2.1] 3e-5 of the time
+    assert 0.35 < np.mean(pulls ** 2) < 2.1
+    assert np.max(offsets) > 0.2                # the noise moves the fit (not a trivial test)

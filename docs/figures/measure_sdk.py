@@ -23,7 +23,8 @@ calibrator differ by 15 nm), extracted as ``kpifs extract`` does
     at 0.5, 1, 1.5 and 2 times the stated limit (the limit map's value at the
     position; ``--kinds median``: the radial curve's median), 8 position angles
     (``--n-pa``), at ``--seps`` (150 and 250 mas): the fractions whose reported
-    (fitted) position is within 5 mas, and within 30 mas (detected). 400 mas
+    (fitted) position is within 5 mas, and within 30 mas (detected), and the
+    offsets in units of the reported position errors (pulls). 400 mas
     needs ``--step 0.27m`` (the default pupil step stops the grid at 299 mas).
 ``sphere``
     The same for SPHERE-IFS YJ (39 channels, 0.957-1.329 um; ``null`` only, one
@@ -175,7 +176,8 @@ def _found(kpd, xy, c, pa_model):
     """How far (mas) from *xy* the nearest candidate is reported (its fitted position,
     the grid point where the fit failed; inf with none) when a companion of contrast
     *c* at *xy* (mas) is added to *kpd* as the model's kernel phases (the window's
-    attenuation included)."""
+    attenuation included); with that candidate's offsets (x, y) in units of its
+    reported position errors (the pulls; NaN without a fit or a candidate)."""
     att = float(kpd.window.at(np.hypot(*xy), kpd.pixscale)) if kpd.window is not None else 1.0
     sig = np.asarray(pa_model.binary_kernel_phases(np.asarray(xy) * u.mas,
                                                    np.full(kpd.n_wave, c * att),
@@ -185,7 +187,14 @@ def _found(kpd, xy, c, pa_model):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = detect(q, pfa=PFA, n_draws=DRAWS, limits=False)
-    return min((np.hypot(x - xy[0], y - xy[1]) for x, y in _positions(res)), default=np.inf)
+    pos = _positions(res)
+    if not pos:
+        return np.inf, (np.nan, np.nan)
+    d = [np.hypot(x - xy[0], y - xy[1]) for x, y in pos]
+    j = int(np.argmin(d))
+    r = res.candidates[j]
+    err = [float(r[k].value) if k in r.colnames else np.nan for k in ("fit_x_err", "fit_y_err")]
+    return float(d[j]), tuple(float(v) for v in (np.subtract(pos[j], xy) / err))
 
 
 def _positions(res):
@@ -204,6 +213,17 @@ def _local_limit(res, xy):
     return float(res.limit[np.argmin(np.abs(g.y - xy[1])), np.argmin(np.abs(g.x - xy[0]))])
 
 
+def _num(v):
+    return float(v) if np.isfinite(v) else None
+
+
+def _rms(values):
+    """Root mean square of the finite *values* (None with none)."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    return float(np.sqrt(np.mean(v ** 2))) if v.size else None
+
+
 def inject(seeds, tmp, shape=80, seps=(150.0, 250.0), factors=(0.5, 1.0, 1.5, 2.0), n_pa=8,
            kinds=("local",)):
     """Injection-recovery against the stated limits, per companion-free sequence: the
@@ -211,7 +231,10 @@ def inject(seeds, tmp, shape=80, seps=(150.0, 250.0), factors=(0.5, 1.0, 1.5, 2.
     in noise-free simulations, the window's attenuation aside) added to the
     spectral-differential product at *n_pa* position angles and *factors* times the
     limit map's value there (``local``) and/or times the median limit at that separation
-    (``median``, the radial curve); the fractions found within 5 mas."""
+    (``median``, the radial curve); the fractions found within 5 mas, and the reported
+    positions' offsets in units of their reported errors (``*_pulls``, x and y; their
+    rms over the detected, ``*_rms_pull``: of order 1 where the errors cover the
+    offsets)."""
     out = []
     for seed in seeds:
         tkp, _ = _reduce("charis", seed, tmp, shape, static_diff_rms=0 * u.nm, contrasts=0.0)
@@ -231,9 +254,15 @@ def inject(seeds, tmp, shape=80, seps=(150.0, 250.0), factors=(0.5, 1.0, 1.5, 2.
                    "noise_scale": res.energy["noise_scale"], "energy_pfa": res.energy["pfa"],
                    "local_limits": [_local_limit(res, xy) for xy in pos]}
             for kind in kinds:
-                dist = [[_found(kpd, xy, f * (loc if kind == "local" else med),
-                                tkp.kernel_model) for xy, loc in zip(pos, row["local_limits"])]
-                        for f in factors]
+                found = [[_found(kpd, xy, f * (loc if kind == "local" else med),
+                                 tkp.kernel_model) for xy, loc in zip(pos, row["local_limits"])]
+                         for f in factors]
+                dist = [[d for d, _ in r] for r in found]
+                # offsets / reported errors: of order 1 where the errors cover the offsets
+                # (the rms over the detected, x and y)
+                row[kind + "_pulls"] = [[[_num(v) for v in p] for _, p in r] for r in found]
+                row[kind + "_rms_pull"] = [_rms([v for d, p in r if d < DETECTED for v in p])
+                                           for r in found]
                 row[kind + "_distance"] = [[float(min(d, 1e9)) for d in r] for r in dist]
                 row[kind] = [float(np.mean(np.asarray(r) < 5)) for r in dist]
                 row[kind + "_detected"] = [float(np.mean(np.asarray(r) < DETECTED))
