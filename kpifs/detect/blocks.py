@@ -36,7 +36,8 @@ from ..model.kernel import MAS
 from ..rotation import noise_whitening
 from ._blockfit import refine_stack
 from ._blocktrig import block_trig
-from .combinations import combination_contrasts, combination_table, nominal_wavelengths
+from .combinations import combination_contrasts, combination_table, distinct_contrasts, \
+    nominal_wavelengths
 from ._signatures import _norm_chunks, _unit
 from .maps import UNIT_CACHE_BYTES, DetectionModel
 from .sdk import SpectralStack
@@ -581,10 +582,7 @@ class BlockStack:
         """`model_kp` of channel combinations: combination ``i`` with its own contrast
         scale ``c_i`` times the spectrum shape in every channel, mixed by ``D``."""
         kern = self.kpd.kernel_model.kernel
-        c = np.broadcast_to(np.asarray(contrast, float), (self.n_comb,))
-        # each distinct contrast once: a fit's combinations share one (`refine_stack`)
-        cu, at = np.unique(c, return_inverse=True)
-        ca = cu[:, None] * self.spectrum[None, :]                            # (u, q)
+        ca, at = distinct_contrasts(contrast, self.spectrum, self.n_comb)    # (u, q)
         z = 1 + ca[None, :, :, None] * h[:, None]                            # (N, u, q, nuv)
 
         def mixed(a):                   # per-frame (N, u, q, nuv) -> stacked (k, dim)

@@ -10,7 +10,8 @@ error.
 import numpy as np
 from astropy import units as u
 
-__all__ = ["combination_contrasts", "combination_table", "nominal_wavelengths"]
+__all__ = ["combination_contrasts", "combination_table", "distinct_contrasts",
+           "nominal_wavelengths"]
 
 
 def nominal_wavelengths(mixing, wavelengths):
@@ -28,6 +29,25 @@ def nominal_wavelengths(mixing, wavelengths):
     mix = np.asarray(mixing, float)
     wts = mix ** 2 / np.sum(mix ** 2, axis=1, keepdims=True)
     return wts @ u.Quantity(wavelengths, u.um).value * u.um
+
+
+def distinct_contrasts(contrast, spectrum, n_comb):
+    """The channels' contrasts of each distinct scale in *contrast* (one per combination,
+    or one for all), ``(u, q)``, and which row each of the *n_comb* combinations takes: a
+    companion model computed once per distinct scale (a fit's combinations share one,
+    `~kpifs.detect._blockfit.refine_stack`), not once per combination.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.combinations import distinct_contrasts
+    >>> ca, at = distinct_contrasts(0.01, np.array([1.0, 0.5]), 3)
+    >>> ca.tolist(), at.tolist()
+    ([[0.01, 0.005]], [0, 0, 0])
+    """
+    c = np.broadcast_to(np.asarray(contrast, float), (n_comb,))
+    scales, at = np.unique(c, return_inverse=True)
+    return scales[:, None] * np.asarray(spectrum, float)[None, :], at
 
 
 def _mean(c, err, axis):

@@ -31,7 +31,8 @@ from ..simulation.aberrations import fit_static_amplitude, leading_static_rows, 
     static_residual_rows
 from ._blockfit import refine_stack
 from ._signatures import _unit
-from .combinations import combination_contrasts, combination_table, nominal_wavelengths
+from .combinations import combination_contrasts, combination_table, distinct_contrasts, \
+    nominal_wavelengths
 from .maps import UNIT_CACHE_BYTES, DetectionModel
 from .sky import sky_to_detector
 from .spectral import spectrum_shape
@@ -473,8 +474,6 @@ class SpectralStack:
         kpd = self.kpd
         km = kpd.kernel_model
         lam = kpd.wavelengths.to_value(u.m)
-        k = self.n_comb
-        c = np.broadcast_to(np.asarray(contrast, float), (k,))
         if self.poses is None:
             xy, wts = np.array([[float(pos[0]), float(pos[1])]]), np.ones(1)
         else:
@@ -485,9 +484,7 @@ class SpectralStack:
         uv = km.uv.value
         theta = 2 * np.pi * MAS * (xy @ uv.T)                                 # (n, nuv)
         h = np.exp(-1j * theta[:, None, :] / lam[None, :, None])              # (n, q, nuv)
-        # each distinct contrast once: a fit's combinations share one (`refine_stack`)
-        cu, at = np.unique(c, return_inverse=True)
-        ca = cu[:, None] * self.spectrum[None, :]                            # (u, q)
+        ca, at = distinct_contrasts(contrast, self.spectrum, self.n_comb)    # (u, q)
         z = 1 + ca[None, :, :, None] * h[:, None]                            # (n, u, q, nuv)
         phase = (np.tensordot(wts, np.angle(z), axes=(0, 0)) @ km.kernel.T)[at]   # (k, q, p)
         out = whiten(np.einsum("kc,kcp->kp", self.data_mixing, phase), self._w)

@@ -274,12 +274,13 @@ def fit_static_amplitude(y, whitening, rows):
     # polished by Newton's steps in log a to the minimum itself (the search stops within
     # 1e-5 of it, wherever rounding led it): the same amplitude on any machine
     for _ in range(8):
-        g = np.exp(t) * s2 / (1 + np.exp(t) * s2)
+        g = 1 / (1 + 1 / (np.exp(t) * s2))                      # a s / (1 + a s)
         d1 = np.sum(g) - np.sum(proj2 * g * (1 - g))
         d2 = np.sum(g * (1 - g)) - np.sum(proj2 * g * (1 - g) * (1 - 2 * g))
-        if not (d2 > 0 and lo < t - d1 / d2 < hi):
+        step = d1 / d2 if d2 > 0 else np.nan
+        if not lo < t - step < hi:
             break
-        t, step = t - d1 / d2, d1 / d2
+        t -= step
         if abs(step) < 1e-13 * max(1.0, abs(t)):
             break
     return float(np.exp(t)) if nll(t) < nll(lo) - 1e-9 else 0.0
