@@ -248,3 +248,23 @@ def test_fit_errors_cover_the_noise_offsets(km):
     # 48 pulls: their mean square is chi2(48) / 48, outside [0.35, 2.1] 3e-5 of the time
     assert 0.35 < np.mean(pulls ** 2) < 2.1
     assert np.max(offsets) > 0.2                # the noise moves the fit (not a trivial test)
+
+
+def test_static_profiles_do_not_turn_with_rounding(small):
+    """The profiles written to the product are one basis of their span, whatever the last
+    bits of the imaged residual: perturbed by 1e-12, the static basis moves by rounding
+    only (an SVD of its already orthonormal columns returned another rotation of the
+    span from run to run); the span is the leading left singular vectors'."""
+    km = small
+    q = len(WL)
+    rng = np.random.default_rng(4)
+    rows = rng.standard_normal((60, q, km.n_kp)) * np.linspace(3, 0.5, q)[None, :, None]
+    kpd = KernelPhaseData(np.zeros((1, q, km.n_kp)), WL, 16.2 * u.mas, km)
+    a = nuisance_profiles(kpd, basis="static", static_rows=rows)
+    b = nuisance_profiles(kpd, basis="static",
+                          static_rows=rows * (1 + 1e-12 * rng.standard_normal(rows.shape)))
+    assert np.abs(a - b).max() < 1e-9
+    lead = np.linalg.svd(rows.transpose(1, 0, 2).reshape(q, -1), full_matrices=False)[0][:, :3]
+    assert np.allclose(a @ a.T, lead @ lead.T, atol=1e-12)
+    both = nuisance_profiles(kpd, basis="both", static_rows=rows)
+    assert np.allclose(both.T @ both, np.eye(both.shape[1]), atol=1e-12)

@@ -62,7 +62,10 @@ def _static_profiles(rows, n):
     q = rows.shape[1]
     mat = rows.transpose(1, 0, 2).reshape(q, -1)
     u_, _, _ = np.linalg.svd(mat, full_matrices=False)
-    return u_[:, :n]
+    u_ = u_[:, :n]
+    # each profile's sign fixed (its largest entry positive), not left to the SVD
+    big = u_[np.argmax(np.abs(u_), axis=0), np.arange(u_.shape[1])]
+    return u_ * np.where(big < 0, -1.0, 1.0)
 
 
 def nuisance_profiles(kpd, *, basis="poly", order=SDK_ORDER, n_static=SDK_STATIC_PROFILES,
@@ -111,8 +114,14 @@ def nuisance_profiles(kpd, *, basis="poly", order=SDK_ORDER, n_static=SDK_STATIC
                              f"static residual (static_rows)")
         parts.append(_static_profiles(static_rows, int(n_static)))
     t = np.concatenate(parts, axis=1)
-    q_, s, _ = np.linalg.svd(t, full_matrices=False)
-    return q_[:, s > 1e-8 * s[0]]
+    # orthonormal by Gram-Schmidt in the columns' order (QR, signs from R's diagonal),
+    # dropping a column its predecessors already span: an SVD of columns already
+    # orthonormal (the static basis) returns any rotation of their span, which moved
+    # with the last bits of the imaged residual from run to run
+    qm, r = np.linalg.qr(t)
+    d = np.diag(r)
+    keep = np.abs(d) > 1e-8 * np.abs(d).max()
+    return (qm * np.where(d < 0, -1.0, 1.0))[:, keep]
 
 
 def kept_combinations(profiles, scale):
