@@ -127,6 +127,37 @@ def test_asdi_product_and_stack(km):
         np.testing.assert_allclose(model.norm2[:, iy, ix] / exact, 1.0, atol=0.03)
 
 
+def test_asdi_fit_measures_the_spectrum(km):
+    """The combinations' model with a contrast of its own in every channel is the shape's
+    model where the contrasts follow the shape, and its derivatives are its own; from
+    a start off the truth, the fit returns the position and the spectrum (a sine across
+    the band, not the flat shape searched for) of noise-free data."""
+    from astropy.table import QTable
+    _, kpd = _asdi(km)
+    w = np.stack([np.linalg.inv(np.linalg.cholesky(c)) for c in kpd.covariance])
+    stack = block_stack(kpd, kpd.kp[0], w, np.full(12, km.n_kp), frame="sky",
+                        cov=kpd.covariance)
+    lam = kpd.wavelengths.to_value(u.um)
+    spec = 0.01 * (1 + 0.5 * np.sin((lam - lam[0]) / np.ptp(lam) * 2 * np.pi))
+    sky = np.array([40.0, 150.0])
+    out, jac = stack.spectrum_model(sky, 0.01 * stack.spectrum)
+    np.testing.assert_allclose(out, stack.model_kp(sky, 0.01), rtol=1e-10, atol=1e-12)
+    out, jac = stack.spectrum_model(sky, spec)
+    d = np.zeros(12)
+    d[5] = 1e-6
+    num = (stack.spectrum_model(sky, spec + d)[0] - stack.spectrum_model(sky, spec - d)[0]) / 2e-6
+    np.testing.assert_allclose(jac[5], num, rtol=1e-5, atol=1e-8 * np.abs(num).max())
+    att = stack._attenuation(*sky)
+    data = stack.spectrum_model(sky, spec * att)[0]
+    row = QTable({"x": [sky[0] + 4.0] * u.mas, "y": [sky[1] - 3.0] * u.mas,
+                  "contrast": np.full((1, stack.n_comb), 0.008)})
+    model = stack.refine(row, data)[0]
+    assert np.hypot(row["fit_x"][0].to_value(u.mas) - sky[0],
+                    row["fit_y"][0].to_value(u.mas) - sky[1]) < 1e-5
+    np.testing.assert_allclose(row["fit_contrast"][0], spec, rtol=1e-5)
+    assert np.linalg.norm(data - model) < 1e-8 * np.linalg.norm(data)
+
+
 @pytest.mark.filterwarnings("ignore:.*stopped at max_candidates")
 def test_asdi_finds_a_companion_and_no_false_alarm(km):
     """Under a static offset 5x the frames' noise, ASDI finds a companion at 130 mas where

@@ -220,12 +220,13 @@ def test_fit_errors_cover_the_noise_offsets(km):
     """The fit of a candidate in the channel combinations (`refine_stack`): from a start a
     grid step off, noise-free data give the truth (no bias, no other minimum within the
     box), and noisy data offsets that its reported errors cover (pulls of order 1: what
-    issue 39 measured of the misses at twice the limit on CHARIS simulations)."""
+    issue 39 measured of the misses at twice the limit on CHARIS simulations); so do
+    the errors of the contrasts it measures in every channel."""
     q, sigma, c, truth = len(WL), 1e-2, 0.04, (120.0, -50.0)
     cov = np.stack([np.eye(km.n_kp) * sigma ** 2] * q)
     signal = km.binary_kernel_phases(list(truth) * u.mas, np.full(q, c), WL)
     rng = np.random.default_rng(7)
-    pulls, offsets = [], []
+    pulls, offsets, spec_pulls = [], [], []
     for i in range(25):
         kp = signal + (rng.normal(0, sigma, signal.shape) if i else 0.0)
         kpd = KernelPhaseData(kp[None], WL, 16.2 * u.mas, km, covariance=cov)
@@ -244,10 +245,53 @@ def test_fit_errors_cover_the_noise_offsets(km):
         else:
             pulls.append(d / err)
             offsets.append(np.hypot(*d))
+            spec_pulls.append((np.asarray(row["fit_contrast"][0]) - c)
+                              / np.asarray(row["fit_contrast_err"][0]))
     pulls = np.array(pulls)
     # 48 pulls: their mean square is chi2(48) / 48, outside [0.35, 2.1] 3e-5 of the time
     assert 0.35 < np.mean(pulls ** 2) < 2.1
+    # the spectrum's 240 pulls (24 draws of 10 channels, correlated within a draw): their
+    # mean square is at least as spread as chi2(24) / 24 (fully correlated channels),
+    # outside [0.2, 2.6] less than 4e-5 of the time
+    assert 0.2 < np.mean(np.square(spec_pulls)) < 2.6
     assert np.max(offsets) > 0.2                # the noise moves the fit (not a trivial test)
+
+
+def test_fit_measures_a_spectrum_other_than_the_shape_searched(km):
+    """A companion whose spectrum is not the flat shape searched for (a sine across the
+    band, +-50 %), noise-free: the fit (the shape's, then position and every channel's
+    contrast together) returns its position and its spectrum, and its model is the
+    data, where the shape's model leaves half of them (found by the search as a second
+    candidate before). Each channel's information left once the rest is fitted:
+    almost none at 30 mas, most at 200 mas; the flag says where it is below half."""
+    from kpifs.detect.quality import flag_candidates
+    q, lam = len(WL), WL.to_value(u.um)
+    cov = np.stack([np.eye(km.n_kp) * 1e-4] * q)
+    spec = 0.04 * (1 + 0.5 * np.sin((lam - lam[0]) / np.ptp(lam) * 2 * np.pi))
+    grid = DetectionGrid.from_separation(230 * u.mas, 12 * u.mas, min_sep=20 * u.mas)
+    for truth in ((200.0, 40.0), (30.0, 20.0)):
+        signal = km.binary_kernel_phases(list(truth) * u.mas, spec, WL)
+        kpd = KernelPhaseData(signal[None], WL, 16.2 * u.mas, km, covariance=cov)
+        kpd.spectral = {"profiles": nuisance_profiles(kpd, order=2)}
+        st = SpectralStack(kpd, signal, cov)
+        row = QTable({"x": [truth[0] + 3.0] * u.mas, "y": [truth[1] - 2.0] * u.mas,
+                      "contrast": np.full((1, st.n_comb), 0.8 * spec.mean())})
+        model = st.refine(row, st.kp)[0]
+        assert abs(row["fit_x"][0].to_value(u.mas) - truth[0]) < 1e-6
+        assert abs(row["fit_y"][0].to_value(u.mas) - truth[1]) < 1e-6
+        np.testing.assert_allclose(row["fit_contrast"][0], spec, rtol=1e-6)
+        size = np.linalg.norm(st.kp)
+        assert np.linalg.norm(st.kp - model) < 1e-9 * size
+        scale = row["fit_contrast_model"][0][0] / st.spectrum[0]
+        shape_model = st.model_kp((row["fit_x"][0].value, row["fit_y"][0].value), scale)
+        assert np.linalg.norm(st.kp - shape_model) > 0.3 * size
+        kept = np.asarray(row["fit_contrast_kept"][0])
+        assert kept.shape == (q,) and np.all((kept >= 0) & (kept <= 1))
+        flag_candidates(row, grid, resolution=40.0)
+        if truth[0] > 100:
+            assert kept.min() > 0.5 and "spectrum-underdetermined" not in row["flags"][0]
+        else:
+            assert kept.max() < 0.1 and "spectrum-underdetermined" in row["flags"][0]
 
 
 def test_static_profiles_do_not_turn_with_rounding(small):

@@ -8,7 +8,11 @@ from .fit import fit_errors
 
 optimize = lazy_module("scipy.optimize")
 
-__all__ = ["refine_stack"]
+__all__ = ["refine_stack", "fit_spectrum", "information_kept"]
+
+
+#: Channels keeping less than this fraction of their information have no error (NaN).
+KEPT_FLOOR = 1e-9
 
 
 def refine_stack(stack, cands, residual, noise_rows=None, box=20.0):
@@ -17,69 +21,154 @@ def refine_stack(stack, cands, residual, noise_rows=None, box=20.0):
     `~kpifs.detect.fit.refine_candidates`); returns the fitted models (q, dim).
 
     A stack of channel combinations (``stack.mixing``: spectral-differential, ASDI)
-    has one contrast scale, the companion's, shared by every combination (each
-    combination measures it through its own mixture of the channels): one free
-    contrast, not one per combination, which would take 18 more parameters from
-    the position's constraints on 19 combinations. Its ``fit_contrast`` columns, per
-    combination as the search's, then all hold that scale, each with ``sqrt(k)`` times
-    its error (the ``k`` columns' weighted mean, as the channels' contrasts are made,
-    `~kpifs.detect.combinations.combination_table`, gives the scale and its error)."""
-    q = residual.shape[0]
+    is fitted in two steps. The position, with one contrast scale shared by every
+    combination (the companion's, times the spectrum shape): one free contrast, not
+    one per combination, which would take 18 more parameters from the position's
+    constraints on 19 combinations (``fit_contrast_model``, per channel). From there,
+    the position and the companion's own contrast in every channel together
+    (`fit_spectrum`: the position columns, ``fit_contrast`` and its errors, and
+    ``fit_contrast_kept``, how much of each channel's information the combinations
+    keep once the rest is fitted). Its model is the one subtracted, and its position
+    the one reported: a companion whose spectrum is not the shape searched for would
+    otherwise pull the position and leave a residual for the search to find next."""
     tied = getattr(stack, "mixing", None) is not None
-    nc = 1 if tied else q
-    cols = {k: [] for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err", "fit_contrast",
-                            "fit_contrast_err", "fit_chi2")}
-    models = []
+    rows, models = [], []
     for row in cands:
-        x0, y0 = row["x"].to_value(u.mas), row["y"].to_value(u.mas)
-        c0 = np.asarray(row["contrast"], float)
-        if tied:                    # the combinations' contrast scales: one start
-            c0 = np.atleast_1d(np.nanmedian(c0))
-        scale_c = max(float(np.max(np.abs(c0))), 1e-6)
-
-        def contrasts(par):
-            return np.broadcast_to(par[2:], (q,)) * scale_c * stack._attenuation(par[0], par[1])
-
-        def resid(par):
-            return (residual - stack.model_kp(par[:2], contrasts(par))).ravel()
-
-        def jac(par, step=1e-3):
-            # contrasts: exact (channel by channel); position: central differences
-            att = stack._attenuation(par[0], par[1])
-            _, dc = stack.model_kp(par[:2], contrasts(par), derivative=True)
-            out = np.zeros((q, dc.shape[1], len(par)))
-            if tied:
-                out[:, :, 2] = -dc * scale_c * att
-            else:
-                out[np.arange(q), :, 2 + np.arange(q)] = -dc * scale_c * att
-            for j in range(2):
-                d = np.zeros(len(par))
-                d[j] = step
-                out[:, :, j] = ((resid(par + d) - resid(par - d)) / (2 * step)).reshape(
-                    q, -1)
-            return out.reshape(-1, len(par))
-
-        start = np.concatenate([[x0, y0], c0 / scale_c])
-        lo = np.concatenate([[x0 - box, y0 - box], np.full(nc, -np.inf)])
-        hi = np.concatenate([[x0 + box, y0 + box], np.full(nc, np.inf)])
-        with one_blas_thread():          # small products: BLAS's threads only wait
-            res = optimize.least_squares(resid, start, bounds=(lo, hi), jac=jac)
-        err = fit_errors(res.jac, noise_rows)
-        cols["fit_x"].append(res.x[0])
-        cols["fit_y"].append(res.x[1])
-        cols["fit_x_err"].append(err[0])
-        cols["fit_y_err"].append(err[1])
-        cols["fit_contrast"].append(res.x[2:] * scale_c)
-        cols["fit_contrast_err"].append(err[2:] * scale_c)
-        cols["fit_chi2"].append(float(2 * res.cost))
-        models.append(stack.model_kp(res.x[:2], contrasts(res.x)))
+        fit, model = _fit_position(stack, row, residual, noise_rows, box, tied)
+        if tied:
+            peak = (row["x"].to_value(u.mas), row["y"].to_value(u.mas))
+            spec = fit_spectrum(stack, residual, (fit["pos"], fit["scale"] * stack.spectrum),
+                                peak=peak, noise_rows=noise_rows, box=box)
+            model = spec["model"]
+            fit.update(fit_x=spec["pos"][0], fit_y=spec["pos"][1], fit_x_err=spec["pos_err"][0],
+                       fit_y_err=spec["pos_err"][1], fit_chi2=spec["chi2"],
+                       fit_contrast_model=fit["scale"] * stack.spectrum,
+                       fit_contrast_model_err=fit["scale_err"] * stack.spectrum,
+                       fit_contrast=spec["contrast"], fit_contrast_err=spec["error"],
+                       fit_contrast_kept=spec["kept"])
+        rows.append(fit)
+        models.append(model)
     for k in ("fit_x", "fit_y", "fit_x_err", "fit_y_err"):
-        cands[k] = np.array(cols[k]) * u.mas
-    share = np.sqrt(q) if tied else 1.0
-    cands["fit_contrast"] = np.broadcast_to(
-        np.array(cols["fit_contrast"]).reshape(len(cands), nc), (len(cands), q)).copy()
-    cands["fit_contrast_err"] = np.broadcast_to(
-        np.array(cols["fit_contrast_err"]).reshape(len(cands), nc) * share,
-        (len(cands), q)).copy()
-    cands["fit_chi2"] = np.array(cols["fit_chi2"])
+        cands[k] = np.array([f[k] for f in rows]) * u.mas
+    q = len(stack.spectrum) if tied else residual.shape[0]
+    names = ("fit_contrast", "fit_contrast_err", "fit_contrast_kept", "fit_contrast_model",
+             "fit_contrast_model_err") if tied else ("fit_contrast", "fit_contrast_err")
+    for k in names:
+        cands[k] = np.array([f[k] for f in rows]).reshape(len(cands), q)
+    cands["fit_chi2"] = np.array([f["fit_chi2"] for f in rows])
     return models
+
+
+def _fit_position(stack, row, residual, noise_rows, box, tied):
+    """One candidate's least-squares fit (`refine_stack`): its columns' values (with
+    ``pos``, and the shared ``scale`` and ``scale_err`` of a stack of combinations) and
+    its model."""
+    q = residual.shape[0]
+    nc = 1 if tied else q
+    x0, y0 = row["x"].to_value(u.mas), row["y"].to_value(u.mas)
+    c0 = np.asarray(row["contrast"], float)
+    if tied:                    # the combinations' contrast scales: one start
+        c0 = np.atleast_1d(np.nanmedian(c0))
+    scale_c = max(float(np.max(np.abs(c0))), 1e-6)
+
+    def contrasts(par):
+        return np.broadcast_to(par[2:], (q,)) * scale_c * stack._attenuation(par[0], par[1])
+
+    def resid(par):
+        return (residual - stack.model_kp(par[:2], contrasts(par))).ravel()
+
+    def jac(par, step=1e-3):
+        # contrasts: exact (channel by channel); position: central differences
+        att = stack._attenuation(par[0], par[1])
+        _, dc = stack.model_kp(par[:2], contrasts(par), derivative=True)
+        out = np.zeros((q, dc.shape[1], len(par)))
+        if tied:
+            out[:, :, 2] = -dc * scale_c * att
+        else:
+            out[np.arange(q), :, 2 + np.arange(q)] = -dc * scale_c * att
+        for j in range(2):
+            d = np.zeros(len(par))
+            d[j] = step
+            out[:, :, j] = ((resid(par + d) - resid(par - d)) / (2 * step)).reshape(q, -1)
+        return out.reshape(-1, len(par))
+
+    start = np.concatenate([[x0, y0], c0 / scale_c])
+    lo = np.concatenate([[x0 - box, y0 - box], np.full(nc, -np.inf)])
+    hi = np.concatenate([[x0 + box, y0 + box], np.full(nc, np.inf)])
+    with one_blas_thread():          # small products: BLAS's threads only wait
+        res = optimize.least_squares(resid, start, bounds=(lo, hi), jac=jac)
+    err = fit_errors(res.jac, noise_rows)
+    fit = {"pos": res.x[:2], "fit_x": res.x[0], "fit_y": res.x[1], "fit_x_err": err[0],
+           "fit_y_err": err[1], "fit_chi2": float(2 * res.cost),
+           "fit_contrast": np.broadcast_to(res.x[2:] * scale_c, (q,)),
+           "fit_contrast_err": np.broadcast_to(err[2:] * scale_c, (q,))}
+    if tied:
+        fit.update(scale=float(res.x[2] * scale_c), scale_err=float(err[2] * scale_c))
+    return fit, stack.model_kp(res.x[:2], contrasts(res.x))
+
+
+def fit_spectrum(stack, data, start, *, peak, noise_rows=None, box=20.0, step=1e-3):
+    """A companion's position and its contrast in every channel, fitted together to the
+    whitened channel combinations *data* (k, dim) of *stack* (`stack.spectrum_model`),
+    from *start* ``(position (2,), contrasts (q,))`` (the fit with the spectrum shape
+    searched for), within *box* mas of the grid *peak* (x, y).
+
+    Returns ``{'pos', 'pos_err', 'contrast', 'error', 'kept', 'chi2', 'model'}``: the
+    position and its 1-sigma errors, the contrasts (q,) and theirs
+    (`~kpifs.detect.fit.fit_errors` of the whole model: with *noise_rows*, of the noise
+    they describe; NaN where a channel is not measured at all), the fraction of each
+    channel's information left once the position and the other channels are fitted
+    (`information_kept`), the chi-square and the model at the fit (k, dim), window
+    included.
+    """
+    pos0, c0 = np.asarray(start[0], float), np.asarray(start[1], float)
+    q, sc = len(c0), max(float(np.max(np.abs(c0))), 1e-6)
+
+    def model(par, jacobian=False):
+        att = stack._attenuation(par[0], par[1])
+        out, dc = stack.spectrum_model(par[:2], par[2:] * sc * att)
+        return (out, dc * sc * att) if jacobian else out
+
+    def resid(par):
+        return (data - model(par)).ravel()
+
+    def jac(par):
+        _, dc = model(par, jacobian=True)
+        cols = [(model(par - d) - model(par + d)).ravel() / (2 * step)
+                for d in np.eye(len(par))[:2] * step]
+        return np.column_stack(cols + [-dc.reshape(q, -1).T])
+
+    peak = np.asarray(peak, float)
+    lo = np.concatenate([peak - box, np.full(q, -np.inf)])
+    hi = np.concatenate([peak + box, np.full(q, np.inf)])
+    x0 = np.concatenate([np.clip(pos0, lo[:2], hi[:2]), c0 / sc])
+    with one_blas_thread():
+        res = optimize.least_squares(resid, x0, bounds=(lo, hi), jac=jac, x_scale="jac")
+    err = fit_errors(res.jac, noise_rows)
+    kept = information_kept(res.jac)[2:]
+    return {"pos": res.x[:2], "pos_err": err[:2], "contrast": res.x[2:] * sc,
+            "error": np.where(kept > KEPT_FLOOR, err[2:] * sc, np.nan), "kept": kept,
+            "chi2": float(2 * res.cost), "model": model(res.x)}
+
+
+def information_kept(jac):
+    """Per column of a whitened Jacobian *jac* (n, q), the fraction of its information
+    left once the other columns are fitted too: ``1 / (F_ii (F^-1)_ii)`` with ``F =
+    J^T J`` (1 for a column orthogonal to the others, 0 for one they can stand for).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect._blockfit import information_kept
+    >>> information_kept(np.array([[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]])).tolist()
+    [1.0, 1.0]
+    >>> np.round(information_kept(np.array([[1.0, 1.0], [0.0, 1.0]])), 3).tolist()
+    [0.5, 0.5]
+    """
+    f = jac.T @ jac
+    vals, vecs = np.linalg.eigh(f)
+    vals = np.maximum(vals, np.finfo(float).eps * max(vals.max(), 0.0))
+    inv_diag = np.sum(vecs ** 2 / np.where(vals > 0, vals, np.inf), axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        kept = 1 / (np.diag(f) * inv_diag)
+    return np.clip(np.nan_to_num(kept, nan=0.0, posinf=0.0), 0.0, 1.0)

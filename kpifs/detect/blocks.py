@@ -555,20 +555,26 @@ class BlockStack:
         return np.array([np.sqrt(np.mean(((self._frame_angles[lab] - a + 180) % 360 - 180) ** 2))
                          for a, lab in zip(rb.angles, self._block_frames)])
 
+    def _exponentials(self, sky):
+        """``exp(-i theta)`` of a companion at *sky* (dRA, dDec; mas) per frame, channel and
+        uv point (N, q, nuv): every frame at its own angle (a block's mean is the mean of
+        its frames' models: a bright companion's model at the block's mean angle would
+        leave side lobes)."""
+        kpd = self.kpd
+        x, y = sky_to_detector(float(sky[0]), float(sky[1]), self._frame_angles)   # (N,)
+        lam = kpd.wavelengths.to_value(u.m)
+        uv = kpd.kernel_model.uv.value
+        theta = 2 * np.pi * MAS * (np.outer(x, uv[:, 0]) + np.outer(y, uv[:, 1]))
+        return np.exp(-1j * theta[:, None, :] / lam[None, :, None])
+
     def model_kp(self, sky, contrast, *, derivative=False):
         """Whitened stacked model (q, dim) of a companion at *sky* (dRA, dDec; mas) of
         *contrast* (per channel, the window's attenuation included); with *derivative*,
         also its derivative with respect to each channel's contrast (q, dim)."""
-        kpd = self.kpd
-        km = kpd.kernel_model
-        # every frame's own angle (a block's mean is the mean of its frames' models: a bright
-        # companion's model at the block's mean angle would leave side lobes)
-        x, y = sky_to_detector(float(sky[0]), float(sky[1]), self._frame_angles)   # (N,)
-        lam = kpd.wavelengths.to_value(u.m)
-        uv = km.uv.value
+        km = self.kpd.kernel_model
+        lam = self.kpd.wavelengths.to_value(u.m)
         # K arg(1 + c exp(-i theta)) per block and channel, as KernelModel.binary_kernel_phases
-        theta = 2 * np.pi * MAS * (np.outer(x, uv[:, 0]) + np.outer(y, uv[:, 1]))
-        h = np.exp(-1j * theta[:, None, :] / lam[None, :, None])              # (N, q, nuv)
+        h = self._exponentials(sky)
         if self.mixing is not None:
             return self._mixed_model(h, contrast, derivative)
         c = np.broadcast_to(np.asarray(contrast, float), lam.shape)
@@ -592,6 +598,21 @@ class BlockStack:
         if not derivative:
             return out
         return out, mixed(np.imag(self.spectrum[None, None, :, None] * h[:, None] / z))
+
+    def spectrum_model(self, sky, contrasts):
+        """`model_kp` of channel combinations (ASDI) with a contrast of its own in every
+        channel (*contrasts* (q,), window included), and its derivatives with respect to
+        each channel's contrast (q, k, dim): its spectrum measured through the
+        combinations (`~kpifs.detect._blockfit.fit_spectrum`)."""
+        kern = self.kpd.kernel_model.kernel
+        h = self._exponentials(sky)
+        z = 1 + np.asarray(contrasts, float)[None, :, None] * h                  # (N, q, nuv)
+        per = self._by_block(np.angle(z)) @ kern.T                               # (B, q, p)
+        dper = self._by_block(np.imag(h / z)) @ kern.T
+        mix = self.data_mixing
+        out = self._stack(np.einsum("kc,bcp->bkp", mix, per))
+        return out, np.stack([self._stack(mix[None, :, c, None] * dper[:, None, c])
+                              for c in range(mix.shape[1])])
 
     def channel_contrasts(self, c, cerr):
         """The combinations' contrast maps as the channels' (ASDI: their weighted mean times

@@ -80,8 +80,12 @@ def combination_contrasts(spectrum, c, cerr):
 
 
 def combination_table(spectrum, n_comb, cands):
-    """The candidates' per-combination contrast columns (``contrast``, ``fit_contrast`` and
-    their errors, *n_comb* values per row) as per-channel ones, in place.
+    """The candidates' per-combination contrast columns from the grid's peak
+    (``contrast`` and its error, *n_comb* values per row) as per-channel ones, in place:
+    their weighted mean (the companion's one scale) times the *spectrum* shape, which
+    is also the spectrum within the search's model (``contrast_model``). A fit's
+    columns are per channel already (`~kpifs.detect._blockfit.refine_stack`); an empty
+    table gets per-channel columns too.
 
     Examples
     --------
@@ -90,17 +94,22 @@ def combination_table(spectrum, n_comb, cands):
     >>> from kpifs.detect.combinations import combination_table
     >>> t = QTable({"contrast": [[1.0, 3.0]], "contrast_err": [[1.0, 1.0]]})
     >>> combination_table(np.array([1.0, 2.0, 1.0]), 2, t)
-    >>> t["contrast"][0].tolist()
-    [2.0, 4.0, 2.0]
+    >>> t["contrast"][0].tolist(), t["contrast_model"][0].tolist()
+    ([2.0, 4.0, 2.0], [2.0, 4.0, 2.0])
     """
     a = np.asarray(spectrum, float)
-    for val, err in (("contrast", "contrast_err"), ("fit_contrast", "fit_contrast_err")):
-        if val not in cands.colnames or err not in cands.colnames or not len(cands):
-            continue
-        c = np.asarray(cands[val], float).reshape(len(cands), -1)
-        e = np.asarray(cands[err], float).reshape(len(cands), -1)
-        if c.shape[1] != n_comb:
-            continue
-        mean, sig = _mean(c, e, 1)
-        cands[val] = mean[:, None] * a[None]
-        cands[err] = sig[:, None] * a[None]
+    if not len(cands):
+        for col in cands.colnames:
+            if col.startswith(("contrast", "fit_contrast")) and cands[col].ndim == 2:
+                cands[col] = np.zeros((0, len(a)))
+        return
+    if "contrast" not in cands.colnames or "contrast_err" not in cands.colnames:
+        return
+    c = np.asarray(cands["contrast"], float).reshape(len(cands), -1)
+    e = np.asarray(cands["contrast_err"], float).reshape(len(cands), -1)
+    if c.shape[1] != n_comb:
+        return
+    mean, sig = _mean(c, e, 1)
+    cands["contrast"] = mean[:, None] * a[None]
+    cands["contrast_err"] = sig[:, None] * a[None]
+    cands["contrast_model"] = cands["contrast"].copy()

@@ -539,6 +539,8 @@ def _search_stage(prep, white, null, opts):
         k = np.sqrt(np.maximum(1.0, np.asarray(chi2, float)))
         for col in ("fit_dra_err", "fit_ddec_err", "fit_pa_sky_err"):
             cands[col] = cands[col] * k
+    if hasattr(white.stack, "channel_table"):           # issue 39: combinations -> channels
+        white.stack.channel_table(cands)
     flag_candidates(cands, white.grid, noise_scale=scale,
                     resolution=resolution_mas(kpd.kernel_model, kpd.wavelengths))
     add_spectrum_model(cands, white.model.basis)
@@ -570,7 +572,6 @@ def _maps_stage(prep, white, null, found, opts):
     t, c, cerr = model.maps(white.y, form, prep.spectrum)
     if hasattr(white.stack, "channel_contrasts"):       # issue 39: combinations -> channels
         c, cerr = white.stack.channel_contrasts(c, cerr)
-        white.stack.channel_table(found.candidates)
     # per annulus, the map's own noise where it exceeds the scale (`annulus_noise`)
     smap = np.fmax(found.scale, np.nan_to_num(judge.ring(judge.residual, None), nan=0.0))
     t = t / smap ** power

@@ -15,11 +15,18 @@ should not be taken at face value:
   ``lambda_min / B_max`` (or reached its position box);
 - ``chi2``: the reduced chi-square of the residual once the candidate is
   subtracted exceeds `CHI2_FACTOR` times the noise scale applied to the
-  search: the candidate leaves more unexplained than the rest of the data.
+  search: the candidate leaves more unexplained than the rest of the data;
+- ``spectrum-underdetermined``: searched in channel combinations (a
+  spectral-differential search, ASDI), some channel keeps less than half of its
+  information once the other channels' contrasts are fitted too
+  (``fit_contrast_kept`` below `~kpifs.calibration.spectral_diff.SDK_LEVEL`): the
+  combinations measure the spectrum there only in part (inside the inner
+  separation), and its contrasts carry the errors that follow.
 """
 import numpy as np
 from astropy import units as u
 
+from ..calibration.spectral_diff import SDK_LEVEL
 from ..model.kernel import MAS
 from .spectral import subspace_spectrum
 
@@ -80,6 +87,9 @@ def flag_candidates(cands, grid, *, resolution, noise_scale=1.0, box=20.0):
         if "chi2_red" in cands.colnames and \
                 float(row["chi2_red"]) > CHI2_FACTOR * max(1.0, float(noise_scale)):
             flags[k].append("chi2")
+        if "fit_contrast_kept" in cands.colnames and \
+                np.any(np.asarray(row["fit_contrast_kept"], float) < SDK_LEVEL):
+            flags[k].append("spectrum-underdetermined")
     cands["flags"] = [",".join(f) for f in flags]
 
 
@@ -103,7 +113,9 @@ def add_spectrum_model(cands, basis):
     """
     q = np.asarray(basis).shape[0]
     for pre in ("", "fit_"):
-        if pre + "contrast" not in cands.colnames:
+        # a fit that gave its spectrum within the model itself keeps it (a stack of
+        # channel combinations, `kpifs.detect._blockfit.refine_stack`)
+        if pre + "contrast" not in cands.colnames or pre + "contrast_model" in cands.colnames:
             continue
         out, err = np.zeros((len(cands), q)), np.zeros((len(cands), q))
         for k in range(len(cands)):

@@ -9,8 +9,10 @@ freedom). A companion of contrasts ``c a_c`` (``a``: its spectrum shape, flat by
 default) has, in combination ``k``, the signature ``c sum_c V[c, k] a_c K
 sin(theta_c) / s_c``: the projection acts on data, noise and signatures alike
 (DESIGN.md section 8), and the search, its null, the limits and the fits all
-see the same combinations, each with the companion's one contrast scale (the
-contrasts reported per channel are that scale times ``a``). What the projection
+see the same combinations, each with the companion's one contrast scale; a
+candidate's fit then measures its contrast in every channel through the
+combinations (`SpectralStack.spectrum_model`,
+`~kpifs.detect._blockfit.fit_spectrum`). What the projection
 leaves of a companion is measured (``info['retained']``, by separation) with the
 separation from which half of it is left
 (`~kpifs.calibration.spectral_diff.inner_separation`); the grid is not cut there:
@@ -467,12 +469,10 @@ class SpectralStack:
         self.inner = out["inner_separation"]
         self.info.update(out)
 
-    def model_kp(self, pos, contrast, *, derivative=False):
-        """Whitened model (k, p) of a companion at *pos* (mas, the search's frame) with one
-        contrast scale per combination (*contrast*, (k,), window included); with
-        *derivative*, also its derivative with respect to each (k, p)."""
+    def _exponentials(self, pos):
+        """``exp(-i theta)`` of a companion at *pos* (mas, the search's frame) per pose,
+        channel and uv point (n, q, nuv), and the poses' weights (n,)."""
         kpd = self.kpd
-        km = kpd.kernel_model
         lam = kpd.wavelengths.to_value(u.m)
         if self.poses is None:
             xy, wts = np.array([[float(pos[0]), float(pos[1])]]), np.ones(1)
@@ -480,10 +480,15 @@ class SpectralStack:
             ang, wts = np.asarray(self.poses[0], float), self.poses[1]
             wts = np.ones(ang.size) if wts is None else np.asarray(wts, float)
             xy = np.column_stack(sky_to_detector(float(pos[0]), float(pos[1]), ang))
-        wts = wts / wts.sum()
-        uv = km.uv.value
-        theta = 2 * np.pi * MAS * (xy @ uv.T)                                 # (n, nuv)
-        h = np.exp(-1j * theta[:, None, :] / lam[None, :, None])              # (n, q, nuv)
+        theta = 2 * np.pi * MAS * (xy @ kpd.kernel_model.uv.value.T)          # (n, nuv)
+        return np.exp(-1j * theta[:, None, :] / lam[None, :, None]), wts / wts.sum()
+
+    def model_kp(self, pos, contrast, *, derivative=False):
+        """Whitened model (k, p) of a companion at *pos* (mas, the search's frame) with one
+        contrast scale per combination (*contrast*, (k,), window included); with
+        *derivative*, also its derivative with respect to each (k, p)."""
+        km = self.kpd.kernel_model
+        h, wts = self._exponentials(pos)
         ca, at = distinct_contrasts(contrast, self.spectrum, self.n_comb)    # (u, q)
         z = 1 + ca[None, :, :, None] * h[:, None]                            # (n, u, q, nuv)
         phase = (np.tensordot(wts, np.angle(z), axes=(0, 0)) @ km.kernel.T)[at]   # (k, q, p)
@@ -493,6 +498,19 @@ class SpectralStack:
         dz = np.imag(self.spectrum[None, :, None] * h[:, None] / z)
         dphase = (np.tensordot(wts, dz, axes=(0, 0)) @ km.kernel.T)[at]
         return out, whiten(np.einsum("kc,kcp->kp", self.data_mixing, dphase), self._w)
+
+    def spectrum_model(self, pos, contrasts):
+        """Whitened model (k, p) of a companion at *pos* with a contrast of its own in
+        every channel (*contrasts* (q,), window included), and its derivatives with
+        respect to each channel's contrast (q, k, p): its spectrum measured through the
+        combinations (`~kpifs.detect._blockfit.fit_spectrum`)."""
+        kern = self.kpd.kernel_model.kernel
+        h, wts = self._exponentials(pos)
+        z = 1 + np.asarray(contrasts, float)[None, :, None] * h                  # (n, q, nuv)
+        phase = np.tensordot(wts, np.angle(z), axes=(0, 0)) @ kern.T             # (q, p)
+        dphase = np.tensordot(wts, np.imag(h / z), axes=(0, 0)) @ kern.T
+        out = whiten(self.data_mixing @ phase, self._w)
+        return out, whiten(self.data_mixing.T[:, :, None] * dphase[:, None, :], self._w)
 
     def _attenuation(self, x, y):
         kpd = self.kpd

@@ -113,8 +113,9 @@ def _fit_row(row, residual, search, *, from_fit=False):
 def _scale_errors(row, scale, search):
     """The search fit's errors scaled by the noise *scale* its candidate was judged with."""
     if search.fit and search.characterise is None:
-        for col in ("fit_x_err", "fit_y_err", "fit_contrast_err"):
-            row[col] = row[col] * np.sqrt(scale)
+        for col in ("fit_x_err", "fit_y_err", "fit_contrast_err", "fit_contrast_model_err"):
+            if col in row.colnames:
+                row[col] = row[col] * np.sqrt(scale)
 
 
 def _sequential_search(model, kp, w, kpd, *, threshold, null, spectrum, fit, max_candidates,
