@@ -74,8 +74,12 @@ STEP = {"step": None}
 
 
 def _seeds(text):
-    a, _, b = text.partition("-")
-    return list(range(int(a), int(b or a) + 1))
+    """Seeds from ``a-b`` (a range), ``a,b,c`` (a list) or both (``1-3,9``)."""
+    out = []
+    for part in text.split(","):
+        a, _, b = part.partition("-")
+        out += list(range(int(a), int(b or a) + 1))
+    return out
 
 
 def _reduce(preset, seed, tmp, shape, **kw):
