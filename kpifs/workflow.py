@@ -549,7 +549,8 @@ def _spectral_step(target, product, options):
     if product is None:
         # the search's static term (no calibrator), imaged once with the product, not at
         # every search of it (`kpifs.detect.sdk.static_term_rows`)
-        out.spectral["static_rows"] = _sdk.static_term_rows(target)
+        out.spectral["static_rows"], out.spectral["static_groups"] = \
+            _sdk.static_term_rows(target)
     return out
 
 

@@ -5,8 +5,9 @@ import pytest
 from astropy import units as u
 from astropy.io import fits
 
-from kpifs import KernelPhaseData
+from kpifs import DetectionResult, KernelPhaseData
 from kpifs.cli import main
+from kpifs.detect.sdk import STATIC_SPECTRA
 from kpifs.exceptions import KpifsError, KpifsWarning
 from kpifs.io.layouts import write_observation
 from kpifs.simulation.simulate import simulate_scene
@@ -61,6 +62,11 @@ def test_extract_and_detect(sim8, tmp_path, capsys):
     assert "spectral-differential kernel phases" in capsys.readouterr().out
     back = KernelPhaseData.read(kp)
     assert back.n_frame == 1 and back.spectral["profiles"].shape == (8, 3)
+    # the search's static term, imaged once with the product, by groups (one amplitude
+    # each: `kpifs.detect.sdk.STATIC_SPECTRA`)
+    n_groups = len(STATIC_SPECTRA)
+    assert len(back.spectral["static_groups"]) == n_groups
+    assert sum(back.spectral["static_groups"]) == len(back.spectral["static_rows"])
     det = tmp_path / "det.fits"
     assert main(["detect", str(kp), "-o", str(det), "--draws", "1000", "--pfa", "0.01",
                  "-q"]) == 0
@@ -69,6 +75,9 @@ def test_extract_and_detect(sim8, tmp_path, capsys):
     assert "5 channel combinations searched" in out
     hdr = fits.getheader(det)
     assert hdr["SDKNPROF"] == 3 and hdr["SDKNCOMB"] == 5 and hdr["SDKBASIS"] == "poly"
+    amps = [hdr[f"SDKSTA{i}"] for i in range(1, n_groups + 1)]
+    assert f"SDKSTA{n_groups + 1}" not in hdr and min(amps) >= 0
+    assert DetectionResult.read(det).meta["blocks"]["static_amplitudes"] == amps
 
 
 @pytest.mark.slow

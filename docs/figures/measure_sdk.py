@@ -13,7 +13,8 @@ calibrator differ by 15 nm), extracted as ``kpifs extract`` does
     (``--allow-uncalibrated``, ``raw``), calibrated by the calibrator (``cal``),
     and calibrated with the option too (``cal+sdk``): candidates, the energy
     test's P_FA, and the median limit of the test searched at 200-400 mas
-    (``--no-cal``: the first two only).
+    (``--no-cal``: the first two only; ``--no-raw``: without ``raw``; ``--n-dead 0``:
+    the same frames without the preset's dead spaxels).
 ``companion``
     One companion (flat spectrum) per separation (150 and 250 mas), at twice
     the ``sdk`` limit measured on the first seed of ``null``: found, and how far
@@ -74,8 +75,12 @@ STEP = {"step": None}
 
 
 def _seeds(text):
-    a, _, b = text.partition("-")
-    return list(range(int(a), int(b or a) + 1))
+    """Seeds from ``a-b`` (a range), ``a,b,c`` (a list) or both (``1-3,9``)."""
+    out = []
+    for part in text.split(","):
+        a, _, b = part.partition("-")
+        out += list(range(int(a), int(b or a) + 1))
+    return out
 
 
 def _reduce(preset, seed, tmp, shape, **kw):
@@ -137,13 +142,18 @@ def _search(kpd, **kw):
             "curve": [[float(s), float(v)] for s, v in zip(sep, np.asarray(cur[col], float))]}
 
 
-def null(seeds, tmp, preset="charis", shape=80, with_cal=True):
+#: Simulation options of ``null`` beyond the preset's (``--n-dead``).
+SIM = {}
+
+
+def null(seeds, tmp, preset="charis", shape=80, with_cal=True, with_raw=True):
     out = []
     for seed in seeds:
-        tkp, ckp = _reduce(preset, seed, tmp, shape, static_diff_rms=0 * u.nm, contrasts=0.0)
-        row = {"seed": seed,
-               "sdk": _search(_sdk(None, tkp)),
-               "raw": _search(tkp, allow_uncalibrated=True)}
+        tkp, ckp = _reduce(preset, seed, tmp, shape, static_diff_rms=0 * u.nm, contrasts=0.0,
+                           **SIM)
+        row = {"seed": seed, "sdk": _search(_sdk(None, tkp))}
+        if with_raw:
+            row["raw"] = _search(tkp, allow_uncalibrated=True)
         if with_cal:
             row["cal"] = _search(calibrate(tkp, [ckp]))
             row["cal+sdk"] = _search(_sdk(calibrate(tkp, [ckp]), tkp))
@@ -288,6 +298,10 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("case", choices=("null", "companion", "inject", "sphere", "bench"))
     ap.add_argument("--no-cal", action="store_true", help="null: no calibrated searches")
+    ap.add_argument("--no-raw", action="store_true",
+                    help="null: no search of the target as it is (--allow-uncalibrated)")
+    ap.add_argument("--n-dead", type=int, help="null: dead spaxels simulated (the preset's "
+                    "unless given; drawn after the frames, which stay the same)")
     ap.add_argument("--n-static", type=int, help="profiles of the static basis")
     ap.add_argument("--seeds", default="1-3")
     ap.add_argument("--tmp", default="/tmp/measure_sdk")
@@ -308,8 +322,10 @@ def main():
         SpectralStack.__init__ = functools.partialmethod(SpectralStack.__init__, **opts)
     N_STATIC["n"] = a.n_static
     STEP["step"] = a.step
+    if a.n_dead is not None:
+        SIM["n_dead"] = a.n_dead
     if a.case == "null":
-        res = null(seeds, a.tmp, with_cal=not a.no_cal, shape=a.shape)
+        res = null(seeds, a.tmp, with_cal=not a.no_cal, shape=a.shape, with_raw=not a.no_raw)
     elif a.case == "inject":
         res = inject(seeds, a.tmp, shape=a.shape,
                      seps=[float(v) for v in a.seps.split(",")],

@@ -520,7 +520,8 @@ class BlockStack:
         if rows is not None and sst.static_rows is not None:
             rows = np.concatenate([rows, sst.static_rows])
         self.spectral = {"basis": kpd.spectral.get("basis"), "profiles": sst.info["profiles"],
-                         "combinations": int(k), "static_amplitude": sst.static_amplitude}
+                         "combinations": int(k), "static_amplitude": sst.static_amplitude,
+                         "static_amplitudes": sst.static_amplitudes}
         self._scale, self.combinations = sst.scale, sst.combinations
         return rb, mix @ kp, sst.combination_whitening, sst.rank, rows
 

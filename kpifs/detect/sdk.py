@@ -29,7 +29,7 @@ from .._utils import thread_map
 from ..covariance import whiten, whitening_matrix
 from ..exceptions import KpifsError
 from ..model.kernel import MAS
-from ..simulation.aberrations import fit_static_amplitude, leading_static_rows, \
+from ..simulation.aberrations import fit_static_amplitudes, leading_static_rows, \
     static_residual_rows
 from ._blockfit import refine_stack
 from ._signatures import _unit
@@ -39,7 +39,8 @@ from .maps import UNIT_CACHE_BYTES, DetectionModel
 from .sky import sky_to_detector
 from .spectral import spectrum_shape
 
-__all__ = ["SpectralModel", "SpectralStack", "static_term_rows", "compact_rows"]
+__all__ = ["SpectralModel", "SpectralStack", "static_term_rows", "static_term_groups",
+           "compact_rows"]
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +50,14 @@ RETAINED_ANGLES = 16
 #: (`kpifs.workflow` images seed 0), so that what the profiles leave of them is not
 #: fitted on themselves.
 STATIC_SEED = 1
+#: The static term's groups, each with its own amplitude (`static_term_groups`): the
+#: imaged residual of screens of these spatial spectra (the ``cutoff`` of
+#: `~kpifs.simulation.simulate.phase_screens`, cycles/m: None, its AO-corrected default,
+#: damped below the AO's frequencies; 1e-9, undamped: an uncorrected aberration, mostly
+#: of low order), group ``g`` of seed ``STATIC_SEED + g``.
+STATIC_SPECTRA = (None,)
+#: Screens imaged per group of the static term.
+STATIC_TERM_SCREENS = 200
 #: The static term's rows kept: singular values above this fraction of the largest.
 STATIC_FLOOR = 1e-4
 #: Grid positions whose signatures are made at a time (channels x positions x kernel
@@ -245,28 +254,45 @@ class SpectralModel(DetectionModel):
 _STATIC_CACHE = {}
 
 
-def static_term_rows(kpd):
-    """The static term's channel rows (n, q, p) of *kpd* (`SpectralStack`): the product's
-    own (``kpd.spectral['static_rows']``, imaged once when the product was made), else
+def static_term_groups(kpd):
+    """The static term's groups of channel rows, a list of (n_g, q, p), one amplitude
+    each (`SpectralStack`): the product's own (``kpd.spectral['static_rows']``, imaged
+    once when the product was made, split by ``kpd.spectral['static_groups']``, the
+    groups' sizes; one group without), else
     `~kpifs.simulation.aberrations.static_residual_rows` of its pupil, channels, pixels
-    and window (screens of seed `STATIC_SEED`), the last one kept (a sequence searched
-    again: injections, a batch of the same instrument)."""
-    own = (getattr(kpd, "spectral", None) or {}).get("static_rows")
+    and window for each of `STATIC_SPECTRA` (screens of seed ``STATIC_SEED + g``), the
+    last ones kept (a sequence searched again: injections, a batch of the same
+    instrument)."""
+    sdk = getattr(kpd, "spectral", None) or {}
+    own = sdk.get("static_rows")
     if own is not None:
-        return np.asarray(own, float)
+        own = np.asarray(own, float)
+        sizes = sdk.get("static_groups")
+        if sizes is None:
+            return [own]
+        return np.split(own, np.cumsum(np.asarray(sizes, int))[:-1])
     h = hashlib.sha1(np.ascontiguousarray(kpd.kernel_model.kernel).tobytes())
     h.update(np.ascontiguousarray(kpd.wavelengths.to_value(u.m)).tobytes())
     h.update(repr((float(kpd.pixscale.to_value(u.mas)), kpd.meta.get("telescope"),
                    None if kpd.window is None else (kpd.window.size, repr(kpd.window)),
-                   STATIC_SEED)).encode())
+                   STATIC_SEED, STATIC_SPECTRA, STATIC_TERM_SCREENS)).encode())
     key = h.hexdigest()
     if key not in _STATIC_CACHE:
         _STATIC_CACHE.clear()
-        rows = static_residual_rows(
+        _STATIC_CACHE[key] = [compact_rows(static_residual_rows(
             kpd.kernel_model, kpd.wavelengths, kpd.pixscale, window=kpd.window,
-            telescope=kpd.meta.get("telescope"), seed=STATIC_SEED)
-        _STATIC_CACHE[key] = compact_rows(rows)
-    return _STATIC_CACHE[key]
+            telescope=kpd.meta.get("telescope"), seed=STATIC_SEED + g, cutoff=cut,
+            n_screens=STATIC_TERM_SCREENS))
+            for g, cut in enumerate(STATIC_SPECTRA)]
+    return list(_STATIC_CACHE[key])
+
+
+def static_term_rows(kpd):
+    """The static term's channel rows (n, q, p) of *kpd*: `static_term_groups` one after
+    the other, with the groups' sizes (a list) -- what a product keeps
+    (``spectral['static_rows']`` and ``spectral['static_groups']``)."""
+    groups = static_term_groups(kpd)
+    return np.concatenate(groups), [len(r) for r in groups]
 
 
 def compact_rows(rows, *, floor=STATIC_FLOOR):
@@ -309,11 +335,11 @@ class SpectralStack:
         The companion's contrast shape (flat by default).
     poses : tuple, optional
         ``(angles, weights)`` of a sky search (`~kpifs.detect.sky.pa_bins`).
-    static : {'auto', 'none'} or ndarray (n, q, p), optional
-        The static residual's term, its amplitude fitted in the combinations: 'auto'
-        for data with no calibrator, from the imaged static residual
-        (`~kpifs.simulation.aberrations.static_residual_rows`); 'none' leaves it out;
-        or the channel rows to fit.
+    static : {'auto', 'none'}, ndarray (n, q, p) or list of them, optional
+        The static residual's term, its amplitudes fitted in the combinations (one per
+        group, jointly): 'auto' for data with no calibrator, from the imaged static
+        residual (`static_term_groups`); 'none' leaves it out; or the channel rows to
+        fit (one group), or a list of groups of rows.
     normalise : {'auto', 'none'}, optional
         'auto': with no calibrator, each combination's covariance scaled to the
         variance its covariance rows hold.
@@ -339,7 +365,7 @@ class SpectralStack:
     def __init__(self, kpd, kp, cov, *, spectrum=None, poses=None, static="auto",
                  normalise="auto"):
         self.kpd, self.poses = kpd, poses
-        self.static_amplitude = self.rows_variance = None
+        self.static_amplitude = self.static_amplitudes = self.rows_variance = None
         q, p = kp.shape
         prof = np.asarray(kpd.spectral["profiles"], float)
         cov = np.asarray(cov, float)
@@ -367,6 +393,7 @@ class SpectralStack:
         self.info = {"mode": self.mode, "basis": kpd.spectral.get("basis"),
                      "profiles": int(prof.shape[1]), "combinations": int(k),
                      "dof": int(self.rank.sum()), "static_amplitude": self.static_amplitude,
+                     "static_amplitudes": self.static_amplitudes,
                      "rows_variance": None if self.rows_variance is None else
                      round(float(np.median(self.rows_variance)), 4)}
         log.info("%s: spectral-differential search: %d profile(s) out of %d channels, %d "
@@ -412,32 +439,38 @@ class SpectralStack:
         return static
 
     def _static_term(self, y, w, how, frames):
-        """The static residual's rows in the combinations (n, k, p), scaled by the
-        maximum-likelihood amplitude fitted to the combinations *y* (k, p) whitened by
-        *w* (`~kpifs.simulation.aberrations.fit_static_amplitude`, on the term's
-        leading modes): with *how* 'auto', for a product with no calibrator (the
-        frames' scatter holds nothing static, and the profiles do not remove all of
-        it), from `~kpifs.simulation.aberrations.static_residual_rows`; with rows
-        (n, q, p), from those; None with 'none' or an amplitude of 0."""
+        """The static residual's rows in the combinations (n, k, p), each group's scaled by
+        its maximum-likelihood amplitude, fitted jointly to the combinations *y* (k, p)
+        whitened by *w* (`~kpifs.simulation.aberrations.fit_static_amplitudes`, on each
+        group's leading modes): with *how* 'auto', for a product with no calibrator
+        (the frames' scatter holds nothing static, and the profiles do not remove all
+        of it), from `static_term_groups` (aberrations of several spatial spectra);
+        with rows (n, q, p), from those (one group), or a list of them (groups); None
+        with 'none' or all amplitudes 0."""
         kpd = self.kpd
         if isinstance(how, str):
             if how not in ("auto", "none"):
                 raise KpifsError(f"static must be 'auto', 'none' or rows, got {how!r}")
             if how == "none" or not frames:
                 return None
-            how = static_term_rows(kpd)
-        how = np.asarray(how, float)
-        if how.shape[1:] != (len(self.scale), y.shape[1]):
+            how = static_term_groups(kpd)
+        groups = [np.asarray(r, float) for r in
+                  ([how] if isinstance(how, np.ndarray) and how.ndim == 3 else how)]
+        shape = (len(self.scale), y.shape[1])
+        if any(r.shape[1:] != shape for r in groups):
             # the imaged residual lost uv points the data keep (beyond Nyquist at the
             # short wavelengths): no term rather than a wrong one
             log.info("%s: static term left out: its rows have shape %s, the data (%d, %d)",
-                     kpd.name, how.shape[1:], len(self.scale), y.shape[1])
+                     kpd.name, [r.shape[1:] for r in groups], *shape)
             return None
-        rows = np.einsum("kc,ncp->nkp", self.data_mixing, how)
-        a = fit_static_amplitude(y, w, leading_static_rows(rows, w))
-        self.static_amplitude = a
-        log.info("%s: spectral-differential static term: amplitude %.3g", kpd.name, a)
-        return rows * np.sqrt(a) if a > 0 else None
+        rows = [np.einsum("kc,ncp->nkp", self.data_mixing, r) for r in groups]
+        a = fit_static_amplitudes(y, w, [leading_static_rows(r, w) for r in rows])
+        self.static_amplitudes = [float(v) for v in a]
+        self.static_amplitude = float(a[0])
+        log.info("%s: spectral-differential static term: amplitude(s) %s", kpd.name,
+                 ", ".join(f"{v:.3g}" for v in a))
+        keep = [r * np.sqrt(v) for r, v in zip(rows, a) if v > 0]
+        return np.concatenate(keep) if keep else None
 
     @property
     def combination_whitening(self):

@@ -148,8 +148,11 @@ def _spectral_hdus(kpd):
     if sdk.get("static_rows") is not None:
         hs = fits.ImageHDU(np.asarray(sdk["static_rows"], np.float32), name="KP-SDKSTAT")
         hs.header["BUNIT"] = "rad"
+        for i, n in enumerate(sdk.get("static_groups") or (), 1):
+            hs.header[f"SDKGRP{i}"] = (int(n), f"rows of the static term's group {i}")
         hs.header["COMMENT"] = ("the search's static term: rows (nrow, nwave, nkp) whose "
-                                "Gram matrix is the static residual's covariance")
+                                "Gram matrix is the static residual's covariance; by "
+                                "groups (SDKGRPn rows each), one amplitude per group")
         out.append(hs)
     return out
 

@@ -466,4 +466,13 @@ def _spectral_from_hdul(hdul, n_wave, path):
             raise KpifsError(f"{path}: KP-SDKSTAT must hold finite rows (nrow, nwave={n_wave}, "
                              f"nkp), got {None if rows is None else rows.shape}")
         out["static_rows"] = rows
+        hdr = hdul["KP-SDKSTAT"].header
+        sizes = []
+        while f"SDKGRP{len(sizes) + 1}" in hdr:
+            sizes.append(int(hdr[f"SDKGRP{len(sizes) + 1}"]))
+        if sizes:
+            if sum(sizes) != len(rows) or min(sizes) < 1:
+                raise KpifsError(f"{path}: KP-SDKSTAT's groups (SDKGRPn: {sizes}) must "
+                                 f"share its {len(rows)} rows")
+            out["static_groups"] = sizes
     return out

@@ -141,6 +141,8 @@ def _channel_cards(result, hdr, inputs):
         inner = sdk.get("inner_separation")
         hdr["SDKINNER"] = (round(float(inner), 3) if inner is not None and np.isfinite(inner)
                            else -1.0, "[mas] half kept from (-1: never)")
+        for i, a in enumerate(sdk.get("static_amplitudes") or (), 1):
+            hdr[f"SDKSTA{i}"] = (float(a), f"static term's amplitude, group {i} (ML fit)")
     chans = result.meta.get("channels") or []
     if result.meta.get("excluded_channels"):
         hdr["EXCLCHAN"] = (",".join(map(str, result.meta["excluded_channels"])),
@@ -246,7 +248,7 @@ _PRODUCT_CARDS = {"KPIFSVER", "CONTENT", "TEST", "MAPTEST", "PFA", "PD", "THRESH
                   "NULLCHAN", "CALIB", "CHI2RED", "NOISESC", "DETPA", "NULLMETH",
                   *(name for name, _ in NULL_CARDS.values()),
                   *(name for name, _ in FIELD_CARDS.values())}
-_PRODUCT_PREFIXES = ("WAVE", "SPEC", "KPCAL", "KPIN", "ALIAS", "CHAN")
+_PRODUCT_PREFIXES = ("WAVE", "SPEC", "KPCAL", "KPIN", "ALIAS", "CHAN", "SDKSTA")
 
 
 def _strip(header):
@@ -376,6 +378,11 @@ def detection_header_meta(hdr, path):
     if "SDKNPROF" in hdr:
         sdk = {"basis": hdr.get("SDKBASIS"), "profiles": hdr["SDKNPROF"],
                "combinations": hdr.get("SDKNCOMB"), "inner_separation": hdr.get("SDKINNER", -1.0)}
+        amps = []
+        while f"SDKSTA{len(amps) + 1}" in hdr:
+            amps.append(float(hdr[f"SDKSTA{len(amps) + 1}"]))
+        if amps:
+            sdk["static_amplitudes"] = amps
         meta["blocks"] = ({"mode": "angular-differential", "spectral": sdk}
                           if hdr.get("SDKBLOCK") else dict(mode="spectral-differential", **sdk))
     if "STATSHR" in hdr:

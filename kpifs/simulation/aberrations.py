@@ -60,7 +60,7 @@ from ..model.window import ExtractionWindow
 optimize = lazy_module("scipy.optimize")
 
 __all__ = ["static_residual_rows", "leading_static_rows", "fit_static_amplitude",
-           "static_term"]
+           "fit_static_amplitudes", "static_term"]
 
 log = logging.getLogger(__name__)
 
@@ -135,7 +135,7 @@ def _model_field(kernel_model, npup):
 
 
 def static_residual_rows(kernel_model, wavelengths, pixscale, *, window=None, telescope=None,
-                         n_screens=STATIC_SCREENS, rms=None, seed=0):
+                         n_screens=STATIC_SCREENS, rms=None, seed=0, cutoff=None):
     """Covariance rows ``R`` (n, q, p) of the kernel phases a static aberration leaves.
 
     ``R^T R`` is the covariance, across all channels, of the kernel phases of a
@@ -155,6 +155,11 @@ def static_residual_rows(kernel_model, wavelengths, pixscale, *, window=None, te
     n_screens : int
     rms : `~astropy.units.Quantity`, optional
     seed : int or `numpy.random.Generator`
+    cutoff : float, optional
+        The screens' spatial spectrum: frequencies (cycles/m) below it damped as by
+        an AO system (`~kpifs.simulation.simulate.phase_screens`; its default when
+        None); a tiny value leaves the low orders undamped (an uncorrected, low-order
+        aberration).
 
     Examples
     --------
@@ -179,7 +184,8 @@ def static_residual_rows(kernel_model, wavelengths, pixscale, *, window=None, te
     else:
         img, dx = _model_field(kernel_model, STATIC_NPUP)
     rms_m = wl.min() * STATIC_RMS if rms is None else to_quantity(rms, u.m, name="rms").value
-    screens = phase_screens(STATIC_NPUP, dx, n_screens, rms=rms_m, mask=img > 0, seed=seed)
+    screens = phase_screens(STATIC_NPUP, dx, n_screens, rms=rms_m, mask=img > 0, seed=seed,
+                            cutoff=cutoff)
     p = ps.to_value(u.mas) * np.pi / 180 / 3600e3
     cube = np.empty((n_screens, len(wl), size, size))
     # one pair of MFT matrices per wavelength for every screen
@@ -284,6 +290,101 @@ def fit_static_amplitude(y, whitening, rows):
         if abs(step) < 1e-13 * max(1.0, abs(t)):
             break
     return float(np.exp(t)) if nll(t) < nll(lo) - 1e-9 else 0.0
+
+
+def _amplitudes_nll(a, gram, b, group):
+    """``-2 log L`` (constants dropped) of whitened data under ``I + sum_g a_g R_g^T R_g``,
+    with its gradient and Hessian in *a* (g,), from the rows' Gram matrix *gram* (N, N),
+    their products with the data *b* (N,) and each row's group *group* (N,): in the
+    rows' N dimensions (Woodbury), ``C^-1 = I - R^T S^1/2 M^-1 S^1/2 R`` with
+    ``M = I + S^1/2 G S^1/2`` and ``S`` the rows' amplitudes."""
+    sq = np.sqrt(a[group])
+    m = np.eye(len(b)) + sq[:, None] * gram * sq[None]
+    cho = np.linalg.cholesky(m)
+    c = np.linalg.solve(cho, sq * b)
+    nll = 2 * np.sum(np.log(np.diag(cho))) - c @ c
+    h = sq[:, None] * np.linalg.solve(m, np.diag(sq))            # S^1/2 M^-1 S^1/2
+    z = b - gram @ (h @ b)                                        # R C^-1 y
+    q = gram - gram @ h @ gram                                    # R C^-1 R^T
+    ng = len(a)
+    onehot = np.equal.outer(np.arange(ng), group).astype(float)   # (g, N)
+    grad = onehot @ np.diag(q) - onehot @ z ** 2
+    hess = -(onehot @ (q * q) @ onehot.T) + 2 * (onehot * z) @ q @ (onehot * z).T
+    return nll, grad, hess
+
+
+def fit_static_amplitudes(y, whitening, groups):
+    """Maximum-likelihood amplitudes ``a_g >= 0`` of ``y ~ N(0, C + sum_g a_g R_g^T R_g)``.
+
+    The several-amplitude `fit_static_amplitude`: *groups* is a sequence of rows
+    (n_g, q, p), e.g. the imaged residuals of aberrations of different spatial
+    spectra (each a group's leading modes, `leading_static_rows`), fitted jointly
+    (their rows need not be orthogonal); *y* (q, p) and *whitening* (q, p, p) as
+    there. The likelihood is maximised on ``a >= 0`` from each group's own
+    amplitude (the best of those starts), by projected Newton steps (an amplitude
+    at 0 stays there while the likelihood's slope pushes it below) with a halving
+    line search, in the rows' dimensions (Woodbury). With one group it is
+    `fit_static_amplitude`.
+
+    Returns
+    -------
+    ndarray (g,)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.simulation.aberrations import fit_static_amplitudes
+    >>> rng = np.random.default_rng(0)
+    >>> r1 = rng.standard_normal((20, 1, 300)) / 20 ** 0.5
+    >>> r2 = rng.standard_normal((20, 1, 300)) / 20 ** 0.5
+    >>> y = rng.standard_normal((1, 300)) + 3.0 * rng.standard_normal(20) @ r1[:, 0]
+    >>> a = fit_static_amplitudes(y, np.eye(300)[None], [r1, r2])
+    >>> bool(4 < a[0] < 20), bool(a[1] < 1)       # truth 9 and 0
+    (True, True)
+    """
+    yw = whiten(np.asarray(y, float), whitening).ravel()
+    rw = [whiten(np.asarray(r, float), whitening).reshape(len(r), -1) for r in groups]
+    ng = len(rw)
+    if not ng:
+        return np.zeros(0)
+    single = np.array([fit_static_amplitude(y, whitening, r) if len(r) else 0.0
+                       for r in groups])
+    group = np.concatenate([np.full(len(r), g) for g, r in enumerate(rw)]).astype(int)
+    big = np.concatenate(rw)
+    if ng == 1 or not len(big):
+        return single
+    gram, b = big @ big.T, big @ yw
+    # each group's own amplitude as a start (and all of them at once): the best
+    starts = [np.where(np.arange(ng) == g, single, 0.0) for g in range(ng)] + [single]
+    a = min(starts, key=lambda v: _amplitudes_nll(v, gram, b, group)[0])
+    f, grad, hess = _amplitudes_nll(a, gram, b, group)
+    for _ in range(100):
+        free = (a > 0) | (grad < 0)
+        if not free.any():
+            break
+        step = np.zeros(ng)
+        hf = hess[np.ix_(free, free)]
+        try:
+            ev = np.linalg.eigvalsh(hf)
+            shift = max(0.0, -ev.min() + 1e-12 * max(abs(ev).max(), 1e-300))
+            step[free] = np.linalg.solve(hf + shift * np.eye(free.sum()), grad[free])
+        except np.linalg.LinAlgError:
+            break
+        t, done = 1.0, False
+        for _ in range(60):
+            trial = np.clip(a - t * step, 0, None)
+            ft = _amplitudes_nll(trial, gram, b, group)
+            if ft[0] < f:
+                done = True
+                break
+            t /= 2
+        if not done:
+            break
+        moved = np.max(np.abs(trial - a) / np.maximum(np.abs(a), 1e-300))
+        a, (f, grad, hess) = trial, ft
+        if moved < 1e-12:
+            break
+    return a
 
 
 def static_term(kpd, y, cov, whitening, *, seed=0):
