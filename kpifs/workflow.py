@@ -40,6 +40,7 @@ from .detect import sdk as _sdk, spectral as _spectral, stats as _stats
 from .detect import statistics as _statistics
 from .exceptions import KpifsError, KpifsWarning
 from .extraction.extract import extract_kernel_phases
+from .extraction.filled import filled_pixel_rows
 from .io.angles import frame_detpa, parse_angles
 from .io.instruments import INSTRUMENTS as _INSTRUMENTS
 from .io.readers import check_pupil_header, header_pupil, read_cube
@@ -521,18 +522,21 @@ def reduce_observation(target, calibrators=(), options=None, *, progress=False):
     if options.spectral_differential and options.angular_differential and not cals:
         # ASDI (issue 39): the frames' spectral-differential product and their time blocks
         target_blocks(tkp)                         # refused before the work if they do not turn
-        return angular_differential(tkp, _spectral_step(tkp, None, options)), [tkp]
+        return angular_differential(tkp, _spectral_step(tkp, None, options, target)), [tkp]
     if options.angular_differential:               # issue 29
         kpd = angular_differential(tkp, kpd if cals else None)
     if options.spectral_differential:              # issue 39
         kpd = _spectral_step(tkp, kpd if (cals or options.angular_differential) else None,
-                             options)
+                             options, target)
     return kpd, [tkp] + cals
 
 
-def _spectral_step(target, product, options):
+def _spectral_step(target, product, options, files=None):
     """`~kpifs.calibration.spectral_diff.spectral_differential` with the options' basis
-    (the static residual imaged through the target's pupil when the basis needs it)."""
+    (the static residual imaged through the target's pupil when the basis needs it);
+    with no calibrator, the search's static term, and the target's cube *files* give
+    it one more group, the pixels the extraction filled in every frame
+    (`_filled_group`)."""
     basis = options.spectral_differential
     basis = "static" if basis is True else basis
     if basis not in SDK_BASES:
@@ -549,9 +553,40 @@ def _spectral_step(target, product, options):
     if product is None:
         # the search's static term (no calibrator), imaged once with the product, not at
         # every search of it (`kpifs.detect.sdk.static_term_rows`)
-        out.spectral["static_rows"], out.spectral["static_groups"] = \
-            _sdk.static_term_rows(target)
+        rows, sizes = _sdk.static_term_rows(target)
+        filled, pixels = _filled_group(files, target, options)
+        if filled is not None and filled.shape[1:] == rows.shape[1:]:
+            rows, sizes = np.concatenate([rows, filled]), sizes + [len(filled)]
+            out.spectral["static_filled"] = len(pixels)
+        out.spectral["static_rows"], out.spectral["static_groups"] = rows, sizes
     return out
+
+
+def _filled_group(files, target, options):
+    """The static term's group of the pixels bad in every frame of the target's cube
+    *files* (non-finite or masked, what the extraction filled) within the window's
+    radius of the star (beyond it the window weighs less than 1/e and the halo is
+    smooth enough for the fill): their kernel-phase responses, one row per pixel and
+    channel (`~kpifs.extraction.filled.filled_pixel_rows`, issue 39); (None, []) with
+    none, no files, or ``bad_pixels='exclude'`` (nothing filled)."""
+    if not files or options.bad_pixels != "fill":
+        return None, []
+    with read_cube(files, instrument=options.instrument, dq_bits=options.dq_bits,
+                   wavelengths=parse_wavelengths(options.wavelengths, source="--wavelengths"),
+                   pixscale=_pixscale(options),
+                   pa_given=parse_angles(options.pa, source="--pa") is not None) as cube:
+        mask = cube.mask if options.mask is None else options.mask
+        frames = np.setdiff1d(np.arange(cube.shape[0]), target.meta.get("dropped_frames", []))
+        channels = np.setdiff1d(np.arange(cube.shape[1]),
+                                target.meta.get("dropped_channels", []))
+        rows, pixels = filled_pixel_rows(
+            cube.data, target.kernel_model, wavelengths=target.wavelengths,
+            pixscale=target.pixscale, window=target.window, mask=mask, frames=frames,
+            channels=channels, centroid=options.centroid, on_nyquist=options.on_nyquist)
+    log.info("%s: %d pixel(s) bad in every frame within the window's radius: %d row(s) "
+             "of the static term's filled-pixel group", target.name, len(pixels),
+             0 if rows is None else len(rows))
+    return rows, pixels
 
 
 def _mas(value, name):

@@ -14,7 +14,9 @@ calibrator differ by 15 nm), extracted as ``kpifs extract`` does
     and calibrated with the option too (``cal+sdk``): candidates, the energy
     test's P_FA, and the median limit of the test searched at 200-400 mas
     (``--no-cal``: the first two only; ``--no-raw``: without ``raw``; ``--n-dead 0``:
-    the same frames without the preset's dead spaxels).
+    the same frames without the preset's dead spaxels). With no calibrator the static
+    term has the group of the pixels filled in every frame (the dead spaxels near the
+    star), as ``kpifs extract`` writes it (``--no-filled``: without).
 ``companion``
     One companion (flat spectrum) per separation (150 and 250 mas), at twice
     the ``sdk`` limit measured on the first seed of ``null``: found, and how far
@@ -57,11 +59,11 @@ from astropy import units as u
 from kpifs.calibration.calibrate import calibrate
 from kpifs.calibration.spectral_diff import spectral_differential
 from kpifs.detect import detect
-from kpifs.detect.sdk import SpectralStack
+from kpifs.detect.sdk import SpectralStack, static_term_rows
 from kpifs.io.layouts import write_observation
 from kpifs.simulation.aberrations import static_residual_rows
 from kpifs.simulation.simulate import TYPICAL_STATIC, simulate_scene
-from kpifs.workflow import ExtractOptions, extract_observation
+from kpifs.workflow import ExtractOptions, _filled_group, extract_observation
 
 PFA, DRAWS = 1e-2, 1000
 #: A candidate this close (mas, a resolution element at 1.16 um) counts as detected.
@@ -89,21 +91,40 @@ def _reduce(preset, seed, tmp, shape, **kw):
     what = (preset, seed, shape, sorted((k, str(v)) for k, v in kw.items()))
     if STEP["step"] is not None:
         what += (STEP["step"],)
+    if LAYOUT["layout"] != "plain":
+        what += (LAYOUT["layout"],)
     key = hashlib.sha1(repr(what).encode()).hexdigest()[:12]
     path = pathlib.Path(tmp) / f"{preset}{seed}_{shape}_{key}.pkl"
     if path.exists():
         with open(path, "rb") as f:
-            return pickle.load(f)
+            tkp, ckp, *filled = pickle.load(f)
+        FILLED[id(tkp)] = filled[0] if filled else None
+        return tkp, ckp
     path.parent.mkdir(parents=True, exist_ok=True)
     obs = simulate_scene(preset, seed=seed, shape=(shape, shape), n_frames=20,
                          **dict(TYPICAL_STATIC, **kw))
-    files = write_observation(obs, f"{tmp}/{preset}{seed}", overwrite=True)
+    files = write_observation(obs, f"{tmp}/{preset}{seed}", overwrite=True,
+                              layout=LAYOUT["layout"])
     opts = ExtractOptions() if STEP["step"] is None else ExtractOptions(step=STEP["step"])
     tkp = extract_observation(files["target"], opts)
     ckp = extract_observation(files["calibrator"], opts, model=tkp.kernel_model)
+    # the static term's group of the pixels filled in every frame, as `kpifs extract
+    # --spectral-differential` images it with no calibrator (issue 39)
+    filled = _filled_group(files["target"], tkp, opts)[0]
+    FILLED[id(tkp)] = filled
     with open(path, "wb") as f:
-        pickle.dump((tkp, ckp), f)
+        pickle.dump((tkp, ckp, filled), f)
     return tkp, ckp
+
+
+#: The files' layout (``--layout``): 'plain' writes the images alone (the dead spaxels'
+#: garbage values unmarked, extracted as they are); 'charis' the CHARIS pipeline's cubes
+#: with their inverse variance (0 at the dead spaxels: masked, filled by the extraction).
+LAYOUT = {"layout": "plain"}
+#: Each target's filled-pixel rows (`kpifs.workflow._filled_group`), by ``id``.
+FILLED = {}
+#: Whether the searches with no calibrator fit the filled pixels' group (``--no-filled``).
+USE_FILLED = {"on": True}
 
 
 _ROWS = {}
@@ -115,7 +136,15 @@ def _sdk(kpd, tkp, basis=BASIS):
         _ROWS[key] = static_residual_rows(tkp.kernel_model, tkp.wavelengths, tkp.pixscale,
                                           window=tkp.window)
     extra = {} if N_STATIC["n"] is None else {"n_static": N_STATIC["n"]}
-    return spectral_differential(tkp, kpd, basis=basis, static_rows=_ROWS.get(key), **extra)
+    out = spectral_differential(tkp, kpd, basis=basis, static_rows=_ROWS.get(key), **extra)
+    filled = FILLED.get(id(tkp))
+    if kpd is None and USE_FILLED["on"] and filled is not None:
+        # the product's static term as `kpifs.workflow` writes it with no calibrator
+        rows, sizes = static_term_rows(tkp)
+        if filled.shape[1:] == rows.shape[1:]:
+            out.spectral["static_rows"] = np.concatenate([rows, filled])
+            out.spectral["static_groups"] = sizes + [len(filled)]
+    return out
 
 
 def _search(kpd, **kw):
@@ -138,6 +167,7 @@ def _search(kpd, **kw):
             "dof": res.energy["dof"], "noise_scale": res.energy["noise_scale"],
             "limit_200_400": lim, "seconds": dt, "max_sep": float(res.grid.max_sep),
             "inner_separation": blocks.get("inner_separation"),
+            "static_amplitudes": blocks.get("static_amplitudes"),
             "retained": blocks.get("retained"),
             "curve": [[float(s), float(v)] for s, v in zip(sep, np.asarray(cur[col], float))]}
 
@@ -159,7 +189,8 @@ def null(seeds, tmp, preset="charis", shape=80, with_cal=True, with_raw=True):
             row["cal+sdk"] = _search(_sdk(calibrate(tkp, [ckp]), tkp))
         out.append(row)
         print(json.dumps({k: (v if k == "seed" else {q: v[q] for q in (
-            "n_candidates", "energy_pfa", "limit_200_400", "inner_separation", "seconds")})
+            "n_candidates", "candidates", "energy_pfa", "limit_200_400", "inner_separation",
+            "static_amplitudes", "seconds")})
             for k, v in row.items()}), flush=True)
     return out
 
@@ -311,6 +342,12 @@ def main():
     ap.add_argument("--seps", default="150,250", help="inject: separations (mas)")
     ap.add_argument("--factors", default="0.5,1,1.5,2", help="inject: times the limit")
     ap.add_argument("--kinds", default="local", help="inject: local and/or median")
+    ap.add_argument("--no-filled", action="store_true",
+                    help="no group of the filled pixels in the static term (as before issue "
+                         "39's fill group)")
+    ap.add_argument("--layout", default="plain",
+                    help="files written: plain (images alone) or the instrument's (charis: "
+                         "with the inverse variance, which marks the dead spaxels)")
     ap.add_argument("--step", help="pupil model grid step, e.g. 0.27m (reaches 420 mas)")
     ap.add_argument("--n-pa", type=int, default=8, help="inject: position angles")
     ap.add_argument("--stack", default="", help="SpectralStack options, e.g. "
@@ -322,6 +359,8 @@ def main():
         SpectralStack.__init__ = functools.partialmethod(SpectralStack.__init__, **opts)
     N_STATIC["n"] = a.n_static
     STEP["step"] = a.step
+    USE_FILLED["on"] = not a.no_filled
+    LAYOUT["layout"] = a.layout
     if a.n_dead is not None:
         SIM["n_dead"] = a.n_dead
     if a.case == "null":

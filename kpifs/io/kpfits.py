@@ -150,6 +150,8 @@ def _spectral_hdus(kpd):
         hs.header["BUNIT"] = "rad"
         for i, n in enumerate(sdk.get("static_groups") or (), 1):
             hs.header[f"SDKGRP{i}"] = (int(n), f"rows of the static term's group {i}")
+        if sdk.get("static_filled"):
+            hs.header["SDKFILL"] = (int(sdk["static_filled"]), "filled pixels, the last group")
         hs.header["COMMENT"] = ("the search's static term: rows (nrow, nwave, nkp) whose "
                                 "Gram matrix is the static residual's covariance; by "
                                 "groups (SDKGRPn rows each), one amplitude per group")

@@ -475,4 +475,6 @@ def _spectral_from_hdul(hdul, n_wave, path):
                 raise KpifsError(f"{path}: KP-SDKSTAT's groups (SDKGRPn: {sizes}) must "
                                  f"share its {len(rows)} rows")
             out["static_groups"] = sizes
+        if "SDKFILL" in hdr:
+            out["static_filled"] = int(hdr["SDKFILL"])
     return out
