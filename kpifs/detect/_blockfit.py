@@ -38,8 +38,11 @@ def refine_stack(stack, cands, residual, noise_rows=None, box=20.0):
     tied = getattr(stack, "mixing", None) is not None
     rows, models = [], []
     for row in cands:
-        fit, model = _fit_position(stack, row, residual, noise_rows, box, tied)
-        if tied:
+        fit = _fit_position(stack, row, residual, noise_rows, box, tied)
+        if not tied:
+            model = stack.model_kp(fit["pos"], fit["model_contrasts"])
+        else:
+            # the spectrum's model is the one subtracted (the shape's is not made)
             spec = fit_spectrum(stack, fit["pos"], residual, fit["scale"] * stack.spectrum,
                                 noise_rows=noise_rows)
             model = spec["model"]
@@ -61,9 +64,9 @@ def refine_stack(stack, cands, residual, noise_rows=None, box=20.0):
 
 
 def _fit_position(stack, row, residual, noise_rows, box, tied):
-    """One candidate's least-squares fit (`refine_stack`): its columns' values (with
-    ``pos``, and the shared ``scale`` and ``scale_err`` of a stack of combinations) and
-    its model."""
+    """One candidate's least-squares fit (`refine_stack`): its columns' values, with
+    ``pos``, the contrasts its model takes (``model_contrasts``, window included) and
+    the shared ``scale`` and ``scale_err`` of a stack of combinations."""
     q = residual.shape[0]
     nc = 1 if tied else q
     x0, y0 = row["x"].to_value(u.mas), row["y"].to_value(u.mas)
@@ -105,7 +108,8 @@ def _fit_position(stack, row, residual, noise_rows, box, tied):
            "fit_contrast_err": np.broadcast_to(err[2:] * scale_c, (q,))}
     if tied:
         fit.update(scale=float(res.x[2] * scale_c), scale_err=float(err[2] * scale_c))
-    return fit, stack.model_kp(res.x[:2], contrasts(res.x))
+    fit["model_contrasts"] = contrasts(res.x)
+    return fit
 
 
 def fit_spectrum(stack, pos, data, start, *, noise_rows=None, step=1e-3, n_iter=10):
