@@ -118,6 +118,7 @@ def _noise_lines(res):
               f"noise scale, P_FA {e['pfa']:.2e}")
     parts = [f"{name} {float(v):.3f}" for name, v in (
         ("residual chi2_red", res.meta.get("chi2_red")), ("map noise", e.get("map_noise")),
+        ("expected from the null's rows", e.get("map_expectation")),
         ("subspace map noise", e.get("subspace_noise")),
         ("noise scale of the test", res.meta.get("noise_scale"))) if v is not None]
     if parts:

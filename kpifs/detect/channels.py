@@ -16,7 +16,7 @@ from .limits import limit_energy_correlated
 from .quality import resolution_mas
 
 __all__ = ["whiten_weights", "channel_shrinkage", "SHRINKAGE_GRID", "np_correlated",
-           "energy_spread", "noise_scale", "map_noise", "combined_scale",
+           "energy_spread", "noise_scale", "map_noise", "map_expectation", "combined_scale",
            "subspace_scale", "annulus_noise", "ring_noise", "grid_rings", "NOISE_CONFIDENCE",
            "MIN_SCALE",
            "energy_null", "channel_correlation", "correlated_energy_limit", "scale_block_rows"]
@@ -262,6 +262,41 @@ def _map_power(model, y, subspace):
     return num, expect
 
 
+def map_expectation(model):
+    """What `map_noise` reads on average under the error model: the mean, over the
+    grid, of the channels' correlation's trace per channel (`DetectionModel.correlate
+    <kpifs.detect.DetectionModel.correlate>`, from the covariance rows the null draws
+    from). It is 1 when the rows are whitened by their own covariance (a calibrated
+    product's modes) or not known; more when they hold more than the whitening
+    along companions' signatures (few frames for many kernel phases, whitened by a
+    shrunk covariance).
+
+    Examples
+    --------
+    >>> import numpy as np, astropy.units as u
+    >>> from kpifs import KernelModel, make_pupil
+    >>> from kpifs.data import DetectionGrid
+    >>> from kpifs.detect import DetectionModel
+    >>> from kpifs.detect.channels import map_expectation
+    >>> km = KernelModel.from_pupil(make_pupil("subaru", step=1 * u.m))
+    >>> grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    >>> dm = DetectionModel(km, [1.6] * u.um, np.eye(km.n_kp)[None], grid)
+    >>> rows = np.eye(km.n_kp)[:, None]           # whitened by their own covariance
+    >>> _ = dm.correlate(rows)
+    >>> round(map_expectation(dm), 9)
+    1.0
+    >>> _ = dm.correlate(3 * rows)              # rows of three times the whitening's scale
+    >>> round(map_expectation(dm), 9)
+    9.0
+    """
+    corr = model.__dict__.get("_channel_corr")
+    v = model.grid.valid
+    if corr is None or not v.any():
+        return 1.0
+    c = np.nan_to_num(corr[v])
+    return float(np.mean(np.einsum("kqq->k", c)) / c.shape[-1])
+
+
 def annulus_noise(model, y, *, subspace=False):
     """Ratio, per annulus of the grid, of the map's mean square to its model
     expectation, as a map (ny, nx; NaN off the grid).
@@ -370,13 +405,18 @@ def subspace_scale(scale, kappa_sub, draws):
     return float(max(scale, kappa_sub / ref))
 
 
-def combined_scale(kappa, spread, kappa_map, map_low):
+def combined_scale(kappa, spread, kappa_map, map_low, map_mean=1.0):
     """Noise scale from both the residual's energy and its map (the larger).
 
     Each is scaled up by its own measure when above 1, down only to its
     upper confidence bound (`noise_scale`): *spread* for the energy, *map_low*
     (the `NOISE_CONFIDENCE` quantile of `~kpifs.detect.null.NullCalibration.noise_draws`)
-    for the map's mean square *kappa_map*; never below `MIN_SCALE`.
+    for the map's mean square *kappa_map*; never below `MIN_SCALE`. The map's is
+    measured against what the null's draws give it on average (*map_mean*, their
+    mean): where the covariance rows the null draws from hold more than the
+    whitening along companions' signatures (few frames for many kernel phases,
+    a shrunk covariance), the threshold already holds that excess, and counting
+    it in the scale too would count it twice.
 
     Examples
     --------
@@ -387,7 +427,8 @@ def combined_scale(kappa, spread, kappa_map, map_low):
     if not np.isfinite(kappa_map):      # no valid position: the energy alone
         s = noise_scale(kappa, spread) if np.isfinite(kappa) else 1.0
     else:
-        s_map = kappa_map if kappa_map >= 1 else min(1.0, kappa_map / max(map_low, 1e-12))
+        rel = kappa_map / map_mean if np.isfinite(map_mean) and map_mean > 0 else kappa_map
+        s_map = rel if rel >= 1 else min(1.0, kappa_map / max(map_low, 1e-12))
         s = s_map if not np.isfinite(kappa) else max(noise_scale(kappa, spread), s_map)
     return float(max(s, MIN_SCALE))
 

@@ -24,8 +24,8 @@ from ._laws import chi2_sf
 from .blocks import block_stack
 from .sdk import SpectralStack
 from .channels import (MIN_SCALE, NOISE_CONFIDENCE, annulus_noise, channel_correlation,
-                       combined_scale, energy_null, energy_spread, map_noise, ring_noise,
-                       scale_block_rows)
+                       combined_scale, energy_null, energy_spread, map_expectation, map_noise,
+                       ring_noise, scale_block_rows)
 from .limits import energy_lambda, radial_curves
 from .maps import DetectionModel
 from .null import check_draws, search_null
@@ -429,6 +429,7 @@ class _Null:
     spread: float
     map_low: float
     make: object
+    map_mean: float = 1.0
 
     def for_test(self, name):
         return self.null if name == self.null.form else self.make(name)[0]
@@ -460,7 +461,8 @@ def _null_stage(prep, white, opts):
                  "of %d time blocks) %.2f", opts.pfa, report.thresholds["gaussian"],
                  len(blocks), report.thresholds["empirical"])
     return _Null(null, parts, threshold, report, energy_spread(white.rows, int(white.rank.sum())),
-                 float(np.quantile(null.noise_draws(), NOISE_CONFIDENCE)), make)
+                 float(np.quantile(null.noise_draws(), NOISE_CONFIDENCE)), make,
+                 map_expectation(white.model))
 
 
 def _has_null(test):
@@ -487,7 +489,8 @@ class _NoiseJudge:
         kappa = _chi2_red(res, w, int(self.white.rank.sum()), n_par)
         yr = whiten(res, w)
         self.residual, self.map = res, map_noise(model, yr)
-        self.common = combined_scale(kappa, self.null.spread, self.map, self.null.map_low)
+        self.common = combined_scale(kappa, self.null.spread, self.map, self.null.map_low,
+                                     self.null.map_mean)
         # the subspace test is judged by its own map's noise too (a smooth residual)
         self.subspace = map_noise(model, yr, subspace=True)
         return kappa, self.test.scale(self.common, self.subspace,
@@ -590,7 +593,8 @@ def _maps_stage(prep, white, null, found, opts):
     t_es = t_e / common
     energy = {"statistic": t_es, "raw": t_e, "dof": dof, "pfa": float(chi2_sf(t_es, dof)),
               "threshold": float(energy_threshold(opts.pfa, dof)), "pd": opts.pd,
-              "noise_scale": common, "map_noise": judge.map, "subspace_noise": judge.subspace}
+              "noise_scale": common, "map_noise": judge.map, "map_expectation": null.map_mean,
+              "subspace_noise": judge.subspace}
     return _Maps(t, np.where(valid, model.local_pfa(t, form), np.nan),
                  np.where(valid, null.null.pfa(t), np.nan), c, cerr, search_map, energy, common)
 

@@ -102,6 +102,9 @@ def _report_cards(result, hdr, inputs):
     if result.energy.get("map_noise") is not None:
         hdr["MAPNOISE"] = (round(float(result.energy["map_noise"]), 6),
                            "mean square of the residual map")
+    if result.energy.get("map_expectation") is not None:
+        hdr["MAPEXPCT"] = (round(float(result.energy["map_expectation"]), 6),
+                           "MAPNOISE expected from the null's rows")
     if result.energy.get("subspace_noise") is not None:
         hdr["SUBNOISE"] = (round(float(result.energy["subspace_noise"]), 6),
                            "same, of the spectral-model test's map")
@@ -359,7 +362,7 @@ def detection_header_meta(hdr, path):
     energy = {"statistic": hdr["ESTAT"], "dof": hdr["EDOF"], "pfa": hdr["EPFA"],
               "threshold": hdr.get("ETHRESH", np.nan), "pd": hdr["PD"]}
     for key, name in (("raw", "ERAW"), ("map_noise", "MAPNOISE"), ("noise_scale", "NOISESC"),
-                      ("subspace_noise", "SUBNOISE")):
+                      ("subspace_noise", "SUBNOISE"), ("map_expectation", "MAPEXPCT")):
         if name in hdr:
             energy[key] = hdr[name]
     meta = {"test": hdr["TEST"], "map_test": hdr.get("MAPTEST", hdr["TEST"]), "pfa": hdr["PFA"],
