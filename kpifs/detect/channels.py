@@ -31,10 +31,25 @@ MIN_SCALE = 0.1
 def whiten_weights(w, corr, alpha):
     """The subspace statistic's weights with the channels' correlation, per position.
 
-    ``W = C^-1 U (U^T C^-1 U)^{-1/2}`` with ``C = (1 - alpha) C_rows + alpha I``:
-    the GLR for a spectrum in ``span(U)`` when the ``z_i`` have covariance ``C``
-    (``W^T C W = I``), which uses every channel, signal or not, to cancel the
-    noise they share. *w* (r, q, ny, nx), *corr* (ny, nx, q, q).
+    ``W = C^-1 U (U^T C^-1 U)^{-1/2}`` with ``C = (1 - alpha) C_rows + alpha
+    diag(C_rows)``: the GLR for a spectrum in ``span(U)`` when the ``z_i`` have
+    covariance ``C`` (``W^T C W = I``), which uses every channel, signal or not, to
+    cancel the noise they share. The shrinkage is of the correlation, as
+    `channel_shrinkage` cross-validates it: towards independent channels of the
+    rows' own variances (1 where the rows are whitened by their own covariance;
+    more where they hold more than the whitening along companions' signatures, as
+    20 frames do for hundreds of kernel phases, by position). *w* (r, q, ny, nx),
+    *corr* (ny, nx, q, q).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.channels import whiten_weights
+    >>> u = np.ones((1, 2, 1, 1)) / 2 ** 0.5              # a flat spectrum, two channels
+    >>> corr = np.diag([4.0, 9.0])[None, None]            # independent, variances 4 and 9
+    >>> w = whiten_weights(u, corr, 1.0)[0, :, 0, 0]
+    >>> round(float(w @ corr[0, 0] @ w), 9)               # unit variance under the rows
+    1.0
     """
     r, q = w.shape[:2]
     shape = w.shape[2:]
@@ -42,7 +57,9 @@ def whiten_weights(w, corr, alpha):
     c = corr.reshape(-1, q, q)
     ok = np.all(np.isfinite(c), axis=(1, 2))
     out = np.zeros_like(ww)
-    cs = (1 - alpha) * c[ok] + alpha * np.eye(q)
+    d = np.einsum("kqq->kq", c[ok])
+    d = np.where(d > 1e-12 * np.max(d, axis=1, initial=0.0)[:, None], d, 1.0)
+    cs = (1 - alpha) * c[ok] + alpha * d[:, :, None] * np.eye(q)
     ci_u = np.linalg.solve(cs, ww[ok])                              # C^-1 U
     g = np.matmul(ww[ok].transpose(0, 2, 1), ci_u)                  # U^T C^-1 U
     val, vec = np.linalg.eigh(g)
