@@ -31,15 +31,19 @@ MIN_SCALE = 0.1
 def whiten_weights(w, corr, alpha):
     """The subspace statistic's weights with the channels' correlation, per position.
 
-    ``W = C^-1 U (U^T C^-1 U)^{-1/2}`` with ``C = (1 - alpha) C_rows + alpha
-    diag(C_rows)``: the GLR for a spectrum in ``span(U)`` when the ``z_i`` have
-    covariance ``C`` (``W^T C W = I``), which uses every channel, signal or not, to
-    cancel the noise they share. The shrinkage is of the correlation, as
-    `channel_shrinkage` cross-validates it: towards independent channels of the
-    rows' own variances (1 where the rows are whitened by their own covariance;
-    more where they hold more than the whitening along companions' signatures, as
-    20 frames do for hundreds of kernel phases, by position). *w* (r, q, ny, nx),
-    *corr* (ny, nx, q, q).
+    ``W = C^-1 U (U^T C^-1 U)^{-1/2}`` with ``C = (1 - alpha) C_rows + alpha mu
+    I``: the GLR for a spectrum in ``span(U)`` when the ``z_i`` have covariance
+    ``C`` (``W^T C W = I``), which uses every channel, signal or not, to cancel the
+    noise they share. The target's variance ``mu`` is the rows' mean variance over
+    the channels at that position, ``tr(C_rows) / q``, where it exceeds the
+    whitening's 1: rows whitened by their own covariance hold 1 (a calibrated
+    product's), and the target is the identity; 20 frames for hundreds of kernel
+    phases, whitened by a shrunk covariance, hold several times 1 along
+    companions' signatures at small separations, and the weights are normalised
+    by it there. Never below 1: a few rows underestimate some directions (GPI's 8
+    exposures with a Ledoit-Wolf covariance hold 0.16 of the whitening), and
+    weights normalised by them would favour those. *w* (r, q, ny, nx), *corr*
+    (ny, nx, q, q).
 
     Examples
     --------
@@ -57,9 +61,11 @@ def whiten_weights(w, corr, alpha):
     c = corr.reshape(-1, q, q)
     ok = np.all(np.isfinite(c), axis=(1, 2))
     out = np.zeros_like(ww)
-    d = np.einsum("kqq->kq", c[ok])
-    d = np.where(d > 1e-12 * np.max(d, axis=1, initial=0.0)[:, None], d, 1.0)
-    cs = (1 - alpha) * c[ok] + alpha * d[:, :, None] * np.eye(q)
+    # the target's variance: the rows' own mean where they hold more than the whitening
+    # (never less than the whitening's 1: few rows underestimate some directions, and
+    # weights would favour them)
+    mu = np.maximum(np.einsum("kqq->k", c[ok]) / q, 1.0)
+    cs = (1 - alpha) * c[ok] + alpha * mu[:, None, None] * np.eye(q)
     ci_u = np.linalg.solve(cs, ww[ok])                              # C^-1 U
     g = np.matmul(ww[ok].transpose(0, 2, 1), ci_u)                  # U^T C^-1 U
     val, vec = np.linalg.eigh(g)

@@ -246,8 +246,8 @@ NULL_CARDS = {"threshold_gaussian": ("THRGAUS", "Gaussian Monte-Carlo"),
 # products' own cards come in one order however often a result is written
 _PRODUCT_CARDS = {"KPIFSVER", "CONTENT", "TEST", "MAPTEST", "PFA", "PD", "THRESH", "NDRAWS",
                   "PFAFLOOR", "MCSEED", "NCAND", "ESTAT", "EDOF", "EPFA", "ETHRESH", "GRIDFRM",
-                  "ERAW", "MAPNOISE", "SUBNOISE", "EXCLCHAN", "STATSHR", "STATAMP", "STATPUP",
-                  "GRIDMIN", "GRIDMAX",
+                  "ERAW", "MAPNOISE", "MAPEXPCT", "SUBNOISE", "EXCLCHAN", "STATSHR", "STATAMP",
+                  "STATPUP", "GRIDMIN", "GRIDMAX",
                   "NULLCHAN", "CALIB", "CHI2RED", "NOISESC", "DETPA", "NULLMETH",
                   *(name for name, _ in NULL_CARDS.values()),
                   *(name for name, _ in FIELD_CARDS.values())}
