@@ -435,11 +435,12 @@ def combined_scale(kappa, spread, kappa_map, map_low, map_mean=1.0):
     upper confidence bound (`noise_scale`): *spread* for the energy, *map_low*
     (the `NOISE_CONFIDENCE` quantile of `~kpifs.detect.null.NullCalibration.noise_draws`)
     for the map's mean square *kappa_map*; never below `MIN_SCALE`. The map's is
-    measured against what the null's draws give it on average (*map_mean*, their
-    mean): where the covariance rows the null draws from hold more than the
-    whitening along companions' signatures (few frames for many kernel phases,
-    a shrunk covariance), the threshold already holds that excess, and counting
-    it in the scale too would count it twice.
+    measured against what the covariance rows the null draws from give it on
+    average (*map_mean*, `map_expectation`): where they hold more than the
+    whitening along companions' signatures (few frames for many kernel phases, a
+    shrunk covariance), the threshold already holds that excess, and counting it
+    in the scale too would count it twice; where they hold less, the threshold
+    lacks it and the scale makes up for it.
 
     Examples
     --------
