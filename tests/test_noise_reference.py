@@ -40,6 +40,8 @@ def test_combined_scale_reads_the_map_against_its_expectation():
     assert combined_scale(1.0, 0.1, 6.0, 3.0, 5.0) == pytest.approx(1.2)
     assert combined_scale(1.0, 0.1, 6.0, 3.0) == pytest.approx(6.0)       # rows of unit scale
     assert combined_scale(1.5, 0.1, 6.0, 3.0, 5.0) == pytest.approx(1.5)  # the energy's
+    # rows holding less than the whitening: the whitening stays the reference
+    assert combined_scale(1.0, 0.1, 1.3, 0.5, 0.23) == pytest.approx(1.3)
 
 
 def test_map_expectation_is_the_mean_of_map_noise_under_the_rows(setup):

@@ -435,12 +435,13 @@ def combined_scale(kappa, spread, kappa_map, map_low, map_mean=1.0):
     upper confidence bound (`noise_scale`): *spread* for the energy, *map_low*
     (the `NOISE_CONFIDENCE` quantile of `~kpifs.detect.null.NullCalibration.noise_draws`)
     for the map's mean square *kappa_map*; never below `MIN_SCALE`. The map's is
-    measured against what the covariance rows the null draws from give it on
-    average (*map_mean*, `map_expectation`): where they hold more than the
-    whitening along companions' signatures (few frames for many kernel phases, a
-    shrunk covariance), the threshold already holds that excess, and counting it
-    in the scale too would count it twice; where they hold less, the threshold
-    lacks it and the scale makes up for it.
+    measured against the larger of the whitening's 1 and what the covariance rows
+    the null draws from give it on average (*map_mean*, `map_expectation`): where
+    they hold more than the whitening along companions' signatures (few frames for
+    many kernel phases, a shrunk covariance), the threshold already holds that
+    excess, and counting it in the scale too would count it twice. Where they hold
+    less (an average over channels some of which the rows barely see, as ASDI's
+    block departures), the whitening stays the reference.
 
     Examples
     --------
@@ -451,7 +452,7 @@ def combined_scale(kappa, spread, kappa_map, map_low, map_mean=1.0):
     if not np.isfinite(kappa_map):      # no valid position: the energy alone
         s = noise_scale(kappa, spread) if np.isfinite(kappa) else 1.0
     else:
-        rel = kappa_map / map_mean if np.isfinite(map_mean) and map_mean > 0 else kappa_map
+        rel = kappa_map / max(map_mean, 1.0) if np.isfinite(map_mean) else kappa_map
         s_map = rel if rel >= 1 else min(1.0, kappa_map / max(map_low, 1e-12))
         s = s_map if not np.isfinite(kappa) else max(noise_scale(kappa, spread), s_map)
     return float(max(s, MIN_SCALE))
