@@ -232,3 +232,18 @@ def test_subspace_limit_does_not_depend_on_eigenvector_signs(monkeypatch):
     after = limit_subspace(w, n2, 12.0, 0.5, correlation=corr)
     assert np.all(np.isfinite(before))
     assert np.allclose(after, before, rtol=1e-10)
+
+
+def test_np_correlated_power_is_that_of_the_pseudo_inverse():
+    # full-rank correlations by one solve, rank-deficient ones by pinv: m^T C^+ m either way
+    from kpifs.detect.channels import _pinv_power
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal((40, 5, 8))
+    c = x.transpose(0, 2, 1) @ x                          # rank 5 of 8
+    c[:15] = np.eye(8) + 0.1                               # full rank
+    m = rng.random((40, 8))
+    ref = np.einsum("ni,nij,nj->n", m, np.linalg.pinv(c, rcond=1e-9, hermitian=True), m)
+    np.testing.assert_allclose(_pinv_power(c, m), ref, rtol=1e-12)
+    inv = np.linalg.inv(np.eye(8) + 0.1)
+    np.testing.assert_allclose(_pinv_power(c[:15], m[:15]),
+                               np.einsum("ni,ij,nj->n", m[:15], inv, m[:15]), rtol=1e-12)
