@@ -247,3 +247,23 @@ def test_np_correlated_power_is_that_of_the_pseudo_inverse():
     inv = np.linalg.inv(np.eye(8) + 0.1)
     np.testing.assert_allclose(_pinv_power(c[:15], m[:15]),
                                np.einsum("ni,ij,nj->n", m[:15], inv, m[:15]), rtol=1e-12)
+
+
+def test_annulus_expectation_follows_the_channels_correlation(coarse):
+    # `annulus_noise`'s expectation is kept on the model, and taken again when the
+    # channels' correlation changes: the same maps as a model made afresh
+    from kpifs.detect.channels import annulus_noise
+    grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    w = np.stack([np.eye(coarse.n_kp)] * 3)
+    dm = DetectionModel(coarse, [1.5, 1.6, 1.7] * u.um, w, grid)
+    y = np.random.default_rng(2).standard_normal((3, coarse.n_kp))
+    rows = np.random.default_rng(3).standard_normal((40, 3, coarse.n_kp)) / 40 ** 0.5
+    first = [annulus_noise(dm, y, subspace=s) for s in (False, True)]
+    dm.correlate(rows * 2)
+    fresh = DetectionModel(coarse, [1.5, 1.6, 1.7] * u.um, w, grid)
+    fresh.correlate(rows * 2)
+    v = grid.valid
+    for s, before in zip((False, True), first):
+        after = annulus_noise(dm, y, subspace=s)
+        assert np.array_equal(after, annulus_noise(fresh, y, subspace=s), equal_nan=True)
+        assert np.all(after[v] < 0.5 * before[v])            # four times the variance

@@ -247,18 +247,33 @@ def _map_power(model, y, subspace):
     expectation under the error model."""
     v = model.grid.valid
     z = np.nan_to_num(model.z_maps(y)[..., v])                         # (q, nvalid)
-    corr = model.__dict__.get("_channel_corr")
-    corr = None if corr is None else np.nan_to_num(corr[v])          # (nvalid, q, q)
     if subspace:
-        sub = model.subspace[..., v]                                    # (r, q, nvalid)
-        num = np.sum(np.einsum("rqk,qk->rk", sub, z) ** 2, axis=0)
-        expect = np.sum(sub ** 2, axis=(0, 1)) if corr is None else \
-            np.einsum("rqk,kqp,rpk->k", sub, corr, sub)
+        num = np.sum(np.einsum("rqk,qk->rk", model.subspace[..., v], z) ** 2, axis=0)
     else:
         num = np.sum(z ** 2, axis=0)
-        expect = np.full(num.shape, float(len(z))) if corr is None else \
-            np.einsum("kqq->k", corr)
-    return num, expect
+    return num, _map_expectation(model, subspace)
+
+
+def _map_expectation(model, subspace):
+    """`_map_power`'s expectation, which depends on the model alone: kept on it, with the
+    channels' correlation and subspace weights it was computed from (made again when
+    those change)."""
+    v = model.grid.valid
+    corr = model.__dict__.get("_channel_corr")
+    sub = model.subspace if subspace else None
+    kept = model.__dict__.setdefault("_map_expectation", {}).get(subspace)
+    if kept is not None and kept[0] is corr and kept[1] is sub:
+        return kept[2]
+    c = None if corr is None else np.nan_to_num(corr[v])                 # (nvalid, q, q)
+    if subspace:
+        s = sub[..., v]                                                   # (r, q, nvalid)
+        expect = np.sum(s ** 2, axis=(0, 1)) if c is None else \
+            np.einsum("rqk,kqp,rpk->k", s, c, s)
+    else:
+        expect = np.full(int(v.sum()), float(len(model.wavelengths))) if c is None else \
+            np.einsum("kqq->k", c)
+    model._map_expectation[subspace] = (corr, sub, expect)
+    return expect
 
 
 def annulus_noise(model, y, *, subspace=False):
