@@ -267,3 +267,17 @@ def test_annulus_expectation_follows_the_channels_correlation(coarse):
         after = annulus_noise(dm, y, subspace=s)
         assert np.array_equal(after, annulus_noise(fresh, y, subspace=s), equal_nan=True)
         assert np.all(after[v] < 0.5 * before[v])            # four times the variance
+
+
+def test_dot_maps_of_one_data_set_kept_and_copied(coarse):
+    # kept for the next calls (a search projects one residual several times): the same
+    # numbers as made afresh, and a caller's change to its copy does not reach the next
+    grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    dm = DetectionModel(coarse, [1.5, 1.6] * u.um, np.stack([np.eye(coarse.n_kp)] * 2), grid)
+    y = np.random.default_rng(5).standard_normal((2, coarse.n_kp))
+    first = dm.dot_maps(y)
+    first[:] = 0.0
+    again = dm.dot_maps(y)
+    assert np.array_equal(again, dm._dot_maps(y)) and np.abs(again).max() > 0
+    both = dm.dot_maps(np.stack([y, 2 * y]))              # several data sets: not kept
+    np.testing.assert_allclose(both, np.stack([again, 2 * again]), rtol=1e-12, atol=1e-12)

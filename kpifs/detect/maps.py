@@ -235,8 +235,27 @@ class DetectionModel:
 
     # --- maps -------------------------------------------------------------------
     def dot_maps(self, y):
-        """``s_i^T y_i`` over the grid for whitened data *y* (..., q, p) -> (..., q, ny, nx)."""
+        """``s_i^T y_i`` over the grid for whitened data *y* (..., q, p) -> (..., q, ny, nx).
+
+        The maps of one data set (q, p) are kept for the next few calls: a search
+        projects the same residual for its candidates, its noise measures and its
+        maps."""
         y = np.asarray(y, float)
+        if y.ndim != 2:
+            return self._dot_maps(y)
+        key = hashlib.sha1(np.ascontiguousarray(y).tobytes()).hexdigest() + repr(y.shape)
+        kept = self.__dict__.setdefault("_dot_maps_kept", {})
+        maps = kept.get(key)
+        if maps is None:
+            maps = kept[key] = self._dot_maps(y)
+            while len(kept) > 4:
+                try:                              # (another thread may evict it first)
+                    kept.pop(next(iter(kept)), None)
+                except (RuntimeError, StopIteration):
+                    break
+        return maps.copy()
+
+    def _dot_maps(self, y):
         lead = y.shape[:-2]
         yb = y.reshape((-1,) + y.shape[-2:])
         m = len(yb)
