@@ -232,3 +232,52 @@ def test_subspace_limit_does_not_depend_on_eigenvector_signs(monkeypatch):
     after = limit_subspace(w, n2, 12.0, 0.5, correlation=corr)
     assert np.all(np.isfinite(before))
     assert np.allclose(after, before, rtol=1e-10)
+
+
+def test_np_correlated_power_is_that_of_the_pseudo_inverse():
+    # full-rank correlations by one solve, rank-deficient ones by pinv: m^T C^+ m either way
+    from kpifs.detect.channels import _pinv_power
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal((40, 5, 8))
+    c = x.transpose(0, 2, 1) @ x                          # rank 5 of 8
+    c[:15] = np.eye(8) + 0.1                               # full rank
+    m = rng.random((40, 8))
+    ref = np.einsum("ni,nij,nj->n", m, np.linalg.pinv(c, rcond=1e-9, hermitian=True), m)
+    np.testing.assert_allclose(_pinv_power(c, m), ref, rtol=1e-12)
+    inv = np.linalg.inv(np.eye(8) + 0.1)
+    np.testing.assert_allclose(_pinv_power(c[:15], m[:15]),
+                               np.einsum("ni,ij,nj->n", m[:15], inv, m[:15]), rtol=1e-12)
+
+
+def test_annulus_expectation_follows_the_channels_correlation(coarse):
+    # `annulus_noise`'s expectation is kept on the model, and taken again when the
+    # channels' correlation changes: the same maps as a model made afresh
+    from kpifs.detect.channels import annulus_noise
+    grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    w = np.stack([np.eye(coarse.n_kp)] * 3)
+    dm = DetectionModel(coarse, [1.5, 1.6, 1.7] * u.um, w, grid)
+    y = np.random.default_rng(2).standard_normal((3, coarse.n_kp))
+    rows = np.random.default_rng(3).standard_normal((40, 3, coarse.n_kp)) / 40 ** 0.5
+    first = [annulus_noise(dm, y, subspace=s) for s in (False, True)]
+    dm.correlate(rows * 2)
+    fresh = DetectionModel(coarse, [1.5, 1.6, 1.7] * u.um, w, grid)
+    fresh.correlate(rows * 2)
+    v = grid.valid
+    for s, before in zip((False, True), first):
+        after = annulus_noise(dm, y, subspace=s)
+        assert np.array_equal(after, annulus_noise(fresh, y, subspace=s), equal_nan=True)
+        assert np.all(after[v] < 0.5 * before[v])            # four times the variance
+
+
+def test_dot_maps_of_one_data_set_kept_and_copied(coarse):
+    # kept for the next calls (a search projects one residual several times): the same
+    # numbers as made afresh, and a caller's change to its copy does not reach the next
+    grid = DetectionGrid.from_separation(100 * u.mas, 10 * u.mas, min_sep=20 * u.mas)
+    dm = DetectionModel(coarse, [1.5, 1.6] * u.um, np.stack([np.eye(coarse.n_kp)] * 2), grid)
+    y = np.random.default_rng(5).standard_normal((2, coarse.n_kp))
+    first = dm.dot_maps(y)
+    first[:] = 0.0
+    again = dm.dot_maps(y)
+    assert np.array_equal(again, dm._dot_maps(y)) and np.abs(again).max() > 0
+    both = dm.dot_maps(np.stack([y, 2 * y]))              # several data sets: not kept
+    np.testing.assert_allclose(both, np.stack([again, 2 * again]), rtol=1e-12, atol=1e-12)

@@ -155,8 +155,7 @@ def np_correlated(norm2, corr, a, pfa, pd):
     c = corr.reshape(-1, q, q)
     out = np.full(len(m), np.nan)
     ok = np.all(np.isfinite(c), axis=(1, 2)) & np.all(np.isfinite(m), axis=1)
-    inv = np.linalg.pinv(c[ok], rcond=1e-9, hermitian=True)
-    power = np.einsum("ni,nij,nj->n", m[ok], inv, m[ok])
+    power = _pinv_power(c[ok], m[ok])
     with np.errstate(divide="ignore"):
         out[ok] = (norm_isf(pfa) - norm_isf(pd)) / np.sqrt(power)
     return out.reshape(norm2.shape[1:])
@@ -271,18 +270,33 @@ def _map_power(model, y, subspace):
     expectation under the error model."""
     v = model.grid.valid
     z = np.nan_to_num(model.z_maps(y)[..., v])                         # (q, nvalid)
-    corr = model.__dict__.get("_channel_corr")
-    corr = None if corr is None else np.nan_to_num(corr[v])          # (nvalid, q, q)
     if subspace:
-        sub = model.subspace[..., v]                                    # (r, q, nvalid)
-        num = np.sum(np.einsum("rqk,qk->rk", sub, z) ** 2, axis=0)
-        expect = np.sum(sub ** 2, axis=(0, 1)) if corr is None else \
-            np.einsum("rqk,kqp,rpk->k", sub, corr, sub)
+        num = np.sum(np.einsum("rqk,qk->rk", model.subspace[..., v], z) ** 2, axis=0)
     else:
         num = np.sum(z ** 2, axis=0)
-        expect = np.full(num.shape, float(len(z))) if corr is None else \
-            np.einsum("kqq->k", corr)
-    return num, expect
+    return num, _map_expectation(model, subspace)
+
+
+def _map_expectation(model, subspace):
+    """`_map_power`'s expectation, which depends on the model alone: kept on it, with the
+    channels' correlation and subspace weights it was computed from (made again when
+    those change)."""
+    v = model.grid.valid
+    corr = model.__dict__.get("_channel_corr")
+    sub = model.subspace if subspace else None
+    kept = model.__dict__.setdefault("_map_expectation", {}).get(subspace)
+    if kept is not None and kept[0] is corr and kept[1] is sub:
+        return kept[2]
+    c = None if corr is None else np.nan_to_num(corr[v])                 # (nvalid, q, q)
+    if subspace:
+        s = sub[..., v]                                                   # (r, q, nvalid)
+        expect = np.sum(s ** 2, axis=(0, 1)) if c is None else \
+            np.einsum("rqk,kqp,rpk->k", s, c, s)
+    else:
+        expect = np.full(int(v.sum()), float(len(model.wavelengths))) if c is None else \
+            np.einsum("kqq->k", c)
+    model._map_expectation[subspace] = (corr, sub, expect)
+    return expect
 
 
 def map_expectation(model):
@@ -456,6 +470,24 @@ def combined_scale(kappa, spread, kappa_map, map_low, map_mean=1.0):
         s_map = rel if rel >= 1 else min(1.0, kappa_map / max(map_low, 1e-12))
         s = s_map if not np.isfinite(kappa) else max(noise_scale(kappa, spread), s_map)
     return float(max(s, MIN_SCALE))
+
+
+def _pinv_power(c, m, rcond=1e-9):
+    """``m^T C^+ m`` for each symmetric matrix of *c* (n, q, q) and vector of *m* (n, q),
+    ``C^+`` the pseudo-inverse of ``numpy.linalg.pinv(C, rcond, hermitian=True)``
+    (eigenvalues below *rcond* times the largest, in absolute value, left out). Where
+    none is left out ``C^+`` is the inverse: one solve (the eigenvalues alone say so, a
+    third of the time of the decomposition ``pinv`` makes); elsewhere ``pinv``."""
+    vals = np.abs(np.linalg.eigvalsh(c))
+    full = np.all(vals > rcond * vals.max(axis=1, keepdims=True), axis=1)
+    out = np.empty(len(c))
+    if full.any():
+        x = np.linalg.solve(c[full], m[full][:, :, None])[:, :, 0]
+        out[full] = np.einsum("ni,ni->n", m[full], x)
+    if not full.all():
+        inv = np.linalg.pinv(c[~full], rcond=rcond, hermitian=True)
+        out[~full] = np.einsum("ni,nij,nj->n", m[~full], inv, m[~full])
+    return out
 
 
 def channel_correlation(model, rows):

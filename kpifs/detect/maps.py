@@ -235,8 +235,27 @@ class DetectionModel:
 
     # --- maps -------------------------------------------------------------------
     def dot_maps(self, y):
-        """``s_i^T y_i`` over the grid for whitened data *y* (..., q, p) -> (..., q, ny, nx)."""
+        """``s_i^T y_i`` over the grid for whitened data *y* (..., q, p) -> (..., q, ny, nx).
+
+        The maps of one data set (q, p) are kept for the next few calls: a search
+        projects the same residual for its candidates, its noise measures and its
+        maps."""
         y = np.asarray(y, float)
+        if y.ndim != 2:
+            return self._dot_maps(y)
+        key = hashlib.sha1(np.ascontiguousarray(y).tobytes()).hexdigest() + repr(y.shape)
+        kept = self.__dict__.setdefault("_dot_maps_kept", {})
+        maps = kept.get(key)
+        if maps is None:
+            maps = kept[key] = self._dot_maps(y)
+            while len(kept) > 4:
+                try:                              # (another thread may evict it first)
+                    kept.pop(next(iter(kept)), None)
+                except (RuntimeError, StopIteration):
+                    break
+        return maps.copy()
+
+    def _dot_maps(self, y):
         lead = y.shape[:-2]
         yb = y.reshape((-1,) + y.shape[-2:])
         m = len(yb)
@@ -381,7 +400,9 @@ class DetectionModel:
             keep, unit = self._unit_cache
             at = np.minimum(np.searchsorted(keep, rows), len(keep) - 1)
             if np.array_equal(keep[at], rows):
-                return unit[:, at]
+                # a run of kept positions (as `row_projections` asks): a view, no copy
+                run = len(at) > 0 and at[-1] - at[0] == len(at) - 1
+                return unit[:, at[0]:at[-1] + 1] if run else unit[:, at]
         q, p = len(self.wavelengths), self.kernel_model.n_kp
         out = np.empty((q, len(rows), p), np.float32)
         wf = self._wfac.ravel()[rows]
@@ -413,10 +434,11 @@ class DetectionModel:
             # written channel-major (contiguous rows), turned to (npos, nrow, q) at the end
             outs = {j: np.empty((q, len(sets[j]), len(rows))) for j in todo}
             for a in range(0, len(rows), chunk):
-                unit = self._unit_signatures(rows[a:a + chunk]).astype(float)   # (q, n, p)
+                unit = self._unit_signatures(rows[a:a + chunk])                 # (q, n, p)
                 for i in range(q):
+                    ui = unit[i].astype(float)        # one channel at a time: in the cache
                     for j in todo:
-                        np.matmul(sets[j][:, i, :], unit[i].T, out=outs[j][i, :, a:a + chunk])
+                        np.matmul(sets[j][:, i, :], ui.T, out=outs[j][i, :, a:a + chunk])
             for j in todo:
                 cache[keys[j]] = (rows, np.ascontiguousarray(outs[j].transpose(2, 1, 0)))
             while len(cache) > 3:

@@ -116,7 +116,9 @@ class _Projections:
         if self.via_rows:
             # the rows' projections on every valid position (the limits use them too)
             valid, z = model.row_projections(rows)                        # (nvalid, nrow, q)
-            self._z = z[np.searchsorted(valid, self.positions)]             # (npos, nrow, q)
+            # (npos, nrow, q): the projections themselves when made on these positions
+            self._z = z if np.array_equal(valid, self.positions) else \
+                z[np.searchsorted(valid, self.positions)]
             # sum_i ||z_i||^2 is a quadratic form of coef: coef^T (sum_i Z_i Z_i^T) coef
             flat = self._z.transpose(1, 0, 2).reshape(len(rows), -1)
             self.gram = flat @ flat.T

@@ -483,6 +483,7 @@ class _NoiseJudge:
         self.test, self.white, self.null = prep.test, white, null
         self.ring_width = resolution_mas(prep.kpd.kernel_model, prep.kpd.wavelengths)
         self.residual = self.map = self.common = self.subspace = None
+        self._rings = {}           # per annulus, by subspace: (the residual, its map)
 
     def scale(self, res, n_par):
         w, model = self.white.w, self.white.model
@@ -500,9 +501,12 @@ class _NoiseJudge:
         """The annulus noise around *peak* (None: per annulus, as a map); only ever up
         (an annulus's chance excess errs on the safe side)."""
         subspace = self.test.subspace_map if subspace is None else subspace
+        if peak is None and self._rings.get(subspace, (None,))[0] is res:
+            return self._rings[subspace][1]             # the maps' and the limits' residual
         model, yr = self.white.model, whiten(res, self.white.w)
         if peak is None:
-            return annulus_noise(model, yr, subspace=subspace)
+            self._rings[subspace] = (res, annulus_noise(model, yr, subspace=subspace))
+            return self._rings[subspace][1]
         return float(np.nan_to_num(ring_noise(model, yr, peak, width=self.ring_width,
                                               radius=1.5 * self.ring_width, subspace=subspace),
                                    nan=1.0))
