@@ -326,12 +326,9 @@ def map_expectation(model):
     >>> round(map_expectation(dm), 9)
     9.0
     """
-    corr = model.__dict__.get("_channel_corr")
-    v = model.grid.valid
-    if corr is None or not v.any():
+    if not model.grid.valid.any():
         return 1.0
-    c = np.nan_to_num(corr[v])
-    return float(np.mean(np.einsum("kqq->k", c)) / c.shape[-1])
+    return float(np.mean(_map_expectation(model, False)) / len(model.wavelengths))
 
 
 def annulus_noise(model, y, *, subspace=False):
