@@ -22,7 +22,7 @@ import numpy as np
 from .exceptions import KpifsError, KpifsWarning
 
 __all__ = ["empirical_covariance", "ledoit_wolf", "hartlap_factor",
-           "whitening_matrix", "whiten", "calibrated_covariance",
+           "whitening_matrix", "whitening_range", "whiten", "calibrated_covariance",
            "filled_covariance", "unfilled_covariance", "COVFILL_FACTOR"]
 
 log = logging.getLogger(__name__)
@@ -250,6 +250,47 @@ def whitening_matrix(cov, *, rtol=1e-6, return_rank=False, source="covariance"):
     if return_rank:
         return w, (int(rank) if np.ndim(rank) == 0 else rank)
     return w
+
+
+def whitening_range(w, rank, *, oversample=8, seed=0):
+    """An orthonormal basis of the range of a whitening operator of low *rank*.
+
+    A covariance measured on few frames keeps few modes (`whitening_matrix`):
+    the whitened data and every whitened signature then lie in a subspace of
+    dimension *rank*, and products through the operator can be made in that
+    subspace's coordinates. The basis is found as in randomised range finders
+    (Halko, Martinsson & Tropp 2011, algorithm 4.1): the left singular vectors
+    of ``w @ Omega`` for a Gaussian ``Omega`` of ``rank + oversample`` columns
+    (drawn from *seed*: the same basis on every call), those above ``1e-10`` of
+    the largest singular value kept.
+
+    Returns ``Q`` (p, r) with ``Q Q^T w = w`` to rounding, or None when the range
+    is wider than ``rank + oversample`` columns can show (the operator is not of
+    that low rank) or more than half the dimension (nothing to gain).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.covariance import whitening_matrix, whitening_range
+    >>> x = np.random.default_rng(1).standard_normal((5, 40))
+    >>> w, rank = whitening_matrix(x.T @ x, return_rank=True)      # 5 frames, 40 kernels
+    >>> q = whitening_range(w, rank)
+    >>> rank, q.shape, bool(np.allclose(q @ (q.T @ w), w))
+    (5, (40, 5), True)
+    >>> whitening_range(np.eye(40), 40) is None                     # full rank: none
+    True
+    """
+    w = np.asarray(w, float)
+    p = w.shape[-1]
+    k = int(rank) + oversample
+    if k > p // 2:
+        return None
+    omega = np.random.default_rng(seed).standard_normal((p, k))
+    u, s, _ = np.linalg.svd(w @ omega, full_matrices=False)
+    if not s[0] > 0:
+        return None
+    r = int(np.sum(s > 1e-10 * s[0]))
+    return u[:, :r] if r < k else None
 
 
 #: A covariance written for other tools (KP-COV) gives the directions it leaves out

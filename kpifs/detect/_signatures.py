@@ -3,16 +3,20 @@ model and the block model of a rotating sequence)."""
 import numpy as np
 
 
-def _norm_chunks(rows, size, signatures, at, wf, unit):
+def _norm_chunks(rows, size, signatures, at, wf, unit, basis=None):
     """``||s||^2`` of ``signatures(chunk)`` (len(chunk), p) over flat *rows*, *size*
-    at a time; the unit signatures of rows *at* go into *unit* (None: not kept)."""
+    at a time; the unit signatures of rows *at* go into *unit* (None: not kept).
+    With *basis* (p, r), orthonormal, the signatures are given in its coordinates
+    (len(chunk), r): the norms are theirs, the unit signatures ``s @ basis.T``."""
     raw = np.empty(len(rows))
     for a in range(0, len(rows), size):
         s = signatures(rows[a:a + size])
         raw[a:a + len(s)] = np.einsum("ij,ij->i", s, s)
         if unit is not None:
             sel = (at >= a) & (at < a + len(s))
-            unit[sel] = _unit(s[at[sel] - a], raw[at[sel]], wf[sel])
+            kept = s[at[sel] - a]
+            unit[sel] = _unit(kept if basis is None else kept @ basis.T, raw[at[sel]],
+                              wf[sel])
     return raw
 
 

@@ -29,6 +29,7 @@ from astropy.table import QTable
 from .._lazy import lazy_module
 from .._utils import thread_map
 
+from ._elementwise import crossing_sums
 from ._laws import chi2_cdf, chi2_ppf, chi2_sf, lhs_normal, norm_isf, norm_sf, order_quantile
 from .spectral import spectrum_shape
 from .stats import check_probability, energy_threshold
@@ -285,16 +286,11 @@ def _crossings(z, m, threshold, power, start, n_iter=12, rtol=1e-4, chunk=4):
 
 def _newton_step(z, m32, c, threshold, power, u, zero):
     """One Newton step of `_crossings` from contrasts *c* (k, N); *u* a work array and
-    *zero* zeros of its shape."""
-    np.einsum("kq,kn->kqn", m32, c, out=u)          # m c (an outer product: no sum)
-    u += z
-    np.maximum(u, zero, out=u)
+    *zero* zeros of its shape (for numpy's loops, `~kpifs.detect._elementwise.crossing_sums`)."""
+    f, g = crossing_sums(z, m32, c, power, u=u, zero=zero)
+    f = f - threshold
     if power == 2:
-        f = np.einsum("kqn,kqn->kn", u, u) - threshold
-        g = 2 * np.matmul(m32[:, None, :], u)[:, 0]
-    else:
-        f = u.sum(axis=1) - threshold
-        g = np.matmul(m32[:, None, :], (u > 0).astype(np.float32))[:, 0]
+        g = 2 * g
     with np.errstate(divide="ignore", invalid="ignore"):
         new = np.maximum(c - f / g, 0)
         off = g <= 0

@@ -26,6 +26,7 @@ from astropy import units as u
 from astropy.table import QTable
 
 from .._utils import thread_map, to_quantity
+from ..covariance import whitening_range
 from ..data import DetectionGrid
 from ..exceptions import KpifsError
 from ..model.kernel import MAS
@@ -218,9 +219,11 @@ class DetectionModel:
         out = np.zeros((q, n))
 
         def channel(i):
-            # ||W K sin||^2 through the (nuv, p) lift: fewer flops than the (nuv, nuv) Gram
-            raw = _norm_chunks(rows, 2048, lambda c: self._sin_rows(i, c) @ self._lift[i],
-                               at, wf, unit[i] if cache else None)
+            # ||W K sin||^2 through the (nuv, p) lift: fewer flops than the (nuv, nuv) Gram;
+            # through its (nuv, r) restriction to the whitening's range when that is narrow
+            lift, basis = self._range_lift(i)
+            raw = _norm_chunks(rows, 2048, lambda c: self._sin_rows(i, c) @ lift,
+                               at, wf, unit[i] if cache else None, basis)
             out[i, rows] = raw
             if mirrored:
                 out[i, n - 1 - rows] = raw
@@ -228,6 +231,20 @@ class DetectionModel:
         if cache:
             self._unit_cache = (keep, unit)
         return out.reshape((q,) + self.grid.shape) * self._wfac[None] ** 2
+
+    def _range_lift(self, i):
+        """Channel *i*'s lift and the basis of its coordinates: ``(L_i Q_i, Q_i)`` with
+        ``Q_i`` (p, r) an orthonormal basis of the whitening's range
+        (`~kpifs.covariance.whitening_range`, *r* its rank: a whitened signature lies
+        there, ``s = (sin L_i Q_i) Q_i^T``), or ``(L_i, None)`` when the range is not
+        narrow (few frames for many kernel phases make it so: 19 of 264 dimensions for
+        20 frames)."""
+        kept = self.__dict__.setdefault("_range_lifts", {})
+        if i not in kept:
+            ranks = np.broadcast_to(self.dof, (len(self._lift),))
+            basis = whitening_range(self.whitening[i], ranks[i])
+            kept[i] = (self._lift[i], None) if basis is None else (self._lift[i] @ basis, basis)
+        return kept[i]
 
     def _symmetric_grid(self):
         g = self.grid
@@ -407,8 +424,10 @@ class DetectionModel:
         out = np.empty((q, len(rows), p), np.float32)
         wf = self._wfac.ravel()[rows]
         for i in range(q):
-            s = self._sin_rows(i, rows) @ self._lift[i]             # (npos, p)
-            out[i] = _unit(s, np.einsum("ij,ij->i", s, s), wf)
+            lift, basis = self._range_lift(i)
+            s = self._sin_rows(i, rows) @ lift                    # (npos, p) or (npos, r)
+            norm2 = np.einsum("ij,ij->i", s, s)
+            out[i] = _unit(s if basis is None else s @ basis.T, norm2, wf)
         return out
 
     def row_projections(self, noise_rows, *, chunk=512, also=()):

@@ -72,6 +72,9 @@ NULL_METHODS = ("auto", "gaussian", "empirical", "both")
 #: Most sign-flip draws of the empirical null (every pattern of up to 13 blocks).
 EMPIRICAL_DRAWS = 2 ** 12
 
+#: Draws whose projections in every channel are made in one product (a batch's share).
+SUB_BATCH = 64
+
 
 def check_draws(n_draws):
     """Refuse a number of Monte-Carlo draws that cannot resolve the null's tail.
@@ -132,12 +135,13 @@ class _Projections:
                 if self.mirrored else None
 
     def channels(self):
-        """Make the channels' projections (q, nrow, npos) and their sum, for the
-        reductions that need every channel's ``z_i`` (and the channels' sum)."""
+        """Make the channels' projections (nrow, q, npos) and their sum, for the
+        reductions that need every channel's ``z_i`` (and the channels' sum): every
+        channel's draws are one product (`_Draw.all_channels`), or one each."""
         if self.via_rows and self.proj is None:
-            proj = np.ascontiguousarray(self._z.transpose(2, 1, 0), np.float32)
+            proj = np.ascontiguousarray(self._z.transpose(1, 2, 0), np.float32)
             # the sum of z over channels is one product: coef @ sum_i proj_i
-            self.sum_weights = proj.sum(axis=0)
+            self.sum_weights = proj.sum(axis=1)
             self.proj = proj
         return self
 
@@ -172,8 +176,14 @@ class _Draw:
 
     def channel(self, i, out):
         if self.p.via_rows:
-            return np.matmul(self.coef, self.p.proj[i], out=out)
+            return np.matmul(self.coef, self.p.proj[:, i], out=out)
         return np.matmul(self.joint[:, i], self.p.unit[i].T, out=out)
+
+    def all_channels(self, at, out):
+        """Every channel's projections of draws *at* (a slice of the batch), one product
+        through the rows: *out* (m, q, npos)."""
+        flat = self.p.proj.reshape(len(self.coef[0]), -1)
+        return np.matmul(self.coef[at], flat, out=out.reshape(len(out), -1)).reshape(out.shape)
 
     def channel_sum(self):
         if self._sum is None:
@@ -307,13 +317,27 @@ class NullCalibration:
         if per_channel:
             proj.channels()
 
+        def together(adders):
+            # all channels at once where the draws go through the rows and every
+            # reduction can take them so (`DetectionTest.null_reducer`'s add_channels)
+            return proj.via_rows and adders and all(hasattr(p, "add_channels") for p in adders)
+
         def one(job):
             (a, b), rng = job
             draw = proj.draw(rng, a, b)
             parts = [r.batch(b - a) for r in reducers]
             adders = [p for r, p in zip(reducers, parts) if getattr(r, "per_channel", True)]
             z2 = draw.energy()
-            if per_channel:
+            if per_channel and together(adders):
+                # every channel in one product, by sub-batches whose projections (m, q,
+                # npos) stay small; the reductions take them all at once
+                zs = np.empty((min(SUB_BATCH, b - a), q, proj.npos), np.float32)
+                for s in range(0, b - a, SUB_BATCH):
+                    at = slice(s, min(b - a, s + SUB_BATCH))
+                    z = draw.all_channels(at, zs[:at.stop - at.start])
+                    for part in adders:
+                        part.add_channels(z, at, draw)
+            elif per_channel:
                 z = np.empty((b - a, proj.npos), np.float32)
                 z2 = np.zeros(b - a) if z2 is None else z2
                 for i in range(q):

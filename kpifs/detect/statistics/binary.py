@@ -11,6 +11,7 @@ the null's draws and the same draws of the limits.
 """
 import numpy as np
 
+from .._elementwise import COMPILED, binary_forms, binary_maxima
 from ..limits import limit_binary, limit_binary_correlated_forms, mirror_half_map
 from ..stats import binary_pfa, binary_statistic
 from .base import TILE, DetectionTest
@@ -29,39 +30,54 @@ class _Reducer:
 
 
 class _Batch:
+    """One batch of draws: given every channel at once (`add_channels`), their grid
+    maxima directly; given channel by channel (`add`), the forms' maps accumulated."""
+
     def __init__(self, reducer, n):
-        self.r = reducer
-        shape = (n, reducer.npos)
-        self.acc = {f: np.zeros(shape, np.float32) for f in reducer.forms}
-        self.w = np.empty((TILE, reducer.npos), np.float32)
-        # against an array of zeros, not the scalar 0: numpy's faster loop (same values)
-        self.zero = np.zeros_like(self.w)
-        # mirrored positions: sum max(-z, 0)^2 = sum min(z, 0)^2 (B), and
-        # sum max(-z, 0) = sum max(z, 0) - sum z (B-paper: one product for the channel sum)
-        self.neg = np.zeros(shape, np.float32) if reducer.mirrored and "B" in self.acc else None
-        self.v = np.empty_like(self.w) if self.neg is not None else None
-        self.paper, self.square = self.acc.get("B-paper"), self.acc.get("B")
+        self.r, self.n = reducer, n
+        self.maxima = self.acc = None
+
+    def add_channels(self, z, at, draw):
+        """Every channel's projections *z* (m, q, npos) of the draws *at* (a slice): their
+        grid maxima (`binary_maxima`), no map of the forms kept."""
+        if self.maxima is None:
+            self.maxima = np.empty((self.n, 4), np.float32)
+        tot = draw.channel_sum()[at] if self.r.mirrored and "B-paper" in self.r.forms \
+            else None
+        self.maxima[at] = binary_maxima(z, tot)
 
     def add(self, i, z):
-        # by tiles of draws, whose work arrays stay in the cache (the same operations,
-        # element by element, as over the whole batch)
-        for a in range(0, len(z), TILE):
-            zt = z[a:a + TILE]
-            b = a + len(zt)
-            w, zero = self.w[:len(zt)], self.zero[:len(zt)]
-            np.maximum(zt, zero, out=w)
-            if self.paper is not None:
-                self.paper[a:b] += w
-            if self.square is not None:
-                w *= w
-                self.square[a:b] += w
-            if self.neg is not None:
-                v = self.v[:len(zt)]
-                np.minimum(zt, zero, out=v)
-                v *= v
-                self.neg[a:b] += v
+        """Channel *i*'s projections *z* (n, npos), added to the forms' maps."""
+        if self.acc is None:
+            self._start()
+        # numpy's loops by tiles of draws, whose work arrays stay in the cache (the same
+        # operations, element by element, as over the whole batch); compiled, at once
+        step = max(len(z), 1) if COMPILED else TILE
+        for a in range(0, len(z), step):
+            b = min(a + step, len(z))
+            n = b - a
+            tiled = n <= TILE
+            binary_forms(z[a:b], *(None if acc is None else acc[a:b]
+                                   for acc in (self.paper, self.square, self.neg)),
+                         zero=self.zero[:n] if tiled else None,
+                         work=(self.work[0][:n], self.work[1][:n]) if tiled else None)
+
+    def _start(self):
+        shape = (self.n, self.r.npos)
+        self.acc = {f: np.zeros(shape, np.float32) for f in self.r.forms}
+        # the numpy loops' work arrays (`binary_forms`), one tile of draws each
+        self.work = (np.empty((TILE, self.r.npos), np.float32),
+                     np.empty((TILE, self.r.npos), np.float32))
+        self.zero = np.zeros_like(self.work[0])
+        # mirrored positions: sum max(-z, 0)^2 = sum min(z, 0)^2 (B), and
+        # sum max(-z, 0) = sum max(z, 0) - sum z (B-paper: one product for the channel sum)
+        self.neg = np.zeros(shape, np.float32) if self.r.mirrored and "B" in self.acc \
+            else None
+        self.paper, self.square = self.acc.get("B-paper"), self.acc.get("B")
 
     def finish(self, draw):
+        if self.maxima is not None:
+            return self._finish_maxima()
         out = {}
         for f, acc in self.acc.items():
             best = acc.max(axis=1)
@@ -70,6 +86,14 @@ class _Batch:
             elif self.r.mirrored:
                 best = np.maximum(best, (acc - draw.channel_sum()).max(axis=1))
             out[f] = best
+        return out
+
+    def _finish_maxima(self):
+        # columns of `binary_maxima`: B's form, its mirror, B-paper's form, its mirror
+        mx, out = self.maxima, {}
+        for f in self.r.forms:
+            own, mirror = (0, 1) if f == "B" else (2, 3)
+            out[f] = np.maximum(mx[:, own], mx[:, mirror]) if self.r.mirrored else mx[:, own]
         return out
 
 
