@@ -5,33 +5,40 @@ The pipeline runs pupil model -> kernel model -> extraction -> calibration
 public objects. They are loaded on first use, so that ``import kpifs`` (and
 the command line's start) stays fast.
 """
-import importlib
-
 from ._meta import VERSION as __version__
 
-#: public name -> module that defines it
-_PUBLIC = {
-    "KpifsError": "exceptions",
-    "KpifsWarning": "exceptions",
-    "PupilModel": "model.pupil",
-    "make_pupil": "model.pupil",
-    "KernelModel": "model.kernel",
-    "ExtractionWindow": "model.window",
-    "KernelPhaseData": "data",
-    "DetectionResult": "data",
-    "extract_kernel_phases": "extraction.extract",
-}
+__all__ = ["__version__", "KpifsError", "KpifsWarning", "PupilModel", "make_pupil",
+           "KernelModel", "ExtractionWindow", "KernelPhaseData", "DetectionResult",
+           "extract_kernel_phases"]
 
-__all__ = ["__version__", *_PUBLIC]
+
+def _module_of(name):
+    """The module that defines the public *name*, imported now (each import written out:
+    the tools that draw the package's structure see them)."""
+    if name in ("KpifsError", "KpifsWarning"):
+        from . import exceptions as module
+    elif name in ("PupilModel", "make_pupil"):
+        from .model import pupil as module
+    elif name == "KernelModel":
+        from .model import kernel as module
+    elif name == "ExtractionWindow":
+        from .model import window as module
+    elif name in ("KernelPhaseData", "DetectionResult"):
+        from . import data as module
+    elif name == "extract_kernel_phases":
+        from .extraction import extract as module
+    else:
+        return None
+    return module
 
 
 def __getattr__(name):
-    if name in _PUBLIC:
-        value = getattr(importlib.import_module(f".{_PUBLIC[name]}", __name__), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    module = _module_of(name) if name in __all__ else None
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = globals()[name] = getattr(module, name)
+    return value
 
 
 def __dir__():
-    return sorted(set(globals()) | set(_PUBLIC))
+    return sorted(set(globals()) | set(__all__))

@@ -258,6 +258,11 @@ def test_imports_point_down_the_stack():
                             node.module or "").startswith("kpifs")):
                         hidden.append(f"{mod}.{fn.name}")
         graph[mod] = deps
+    # the entry points load on first use, each import written out in a function: the
+    # package's re-exports (``import kpifs`` stays fast) and the command line's command
+    # modules (``kpifs --version`` does not load numpy)
+    entry_points = {"kpifs._module_of", "kpifs._cli.main", "kpifs._cli._runner"}
+    hidden = [h for h in hidden if h not in entry_points]
     assert not hidden, hidden
     modules = set(graph)
     edges = {m: {d for d in deps if d in modules and d != m} for m, deps in graph.items()}

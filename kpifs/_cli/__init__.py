@@ -10,7 +10,6 @@ Exit status: 0 success, 1 ``kpifs batch`` with failed entries, 2 bad input or
 usage (one-line message naming the file and the problem), 3 an unexpected
 internal error (rerun with ``--debug`` for the traceback), 130 interrupted.
 """
-import importlib
 import logging
 import os
 import sys
@@ -59,6 +58,34 @@ def _blas_threads():
                              user_api="blas")
 
 
+def _runner(module):
+    """The ``run`` function of the `kpifs._cli` module *module*, imported now (each import
+    written out: the tools that draw the package's structure see them)."""
+    if module == "batch":
+        from . import batch as command
+    elif module == "demo":
+        from . import demo as command
+    elif module == "detect":
+        from . import detect as command
+    elif module == "extract":
+        from . import extract as command
+    elif module == "info":
+        from . import info as command
+    elif module == "inject":
+        from . import inject as command
+    elif module == "kernel":
+        from . import kernel as command
+    elif module == "modelcheck":
+        from . import modelcheck as command
+    elif module == "roc":
+        from . import roc as command
+    elif module == "simulate":
+        from . import simulate as command
+    else:                                            # a parser entry without its module
+        raise RuntimeError(f"no module kpifs._cli.{module}")
+    return command.run
+
+
 def main(argv=None):
     """Run the ``kpifs`` command line; return the exit status."""
     parser = build_parser()
@@ -70,10 +97,11 @@ def main(argv=None):
     _setup_logging(args)
     # the command's module, and with it numpy/astropy, is imported only now: --help and
     # --version have exited in parse_args without them
-    run = importlib.import_module(f"{__name__}.{args.module}").run
-    bad_input = (importlib.import_module("kpifs.exceptions").KpifsError, OSError)
+    from .._utils import OVERWRITE_HINT as hint
+    from ..exceptions import KpifsError
+    run = _runner(args.module)
+    bad_input = (KpifsError, OSError)
     old_show = warnings.showwarning
-    hint = importlib.import_module("kpifs._utils").OVERWRITE_HINT
     hint[0] = "--overwrite"      # messages name the command line's options, not the API's
     try:
         with warnings.catch_warnings(), _blas_threads():
