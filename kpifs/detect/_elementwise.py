@@ -31,7 +31,7 @@ try:
 except ImportError:                           # not built (a source checkout, no compiler)
     _kernels = None
 
-__all__ = ["binary_forms", "binary_maxima", "crossing_sums", "COMPILED"]
+__all__ = ["binary_forms", "binary_maxima", "crossing_sums", "newton_crossings", "COMPILED"]
 
 #: Whether the compiled loops run (the extension was built and numpy is not forced).
 COMPILED = _kernels is not None and os.environ.get("KPIFS_PURE_NUMPY", "") in ("", "0")
@@ -128,3 +128,16 @@ def crossing_sums(z, m32, c, power, *, u=None, zero=None):
     if power == 2:
         return np.einsum("kqn,kqn->kn", u, u), np.einsum("kq,kqn->kn", m32, u)
     return u.sum(axis=1), np.einsum("kq,kqn->kn", m32, (u > 0).astype(np.float32))
+
+
+def newton_crossings(z, m32, c, threshold, power, *, n_iter, rtol, chunk):
+    """The Newton steps of `kpifs.detect.limits._crossings`, compiled: *c* (k, N) updated
+    in place, chunk of positions by chunk, each until its draws have converged. Returns
+    False (and does nothing) where the extension does not run: the caller steps in numpy
+    (`crossing_sums`)."""
+    if not (COMPILED and _ready(z) and _ready(m32) and _ready(c)) or c.size == 0:
+        return False
+    k, q, n = z.shape
+    _kernels.newton_crossings(z, m32, c, float(threshold), float(threshold ** (1 / power)),
+                              int(power), int(n_iter), float(rtol), int(chunk), k, q, n)
+    return True

@@ -197,6 +197,98 @@ done:
     return result;
 }
 
+/* numpy's min over an array: NaN wins. */
+static inline float nanmin(float m, float x) { return (x < m || x != x) ? x : m; }
+
+/* `_crossings` of kpifs.detect.limits, chunk of positions by chunk: Newton steps of every
+ * draw of a chunk until all have converged (or n_iter steps), as numpy does them:
+ *   new = max(c - (f - thr) / g', 0), g' = 2 g (power 2) or g (power 1), with f, g the
+ *   crossing sums at c; where g' <= 0, new = max(min_{j: m_j > 0} (root - z_j) / m_j, c);
+ *   converged where |new - c| <= rtol max(new, 1e-30).
+ * f and g (n floats each) are work space. */
+WIDEST static void newton_loop(const float *z, const float *m, float *c, float thr, float root,
+                               int power, int n_iter, float rtol, Py_ssize_t chunk,
+                               Py_ssize_t k, Py_ssize_t q, Py_ssize_t n, float *f, float *g)
+{
+    for (Py_ssize_t a0 = 0; a0 < k; a0 += chunk) {
+        const Py_ssize_t a1 = a0 + chunk < k ? a0 + chunk : k;
+        for (int it = 0; it < n_iter; it++) {
+            int converged = 1;
+            for (Py_ssize_t a = a0; a < a1; a++) {
+                crossing_loop(z + a * q * n, m + a * q, c + a * n, power, f, g, 1, q, n);
+                float *ca = c + a * n;
+                const float *za = z + a * q * n, *ma = m + a * q;
+                for (Py_ssize_t i = 0; i < n; i++) {
+                    const float gi = power == 2 ? 2.0f * g[i] : g[i];
+                    float v = clip_low(ca[i] - (f[i] - thr) / gi);
+                    if (gi <= 0.0f) {
+                        float alone = INFINITY;
+                        for (Py_ssize_t j = 0; j < q; j++)
+                            alone = nanmin(alone, ma[j] > 0.0f ? (root - za[j * n + i]) / ma[j]
+                                                               : INFINITY);
+                        v = (alone > ca[i] || alone != alone) ? alone : ca[i];
+                    }
+                    const float d = v - ca[i];
+                    const float big = (v > 1e-30f || v != v) ? v : 1e-30f;
+                    if (!((d < 0.0f ? -d : d) <= rtol * big))
+                        converged = 0;
+                    ca[i] = v;
+                }
+            }
+            if (converged)
+                break;
+        }
+    }
+}
+
+/* newton_crossings(z, m, c, thr, root, power, n_iter, rtol, chunk, k, q, n): in place on c. */
+static PyObject *newton_crossings(PyObject *self, PyObject *args)
+{
+    PyObject *oz, *om, *oc;
+    float thr, root, rtol;
+    int power, n_iter;
+    Py_ssize_t chunk, k, q, n;
+    if (!PyArg_ParseTuple(args, "OOOffiifnnnn", &oz, &om, &oc, &thr, &root, &power, &n_iter,
+                          &rtol, &chunk, &k, &q, &n))
+        return NULL;
+    Py_buffer vz, vm, vc;
+    if (get_floats(oz, &vz, 0, "z") < 0)
+        return NULL;
+    if (get_floats(om, &vm, 0, "m") < 0) {
+        PyBuffer_Release(&vz);
+        return NULL;
+    }
+    if (get_floats(oc, &vc, 1, "c") < 0) {
+        PyBuffer_Release(&vz); PyBuffer_Release(&vm);
+        return NULL;
+    }
+    PyObject *result = NULL;
+    float *work = NULL;
+    if (vz.len != 4 * k * q * n || vm.len != 4 * k * q || vc.len != 4 * k * n ||
+        (power != 1 && power != 2) || chunk < 1 || n < 1) {
+        PyErr_SetString(PyExc_ValueError, "newton_crossings: inconsistent sizes or options");
+        goto done;
+    }
+    work = PyMem_RawMalloc(2 * n * sizeof(float));
+    if (work == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    {
+        const float *z = (const float *)vz.buf, *m = (const float *)vm.buf;
+        float *c = (float *)vc.buf;
+        Py_BEGIN_ALLOW_THREADS
+        newton_loop(z, m, c, thr, root, power, n_iter, rtol, chunk, k, q, n, work, work + n);
+        Py_END_ALLOW_THREADS
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyMem_RawFree(work);
+    PyBuffer_Release(&vz); PyBuffer_Release(&vm); PyBuffer_Release(&vc);
+    return result;
+}
+
 /* binary_forms(z, positive, square, negative): for every element,
  *   w = max(z, 0); positive += w; square += w * w; negative += min(z, 0)^2
  * (each accumulator may be None). */
@@ -301,6 +393,8 @@ static PyMethodDef methods[] = {
      "binary_forms(z, positive, square, negative): add max(z,0), max(z,0)^2, min(z,0)^2."},
     {"binary_maxima", binary_maxima, METH_VARARGS,
      "binary_maxima(z, tot, out, n, q, npos): per draw, the grid maxima of the binary forms."},
+    {"newton_crossings", newton_crossings, METH_VARARGS,
+     "newton_crossings(z, m, c, thr, root, power, n_iter, rtol, chunk, k, q, n): in place."},
     {"crossing_sums", crossing_sums, METH_VARARGS,
      "crossing_sums(z, m, c, power, f, g, k, q, n): the binary forms' Newton sums."},
     {NULL, NULL, 0, NULL}

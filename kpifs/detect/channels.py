@@ -12,7 +12,7 @@ the model (`energy_spread`, `noise_scale`), applied to every test.
 import numpy as np
 
 from ._laws import norm_isf
-from .limits import limit_energy_correlated
+from .limits import energy_crossing_limits
 from .quality import resolution_mas
 
 __all__ = ["whiten_weights", "channel_shrinkage", "SHRINKAGE_GRID", "np_correlated",
@@ -508,11 +508,12 @@ def correlated_energy_limit(model, rows, a, threshold, pd, te):
     idx, z = model.row_projections(rows)                              # (npos, nrow, q)
     amp = a[None, :] * np.sqrt(model.norm2.reshape(q, -1)[:, idx].T)     # (npos, q)
     n = min(4096, len(te["energy"]))      # enough draws for P_D, far from the tail
-    # (N, npos), stored by positions (the limit reads each position's draws)
-    proj = (np.einsum("kri,ki->kr", z, amp) @ te["coef"][:n].T).T
+    # each position's projections of the draws, made block of positions by block as the
+    # limit reads them (not one (npos, N) array)
+    rows_amp, coef = np.einsum("kri,ki->kr", z, amp), np.ascontiguousarray(te["coef"][:n].T)
     lim = np.full(shape[0] * shape[1], np.nan)
-    lim[idx] = limit_energy_correlated(proj, np.sum(amp ** 2, axis=1), te["energy"][:n],
-                                       threshold, pd)
+    lim[idx] = energy_crossing_limits(lambda a, b: rows_amp[a:b] @ coef,
+                                      np.sum(amp ** 2, axis=1), te["energy"][:n], threshold, pd)
     return lim.reshape(shape)
 
 

@@ -29,7 +29,7 @@ from astropy.table import QTable
 from .._lazy import lazy_module
 from .._utils import thread_map
 
-from ._elementwise import crossing_sums
+from ._elementwise import crossing_sums, newton_crossings
 from ._laws import chi2_cdf, chi2_ppf, chi2_sf, lhs_normal, norm_isf, norm_sf, order_quantile
 from .spectral import spectrum_shape
 from .stats import check_probability, energy_threshold
@@ -37,7 +37,8 @@ from .stats import check_probability, energy_threshold
 special = lazy_module("scipy.special")
 
 __all__ = ["limit_np", "energy_lambda", "limit_energy", "limit_binary",
-           "limit_binary_correlated_forms", "limit_energy_correlated", "mirror_half_map",
+           "limit_binary_correlated_forms", "limit_energy_correlated", "energy_crossing_limits",
+           "mirror_half_map",
            "radial_curves",
            "pfa_to_sigma", "sigma_to_pfa", "chi2_ratio_sigma"]
 
@@ -266,6 +267,9 @@ def _crossings(z, m, threshold, power, start, n_iter=12, rtol=1e-4, chunk=4):
     k, q, n = z.shape
     m32 = m.astype(np.float32)
     c = np.array(np.broadcast_to(np.asarray(start, np.float32).reshape(k, -1), (k, n)))
+    threshold = float(threshold)
+    if newton_crossings(z, m32, c, threshold, power, n_iter=n_iter, rtol=rtol, chunk=chunk):
+        return c                                    # the same steps, compiled
     u = np.empty((min(chunk, k), q, n), z.dtype)
     zero = np.zeros_like(u)          # max(u, zero), not max(u, 0): numpy's faster loop
     todo = list(range(0, k, chunk))
@@ -324,6 +328,27 @@ def limit_energy_correlated(signal_proj, signal_norm2, noise_energy, threshold, 
     >>> bool(abs(lim[0] - 4.66) < 0.2)             # sqrt(lambda) of ncx2 with 30 dof
     True
     """
+    return energy_crossing_limits(lambda a, b: np.asarray(signal_proj[:, a:b], float).T,
+                                  signal_norm2, noise_energy, threshold, pd)
+
+
+def energy_crossing_limits(projections, signal_norm2, noise_energy, threshold, pd):
+    """`limit_energy_correlated` with the draws' projections made on demand:
+    ``projections(a, b)`` gives those of positions ``a:b`` (b - a, N), 256 at a time (no
+    (N, npos) array of them all).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kpifs.detect.limits import energy_crossing_limits
+    >>> noise = np.random.default_rng(0).standard_normal((20000, 30))
+    >>> energy = np.sum(noise ** 2, axis=1)
+    >>> x = np.eye(30)[:, :2]                       # two unit-norm signal directions
+    >>> lim = energy_crossing_limits(lambda a, b: (noise @ x[:, a:b]).T, np.ones(2), energy,
+    ...                              np.quantile(energy, 0.99), 0.5)
+    >>> bool(np.all(np.abs(lim - 4.66) < 0.2))      # sqrt(lambda) of ncx2 with 30 dof
+    True
+    """
     pd = check_probability(pd, "P_D")
 
     # T_E(c) = thr is a quadratic in c per draw: its larger root is where that draw
@@ -334,7 +359,7 @@ def limit_energy_correlated(signal_proj, signal_norm2, noise_energy, threshold, 
 
     def chunk(a):
         # positions by rows, draws along them (their order statistic on contiguous rows)
-        proj = np.asarray(signal_proj[:, a:a + 256], float).T
+        proj = projections(a, min(a + 256, len(x2)))
         x2a = x2[a:a + 256, None]
         # (sqrt(max(proj^2 + x2 slack, 0)) - proj) / x2, in place
         root = np.multiply(proj, proj, out=np.empty(proj.shape))

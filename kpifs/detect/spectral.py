@@ -388,13 +388,20 @@ def limit_subspace(weights, norm2, threshold, pd, *, spectrum=None, correlation=
     xi = lhs_normal(n_draws, r, seed)                               # (N, r)
     out = np.full(m.shape[0], np.nan)
     corr = None if correlation is None else np.asarray(correlation, float).reshape(-1, q, q)
-    for s in range(0, len(m), 512):
-        mm = m[s:s + 512]
+    # only where there is a limit: a signal, and the correlation known (half the grid
+    # when it is symmetric); each position's draws are its own
+    todo = np.sum(m ** 2, axis=1) > 0
+    if corr is not None:
+        todo &= np.all(np.isfinite(corr), axis=(1, 2))
+    todo = np.flatnonzero(todo)
+    for s in range(0, len(todo), 512):
+        at = todo[s:s + 512]
+        mm = m[at]
         if corr is None:
             e = np.broadcast_to(xi, (len(mm),) + xi.shape)
         else:
-            wt = w[:, :, s:s + 512].transpose(2, 1, 0)               # (n, q, r)
-            cov = np.matmul(wt.transpose(0, 2, 1), np.matmul(corr[s:s + 512], wt))
+            wt = w[:, :, at].transpose(2, 1, 0)                       # (n, q, r)
+            cov = np.matmul(wt.transpose(0, 2, 1), np.matmul(corr[at], wt))
             val, vec = np.linalg.eigh(np.nan_to_num(cov))
             # the symmetric square root: unique, so that the fixed draws map to the same
             # noise whatever signs (or basis of a repeated eigenvalue) eigh returns
@@ -407,8 +414,5 @@ def limit_subspace(weights, norm2, threshold, pd, *, spectrum=None, correlation=
         with np.errstate(invalid="ignore", divide="ignore"):
             c = (np.sqrt(me ** 2 + m2 * np.maximum(slack, 0)) - me) / m2
         c = np.where(slack <= 0, 0.0, c)
-        lim = order_quantile(c, pd)
-        if corr is not None:
-            lim = np.where(np.all(np.isfinite(corr[s:s + 512]), axis=(1, 2)), lim, np.nan)
-        out[s:s + 512] = np.where(m2[:, 0] > 0, lim, np.nan)
+        out[at] = order_quantile(c, pd)
     return out.reshape(shape)
