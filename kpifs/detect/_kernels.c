@@ -109,8 +109,8 @@ WIDEST static void crossing_loop(const float *z, const float *m, const float *c,
 /* numpy's max over an array: NaN wins. */
 static inline float nanmax(float m, float x) { return (x > m || x != x) ? x : m; }
 
-/* Block of positions whose sums stay in the first-level cache. */
-#define POSITIONS 256
+/* Positions summed side by side: their sums and maxima stay in registers. */
+#define LANES 16
 
 /* Per draw d of z (n, q, npos), with sums over the channels j in order from 0:
  *   out[d] = (max_p sum_j max(z,0)^2, max_p sum_j min(z,0)^2, max_p sum_j max(z,0),
@@ -118,38 +118,55 @@ static inline float nanmax(float m, float x) { return (x > m || x != x) ? x : m;
 WIDEST static void maxima_loop(const float *z, const float *tot, Py_ssize_t n, Py_ssize_t q,
                                Py_ssize_t npos, float *out)
 {
-    float sq[POSITIONS], neg[POSITIONS], pos[POSITIONS];
     for (Py_ssize_t d = 0; d < n; d++) {
-        float m0 = -INFINITY, m1 = -INFINITY, m2 = -INFINITY, m3 = -INFINITY;
-        const float *zd = z + d * q * npos;
-        for (Py_ssize_t p0 = 0; p0 < npos; p0 += POSITIONS) {
-            const Py_ssize_t pb = npos - p0 < POSITIONS ? npos - p0 : POSITIONS;
-            for (Py_ssize_t p = 0; p < pb; p++)
-                sq[p] = neg[p] = pos[p] = 0.0f;
+        const float *zd = z + d * q * npos, *td = tot ? tot + d * npos : NULL;
+        float m0[LANES], m1[LANES], m2[LANES], m3[LANES];
+        for (int p = 0; p < LANES; p++)
+            m0[p] = m1[p] = m2[p] = m3[p] = -INFINITY;
+        Py_ssize_t p0 = 0;
+        for (; p0 + LANES <= npos; p0 += LANES) {
+            float sq[LANES] = {0.0f}, neg[LANES] = {0.0f}, pos[LANES] = {0.0f};
             for (Py_ssize_t j = 0; j < q; j++) {
                 const float *zj = zd + j * npos + p0;
-                for (Py_ssize_t p = 0; p < pb; p++) {
+                for (int p = 0; p < LANES; p++) {
                     float w = clip_low(zj[p]), v = clip_high(zj[p]);
                     pos[p] += w;
                     sq[p] += w * w;
                     neg[p] += v * v;
                 }
             }
-            for (Py_ssize_t p = 0; p < pb; p++) {
-                m0 = nanmax(m0, sq[p]);
-                m1 = nanmax(m1, neg[p]);
-                m2 = nanmax(m2, pos[p]);
+            for (int p = 0; p < LANES; p++) {
+                m0[p] = nanmax(m0[p], sq[p]);
+                m1[p] = nanmax(m1[p], neg[p]);
+                m2[p] = nanmax(m2[p], pos[p]);
             }
-            if (tot) {
-                const float *td = tot + d * npos + p0;
-                for (Py_ssize_t p = 0; p < pb; p++)
-                    m3 = nanmax(m3, pos[p] - td[p]);
-            }
+            if (td)
+                for (int p = 0; p < LANES; p++)
+                    m3[p] = nanmax(m3[p], pos[p] - td[p0 + p]);
         }
-        out[4 * d] = m0;
-        out[4 * d + 1] = m1;
-        out[4 * d + 2] = m2;
-        out[4 * d + 3] = m3;
+        float best[4] = {-INFINITY, -INFINITY, -INFINITY, -INFINITY};
+        for (int p = 0; p < LANES; p++) {
+            best[0] = nanmax(best[0], m0[p]);
+            best[1] = nanmax(best[1], m1[p]);
+            best[2] = nanmax(best[2], m2[p]);
+            best[3] = nanmax(best[3], m3[p]);
+        }
+        for (; p0 < npos; p0++) {                          /* the last positions */
+            float sq = 0.0f, neg = 0.0f, pos = 0.0f;
+            for (Py_ssize_t j = 0; j < q; j++) {
+                float w = clip_low(zd[j * npos + p0]), v = clip_high(zd[j * npos + p0]);
+                pos += w;
+                sq += w * w;
+                neg += v * v;
+            }
+            best[0] = nanmax(best[0], sq);
+            best[1] = nanmax(best[1], neg);
+            best[2] = nanmax(best[2], pos);
+            if (td)
+                best[3] = nanmax(best[3], pos - td[p0]);
+        }
+        for (int k = 0; k < 4; k++)
+            out[4 * d + k] = best[k];
     }
 }
 

@@ -221,7 +221,14 @@ class DetectionTest:
         only; not called when the object's ``per_channel`` is False), then
         ``finish(draw)`` -> ``{name: (n,) maxima over the grid}`` (*draw*'s
         ``channel_sum()`` gives the projections' sum over channels, its
-        ``combined(mats)`` the weighted sums of `NullSetup`'s *combine*)."""
+        ``combined(mats)`` the weighted sums of `NullSetup`'s *combine*).
+
+        A batch may also have ``add_channels(z, at, draw)``: every channel's
+        projections at once, *z* (m, q, npos) float32 for the draws *at* (a slice
+        of the batch). Where every reduction that needs the channels has it and the
+        draws go through the noise rows, the null makes them in one product by
+        sub-batches and calls it instead of ``add`` (the binary forms then keep
+        only their grid maxima, `~kpifs.detect._elementwise.binary_maxima`)."""
         raise NotImplementedError(f"test {self.name!r} has no null")
 
     def limit(self, inputs):
