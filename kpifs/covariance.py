@@ -246,7 +246,7 @@ def whitening_matrix(cov, *, rtol=1e-6, return_rank=False, source="covariance"):
         log.info("%s: %s of %d modes kept for whitening (eigenvalues above %.0e of the "
                  "largest)", source, np.unique(rank).tolist(), n, rtol)
     inv_sqrt = np.where(keep, 1 / np.sqrt(np.where(keep, vals, 1.0)), 0.0)
-    w = (vecs * inv_sqrt[..., None, :]) @ np.swapaxes(vecs, -1, -2)
+    w = _from_modes(vecs, inv_sqrt, keep)
     if return_rank:
         return w, (int(rank) if np.ndim(rank) == 0 else rank)
     return w
@@ -361,8 +361,22 @@ def unfilled_covariance(cov, fill):
     if not fill:
         return cov
     vals, vecs = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
-    vals = np.where(vals > 0.5 * fill, 0.0, vals)
-    return (vecs * vals[..., None, :]) @ np.swapaxes(vecs, -1, -2)
+    kept = vals <= 0.5 * fill
+    return _from_modes(vecs, np.where(kept, vals, 0.0), kept)
+
+
+def _from_modes(vecs, weights, keep):
+    """``V diag(weights) V^T`` from the eigenvectors *vecs* (..., n, n) and weights (..., n)
+    that are 0 where *keep* is False: through the kept modes only (a covariance of few
+    frames keeps a few of hundreds), in their order."""
+    r = int(keep.sum(axis=-1).max()) if keep.size else 0
+    if r >= keep.shape[-1] // 2:
+        return (vecs * weights[..., None, :]) @ np.swapaxes(vecs, -1, -2)
+    # the kept modes first, in order; a matrix of fewer pads with dropped ones (weight 0)
+    idx = np.argsort(~keep, axis=-1, kind="stable")[..., :r]
+    v = np.take_along_axis(vecs, idx[..., None, :], axis=-1)
+    wt = np.take_along_axis(weights, idx, axis=-1)
+    return (v * wt[..., None, :]) @ np.swapaxes(v, -1, -2)
 
 
 def rows_covariance(rows, *, joint=False):
