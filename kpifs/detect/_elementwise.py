@@ -5,12 +5,13 @@ The binary forms ``sum_i max(z_i, 0)^power`` are clipped and summed element by
 element, for every draw of the null and every Newton step of the limits. numpy
 makes each operation a pass over the arrays (seven per channel for the null's
 reduction, more than the matrix product that made the projections); the
-extension reads each element once. `binary_forms` performs exactly numpy's
-operations in numpy's order (its results are the same bit for bit);
-`crossing_sums` sums over the channels in order, as numpy's ``einsum`` does
-where it makes no fused multiply-adds (it may elsewhere: the two agree to
-single-precision rounding). `COMPILED` says which runs; ``KPIFS_PURE_NUMPY=1``
-in the environment forces numpy.
+extension reads each element once. `binary_forms` and `binary_maxima` perform
+exactly numpy's operations in numpy's order (their results are the same bit for
+bit); `newton_crossings` takes the limits' Newton steps as `crossing_sums` and
+`kpifs.detect.limits` do in numpy, summing over the channels in order as numpy's
+``einsum`` does where it makes no fused multiply-adds (it may elsewhere: the two
+agree to single-precision rounding). `COMPILED` says which runs;
+``KPIFS_PURE_NUMPY=1`` in the environment forces numpy.
 
 Examples
 --------
@@ -31,38 +32,43 @@ try:
 except ImportError:                           # not built (a source checkout, no compiler)
     _kernels = None
 
-__all__ = ["binary_forms", "binary_maxima", "crossing_sums", "newton_crossings", "COMPILED"]
+__all__ = ["binary_forms", "binary_maxima", "crossing_sums", "newton_crossings", "COMPILED",
+           "TILE"]
 
 #: Whether the compiled loops run (the extension was built and numpy is not forced).
 COMPILED = _kernels is not None and os.environ.get("KPIFS_PURE_NUMPY", "") in ("", "0")
+
+#: Rows (draws) per tile of numpy's loops: their work arrays stay in the processor's cache.
+TILE = 32
 
 
 def _ready(a):
     return a is None or (a.dtype == np.float32 and a.flags.c_contiguous)
 
 
-def binary_forms(z, positive, square, negative, *, zero=None, work=None):
+def binary_forms(z, positive, square, negative):
     """Add ``max(z, 0)`` to *positive*, ``max(z, 0)^2`` to *square* and ``min(z, 0)^2``
-    to *negative*, in place (float32 arrays of *z*'s shape; any may be None).
-
-    *zero* (zeros of *z*'s shape) and *work* (two arrays of that shape) spare the
-    numpy loops their allocations."""
+    to *negative*, in place (float32 arrays (n, npos) of *z*'s shape; any may be None).
+    numpy goes `TILE` rows at a time, whose work arrays stay in the cache."""
     if COMPILED and all(map(_ready, (z, positive, square, negative))):
         _kernels.binary_forms(z, positive, square, negative)
         return
-    zero = np.zeros_like(z) if zero is None else zero
-    w, v = (np.empty_like(z), np.empty_like(z)) if work is None else work
+    rows = min(TILE, len(z))
     # against an array of zeros, not the scalar 0: numpy's faster loop (same values)
-    np.maximum(z, zero, out=w)
-    if positive is not None:
-        positive += w
-    if square is not None:
-        w *= w
-        square += w
-    if negative is not None:
-        np.minimum(z, zero, out=v)
-        v *= v
-        negative += v
+    zero, w, v = (np.zeros((rows,) + z.shape[1:], np.float32) for _ in range(3))
+    for a in range(0, len(z), TILE):
+        b = min(a + TILE, len(z))
+        zt, wt, vt = z[a:b], w[:b - a], v[:b - a]
+        np.maximum(zt, zero[:b - a], out=wt)
+        if positive is not None:
+            positive[a:b] += wt
+        if square is not None:
+            wt *= wt
+            square[a:b] += wt
+        if negative is not None:
+            np.minimum(zt, zero[:b - a], out=vt)
+            vt *= vt
+            negative[a:b] += vt
 
 
 def binary_maxima(z, tot=None):
@@ -89,10 +95,8 @@ def binary_maxima(z, tot=None):
         _kernels.binary_maxima(z, tot, out, m, q, npos)
         return out
     pos, sq, neg = (np.zeros((m, npos), np.float32) for _ in range(3))
-    zero = np.zeros((m, npos), np.float32)
-    work = (np.empty_like(zero), np.empty_like(zero))
     for j in range(q):
-        binary_forms(z[:, j], pos, sq, neg, zero=zero, work=work)
+        binary_forms(z[:, j], pos, sq, neg)
     out[:, 0], out[:, 1], out[:, 2] = sq.max(axis=1), neg.max(axis=1), pos.max(axis=1)
     out[:, 3] = -np.inf if tot is None else (pos - tot).max(axis=1)
     return out
@@ -102,8 +106,9 @@ def crossing_sums(z, m32, c, power, *, u=None, zero=None):
     """``f = sum_j u_j^power`` and ``g = sum_j m_j u_j`` (power 2) or ``sum_j m_j
     [u_j > 0]`` (power 1), with ``u_j = max(z_j + m_j c, 0)``, for draws *z* (k, q, n),
     the signal per unit contrast *m32* (k, q) and contrasts *c* (k, n), all float32:
-    the sums of a Newton step of the binary limits (`kpifs.detect.limits`). *u* (k,
-    q, n) and *zero* (its zeros) are work arrays for the numpy loops.
+    the sums of a Newton step of the binary limits (`kpifs.detect.limits`), in numpy
+    (compiled, `newton_crossings` makes them inside its steps). *u* (k, q, n) and
+    *zero* (its zeros) are work arrays.
 
     Examples
     --------
@@ -114,12 +119,7 @@ def crossing_sums(z, m32, c, power, *, u=None, zero=None):
     >>> f.tolist(), g.tolist()                             # u = (0, 1.5)
     ([[2.25]], [[1.5]])
     """
-    k, q, n = z.shape
     c = np.ascontiguousarray(c, np.float32)
-    if COMPILED and _ready(z) and _ready(m32):
-        f, g = np.empty((k, n), np.float32), np.empty((k, n), np.float32)
-        _kernels.crossing_sums(z, m32, c, int(power), f, g, k, q, n)
-        return f, g
     u = np.empty(z.shape, np.float32) if u is None else u
     zero = np.zeros_like(u) if zero is None else zero
     np.einsum("kq,kn->kqn", m32, c, out=u)          # m c (an outer product: no sum)

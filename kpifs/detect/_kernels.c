@@ -32,20 +32,53 @@
 static inline float clip_low(float v) { return (v > 0.0f || v != v) ? v : 0.0f; }
 static inline float clip_high(float v) { return (v < 0.0f || v != v) ? v : 0.0f; }
 
-static int get_floats(PyObject *obj, Py_buffer *view, int writable, const char *what)
+/* Buffers of the arguments: *n* objects, each a contiguous float32 array (or None where
+ * *optional*), read-only or *writable*; on failure, an exception set and none held. */
+typedef struct {
+    PyObject *obj;
+    const char *name;
+    int writable, optional;
+    Py_buffer view;
+    int held;
+} Arg;
+
+static void release(Arg *args, int n)
 {
-    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
-    if (PyObject_GetBuffer(obj, view, flags) < 0)
-        return -1;
-    if (view->itemsize != 4 || view->format == NULL ||
-        !(view->format[0] == 'f' || (view->format[0] != '\0' && view->format[1] == 'f'))) {
-        PyErr_Format(PyExc_TypeError, "%s: a contiguous float32 array is needed", what);
-        PyBuffer_Release(view);
-        return -1;
+    for (int k = 0; k < n; k++)
+        if (args[k].held) {
+            PyBuffer_Release(&args[k].view);
+            args[k].held = 0;
+        }
+}
+
+static int acquire(Arg *args, int n)
+{
+    for (int k = 0; k < n; k++) {
+        Arg *a = &args[k];
+        a->held = 0;
+        if (a->obj == Py_None && a->optional)
+            continue;
+        int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (a->writable ? PyBUF_WRITABLE : 0);
+        if (PyObject_GetBuffer(a->obj, &a->view, flags) < 0) {
+            release(args, k);
+            return -1;
+        }
+        a->held = 1;
+        const char *f = a->view.format;
+        if (a->view.itemsize != 4 || f == NULL || !(f[0] == 'f' || (f[0] && f[1] == 'f'))) {
+            PyErr_Format(PyExc_TypeError, "%s: a contiguous float32 array is needed", a->name);
+            release(args, k + 1);
+            return -1;
+        }
     }
     return 0;
 }
 
+static float *data(Arg *a) { return a->held ? (float *)a->view.buf : NULL; }
+static Py_ssize_t floats(Arg *a) { return a->held ? a->view.len / 4 : 0; }
+
+/* w = max(z, 0); pos += w; sq += w * w; neg += min(z, 0)^2, element by element (any of the
+ * three may be NULL). */
 WIDEST static void forms_loop(const float *z, Py_ssize_t n, float *pos, float *sq, float *neg)
 {
     if (pos && sq && neg) {
@@ -78,6 +111,11 @@ WIDEST static void forms_loop(const float *z, Py_ssize_t n, float *pos, float *s
     }
 }
 
+/* The sums of a Newton step of the binary limits, for draws z (k, q, n), signal per unit
+ * contrast m (k, q) and contrasts c (k, n), with u_j = max(z_j + m_j c, 0):
+ *   power 2: f = sum_j u_j^2,  g = sum_j m_j u_j;
+ *   power 1: f = sum_j u_j,    g = sum_j m_j [u_j > 0];
+ * summed over j in order, into f and g (k, n). */
 WIDEST static void crossing_loop(const float *z, const float *m, const float *c, int power,
                                  float *f, float *g, Py_ssize_t k, Py_ssize_t q, Py_ssize_t n)
 {
@@ -170,50 +208,6 @@ WIDEST static void maxima_loop(const float *z, const float *tot, Py_ssize_t n, P
     }
 }
 
-/* binary_maxima(z, tot, out, n, q, npos): `maxima_loop` (tot may be None). */
-static PyObject *binary_maxima(PyObject *self, PyObject *args)
-{
-    PyObject *oz, *ot, *oo;
-    Py_ssize_t n, q, npos;
-    if (!PyArg_ParseTuple(args, "OOOnnn", &oz, &ot, &oo, &n, &q, &npos))
-        return NULL;
-    Py_buffer vz, vt, vo;
-    int have_t = ot != Py_None;
-    if (get_floats(oz, &vz, 0, "z") < 0)
-        return NULL;
-    if (have_t && get_floats(ot, &vt, 0, "tot") < 0) {
-        PyBuffer_Release(&vz);
-        return NULL;
-    }
-    if (get_floats(oo, &vo, 1, "out") < 0) {
-        PyBuffer_Release(&vz);
-        if (have_t)
-            PyBuffer_Release(&vt);
-        return NULL;
-    }
-    PyObject *result = NULL;
-    if (n < 0 || q < 1 || npos < 1 || vz.len != 4 * n * q * npos || vo.len != 16 * n ||
-        (have_t && vt.len != 4 * n * npos)) {
-        PyErr_SetString(PyExc_ValueError, "binary_maxima: inconsistent sizes");
-        goto done;
-    }
-    {
-        const float *z = (const float *)vz.buf, *tot = have_t ? (const float *)vt.buf : NULL;
-        float *out = (float *)vo.buf;
-        Py_BEGIN_ALLOW_THREADS
-        maxima_loop(z, tot, n, q, npos, out);
-        Py_END_ALLOW_THREADS
-    }
-    result = Py_None;
-    Py_INCREF(result);
-done:
-    PyBuffer_Release(&vz);
-    if (have_t)
-        PyBuffer_Release(&vt);
-    PyBuffer_Release(&vo);
-    return result;
-}
-
 /* numpy's min over an array: NaN wins. */
 static inline float nanmin(float m, float x) { return (x < m || x != x) ? x : m; }
 
@@ -258,151 +252,85 @@ WIDEST static void newton_loop(const float *z, const float *m, float *c, float t
     }
 }
 
-/* newton_crossings(z, m, c, thr, root, power, n_iter, rtol, chunk, k, q, n): in place on c. */
+/* binary_forms(z, positive, square, negative): for every element,
+ *   w = max(z, 0); positive += w; square += w * w; negative += min(z, 0)^2
+ * (each accumulator may be None, and is of z's size). */
+static PyObject *binary_forms(PyObject *self, PyObject *args)
+{
+    Arg a[4] = {{.name = "z"}, {.name = "positive", .writable = 1, .optional = 1},
+                {.name = "square", .writable = 1, .optional = 1},
+                {.name = "negative", .writable = 1, .optional = 1}};
+    if (!PyArg_ParseTuple(args, "OOOO", &a[0].obj, &a[1].obj, &a[2].obj, &a[3].obj))
+        return NULL;
+    if (acquire(a, 4) < 0)
+        return NULL;
+    const Py_ssize_t n = floats(&a[0]);
+    for (int k = 1; k < 4; k++)
+        if (a[k].held && floats(&a[k]) != n) {
+            PyErr_SetString(PyExc_ValueError, "binary_forms: an accumulator is not z's size");
+            release(a, 4);
+            return NULL;
+        }
+    Py_BEGIN_ALLOW_THREADS
+    forms_loop(data(&a[0]), n, data(&a[1]), data(&a[2]), data(&a[3]));
+    Py_END_ALLOW_THREADS
+    release(a, 4);
+    Py_RETURN_NONE;
+}
+
+/* binary_maxima(z, tot, out, n, q, npos): `maxima_loop` (tot may be None). */
+static PyObject *binary_maxima(PyObject *self, PyObject *args)
+{
+    Arg a[3] = {{.name = "z"}, {.name = "tot", .optional = 1}, {.name = "out", .writable = 1}};
+    Py_ssize_t n, q, npos;
+    if (!PyArg_ParseTuple(args, "OOOnnn", &a[0].obj, &a[1].obj, &a[2].obj, &n, &q, &npos))
+        return NULL;
+    if (acquire(a, 3) < 0)
+        return NULL;
+    if (n < 0 || q < 1 || npos < 1 || floats(&a[0]) != n * q * npos || floats(&a[2]) != 4 * n
+        || (a[1].held && floats(&a[1]) != n * npos)) {
+        PyErr_SetString(PyExc_ValueError, "binary_maxima: inconsistent sizes");
+        release(a, 3);
+        return NULL;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    maxima_loop(data(&a[0]), data(&a[1]), n, q, npos, data(&a[2]));
+    Py_END_ALLOW_THREADS
+    release(a, 3);
+    Py_RETURN_NONE;
+}
+
+/* newton_crossings(z, m, c, thr, root, power, n_iter, rtol, chunk, k, q, n): `newton_loop`,
+ * in place on c. */
 static PyObject *newton_crossings(PyObject *self, PyObject *args)
 {
-    PyObject *oz, *om, *oc;
+    Arg a[3] = {{.name = "z"}, {.name = "m"}, {.name = "c", .writable = 1}};
     float thr, root, rtol;
     int power, n_iter;
     Py_ssize_t chunk, k, q, n;
-    if (!PyArg_ParseTuple(args, "OOOffiifnnnn", &oz, &om, &oc, &thr, &root, &power, &n_iter,
-                          &rtol, &chunk, &k, &q, &n))
+    if (!PyArg_ParseTuple(args, "OOOffiifnnnn", &a[0].obj, &a[1].obj, &a[2].obj, &thr, &root,
+                          &power, &n_iter, &rtol, &chunk, &k, &q, &n))
         return NULL;
-    Py_buffer vz, vm, vc;
-    if (get_floats(oz, &vz, 0, "z") < 0)
+    if (acquire(a, 3) < 0)
         return NULL;
-    if (get_floats(om, &vm, 0, "m") < 0) {
-        PyBuffer_Release(&vz);
-        return NULL;
-    }
-    if (get_floats(oc, &vc, 1, "c") < 0) {
-        PyBuffer_Release(&vz); PyBuffer_Release(&vm);
-        return NULL;
-    }
-    PyObject *result = NULL;
-    float *work = NULL;
-    if (vz.len != 4 * k * q * n || vm.len != 4 * k * q || vc.len != 4 * k * n ||
+    if (floats(&a[0]) != k * q * n || floats(&a[1]) != k * q || floats(&a[2]) != k * n ||
         (power != 1 && power != 2) || chunk < 1 || n < 1) {
         PyErr_SetString(PyExc_ValueError, "newton_crossings: inconsistent sizes or options");
-        goto done;
+        release(a, 3);
+        return NULL;
     }
-    work = PyMem_RawMalloc(2 * n * sizeof(float));
+    float *work = PyMem_RawMalloc(2 * n * sizeof(float));
     if (work == NULL) {
-        PyErr_NoMemory();
-        goto done;
+        release(a, 3);
+        return PyErr_NoMemory();
     }
-    {
-        const float *z = (const float *)vz.buf, *m = (const float *)vm.buf;
-        float *c = (float *)vc.buf;
-        Py_BEGIN_ALLOW_THREADS
-        newton_loop(z, m, c, thr, root, power, n_iter, rtol, chunk, k, q, n, work, work + n);
-        Py_END_ALLOW_THREADS
-    }
-    result = Py_None;
-    Py_INCREF(result);
-done:
+    Py_BEGIN_ALLOW_THREADS
+    newton_loop(data(&a[0]), data(&a[1]), data(&a[2]), thr, root, power, n_iter, rtol, chunk,
+                k, q, n, work, work + n);
+    Py_END_ALLOW_THREADS
     PyMem_RawFree(work);
-    PyBuffer_Release(&vz); PyBuffer_Release(&vm); PyBuffer_Release(&vc);
-    return result;
-}
-
-/* binary_forms(z, positive, square, negative): for every element,
- *   w = max(z, 0); positive += w; square += w * w; negative += min(z, 0)^2
- * (each accumulator may be None). */
-static PyObject *binary_forms(PyObject *self, PyObject *args)
-{
-    PyObject *objs[4];
-    Py_buffer views[4];
-    int have[4] = {0, 0, 0, 0};
-    if (!PyArg_ParseTuple(args, "OOOO", &objs[0], &objs[1], &objs[2], &objs[3]))
-        return NULL;
-    PyObject *result = NULL;
-    for (int k = 0; k < 4; k++) {
-        if (objs[k] == Py_None)
-            continue;
-        if (get_floats(objs[k], &views[k], k > 0, k ? "accumulator" : "z") < 0)
-            goto done;
-        have[k] = 1;
-        if (k && views[k].len != views[0].len) {
-            PyErr_SetString(PyExc_ValueError, "accumulators and z differ in size");
-            goto done;
-        }
-    }
-    if (!have[0]) {
-        PyErr_SetString(PyExc_TypeError, "z is needed");
-        goto done;
-    }
-    {
-        const Py_ssize_t n = views[0].len / 4;
-        const float *z = (const float *)views[0].buf;
-        float *pos = have[1] ? (float *)views[1].buf : NULL;
-        float *sq = have[2] ? (float *)views[2].buf : NULL;
-        float *neg = have[3] ? (float *)views[3].buf : NULL;
-        Py_BEGIN_ALLOW_THREADS
-        forms_loop(z, n, pos, sq, neg);
-        Py_END_ALLOW_THREADS
-    }
-    result = Py_None;
-    Py_INCREF(result);
-done:
-    for (int k = 0; k < 4; k++)
-        if (have[k])
-            PyBuffer_Release(&views[k]);
-    return result;
-}
-
-/* crossing_sums(z, m, c, power, f, g): for draws z (k, q, n), signal per unit
- * contrast m (k, q) and contrasts c (k, n), with u_j = max(z_j + m_j c, 0):
- *   power 2: f = sum_j u_j^2,  g = sum_j m_j u_j;
- *   power 1: f = sum_j u_j,    g = sum_j m_j [u_j > 0];
- * summed over j in order, into f and g (k, n). */
-static PyObject *crossing_sums(PyObject *self, PyObject *args)
-{
-    PyObject *oz, *om, *oc, *of, *og;
-    int power;
-    Py_ssize_t k, q, n;
-    if (!PyArg_ParseTuple(args, "OOOiOOnnn", &oz, &om, &oc, &power, &of, &og, &k, &q, &n))
-        return NULL;
-    Py_buffer vz, vm, vc, vf, vg;
-    if (get_floats(oz, &vz, 0, "z") < 0)
-        return NULL;
-    if (get_floats(om, &vm, 0, "m") < 0) {
-        PyBuffer_Release(&vz);
-        return NULL;
-    }
-    if (get_floats(oc, &vc, 0, "c") < 0) {
-        PyBuffer_Release(&vz); PyBuffer_Release(&vm);
-        return NULL;
-    }
-    if (get_floats(of, &vf, 1, "f") < 0) {
-        PyBuffer_Release(&vz); PyBuffer_Release(&vm); PyBuffer_Release(&vc);
-        return NULL;
-    }
-    if (get_floats(og, &vg, 1, "g") < 0) {
-        PyBuffer_Release(&vz); PyBuffer_Release(&vm); PyBuffer_Release(&vc);
-        PyBuffer_Release(&vf);
-        return NULL;
-    }
-    PyObject *result = NULL;
-    if (vz.len != 4 * k * q * n || vm.len != 4 * k * q || vc.len != 4 * k * n ||
-        vf.len != 4 * k * n || vg.len != 4 * k * n || (power != 1 && power != 2)) {
-        PyErr_SetString(PyExc_ValueError, "crossing_sums: inconsistent sizes or power");
-        goto done;
-    }
-    {
-        const float *z = (const float *)vz.buf, *m = (const float *)vm.buf;
-        const float *c = (const float *)vc.buf;
-        float *f = (float *)vf.buf, *g = (float *)vg.buf;
-        Py_BEGIN_ALLOW_THREADS
-        crossing_loop(z, m, c, power, f, g, k, q, n);
-        Py_END_ALLOW_THREADS
-    }
-    result = Py_None;
-    Py_INCREF(result);
-done:
-    PyBuffer_Release(&vz); PyBuffer_Release(&vm); PyBuffer_Release(&vc);
-    PyBuffer_Release(&vf); PyBuffer_Release(&vg);
-    return result;
+    release(a, 3);
+    Py_RETURN_NONE;
 }
 
 static PyMethodDef methods[] = {
@@ -412,14 +340,13 @@ static PyMethodDef methods[] = {
      "binary_maxima(z, tot, out, n, q, npos): per draw, the grid maxima of the binary forms."},
     {"newton_crossings", newton_crossings, METH_VARARGS,
      "newton_crossings(z, m, c, thr, root, power, n_iter, rtol, chunk, k, q, n): in place."},
-    {"crossing_sums", crossing_sums, METH_VARARGS,
-     "crossing_sums(z, m, c, power, f, g, k, q, n): the binary forms' Newton sums."},
     {NULL, NULL, 0, NULL}
 };
 
 static struct PyModuleDef module = {
-    PyModuleDef_HEAD_INIT, "_kernels",
-    "Fused elementwise loops of the binary tests (see kpifs.detect._elementwise).", -1, methods
+    PyModuleDef_HEAD_INIT, .m_name = "_kernels",
+    .m_doc = "Fused elementwise loops of the binary tests (see kpifs.detect._elementwise).",
+    .m_size = -1, .m_methods = methods,
 };
 
 PyMODINIT_FUNC PyInit__kernels(void)

@@ -182,7 +182,7 @@ class _Draw:
     def all_channels(self, at, out):
         """Every channel's projections of draws *at* (a slice of the batch), one product
         through the rows: *out* (m, q, npos)."""
-        flat = self.p.proj.reshape(len(self.coef[0]), -1)
+        flat = self.p.proj.reshape(len(self.p.proj), -1)
         return np.matmul(self.coef[at], flat, out=out.reshape(len(out), -1)).reshape(out.shape)
 
     def channel_sum(self):

@@ -13,11 +13,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .. import _elementwise
+
 __all__ = ["DetectionTest", "NullSetup", "LimitInputs", "KnownPositionDraws", "TILE"]
 
 #: Draws per tile of a null reduction's elementwise work (a reduction updates its
 #: accumulators tile by tile, so that its work arrays stay in the processor's cache).
-TILE = 32
+TILE = _elementwise.TILE
 
 
 @dataclass

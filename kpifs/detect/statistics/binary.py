@@ -11,10 +11,10 @@ the null's draws and the same draws of the limits.
 """
 import numpy as np
 
-from .._elementwise import COMPILED, binary_forms, binary_maxima
+from .._elementwise import binary_forms, binary_maxima
 from ..limits import limit_binary, limit_binary_correlated_forms, mirror_half_map
 from ..stats import binary_pfa, binary_statistic
-from .base import TILE, DetectionTest
+from .base import DetectionTest
 
 __all__ = ["BinaryTest"]
 
@@ -49,31 +49,13 @@ class _Batch:
     def add(self, i, z):
         """Channel *i*'s projections *z* (n, npos), added to the forms' maps."""
         if self.acc is None:
-            self._start()
-        # numpy's loops by tiles of draws, whose work arrays stay in the cache (the same
-        # operations, element by element, as over the whole batch); compiled, at once
-        step = max(len(z), 1) if COMPILED else TILE
-        for a in range(0, len(z), step):
-            b = min(a + step, len(z))
-            n = b - a
-            tiled = n <= TILE
-            binary_forms(z[a:b], *(None if acc is None else acc[a:b]
-                                   for acc in (self.paper, self.square, self.neg)),
-                         zero=self.zero[:n] if tiled else None,
-                         work=(self.work[0][:n], self.work[1][:n]) if tiled else None)
-
-    def _start(self):
-        shape = (self.n, self.r.npos)
-        self.acc = {f: np.zeros(shape, np.float32) for f in self.r.forms}
-        # the numpy loops' work arrays (`binary_forms`), one tile of draws each
-        self.work = (np.empty((TILE, self.r.npos), np.float32),
-                     np.empty((TILE, self.r.npos), np.float32))
-        self.zero = np.zeros_like(self.work[0])
-        # mirrored positions: sum max(-z, 0)^2 = sum min(z, 0)^2 (B), and
-        # sum max(-z, 0) = sum max(z, 0) - sum z (B-paper: one product for the channel sum)
-        self.neg = np.zeros(shape, np.float32) if self.r.mirrored and "B" in self.acc \
-            else None
-        self.paper, self.square = self.acc.get("B-paper"), self.acc.get("B")
+            shape = (self.n, self.r.npos)
+            self.acc = {f: np.zeros(shape, np.float32) for f in self.r.forms}
+            # mirrored positions: sum max(-z, 0)^2 = sum min(z, 0)^2 (B), and sum max(-z, 0)
+            # = sum max(z, 0) - sum z (B-paper: one product for the channel sum)
+            self.neg = np.zeros(shape, np.float32) if self.r.mirrored and "B" in self.acc \
+                else None
+        binary_forms(z, self.acc.get("B-paper"), self.acc.get("B"), self.neg)
 
     def finish(self, draw):
         if self.maxima is not None:
