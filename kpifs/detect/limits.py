@@ -290,7 +290,7 @@ def _crossings(z, m, threshold, power, start, n_iter=12, rtol=1e-4, chunk=4):
 
 def _newton_step(z, m32, c, threshold, power, u, zero):
     """One Newton step of `_crossings` from contrasts *c* (k, N); *u* a work array and
-    *zero* zeros of its shape (for numpy's loops, `~kpifs.detect._elementwise.crossing_sums`)."""
+    *zero* zeros of its shape (for numpy's loops, ``kpifs.detect._elementwise.crossing_sums``)."""
     f, g = crossing_sums(z, m32, c, power, u=u, zero=zero)
     f = f - threshold
     if power == 2:

@@ -230,7 +230,7 @@ class DetectionTest:
         of the batch). Where every reduction that needs the channels has it and the
         draws go through the noise rows, the null makes them in one product by
         sub-batches and calls it instead of ``add`` (the binary forms then keep
-        only their grid maxima, `~kpifs.detect._elementwise.binary_maxima`)."""
+        only their grid maxima, ``kpifs.detect._elementwise.binary_maxima``)."""
         raise NotImplementedError(f"test {self.name!r} has no null")
 
     def limit(self, inputs):
