@@ -111,3 +111,19 @@ def test_progress_lines_with_the_time_left_when_stderr_is_not_a_terminal(monkeyp
     assert "3/4 injections" in capsys.readouterr().err
     assert list(utils.progress(range(3), enabled=False)) == [0, 1, 2]
     assert capsys.readouterr().err == ""
+
+
+def test_every_command_has_its_runner_and_every_public_name_its_module():
+    """The entry points load on first use through imports written out by hand
+    (`kpifs._cli._runner`, `kpifs._module_of`): a command or a re-exported name added
+    without its line there would fail only when used."""
+    import kpifs
+    from kpifs._cli import _runner
+    _, commands = _commands()
+    for name, sub in commands.items():
+        run = _runner(sub.get_default("module"))
+        assert callable(run) and run.__module__ == f"kpifs._cli.{sub.get_default('module')}"
+    for name in kpifs.__all__:
+        assert getattr(kpifs, name) is not None, name
+    with pytest.raises(RuntimeError, match="no module"):
+        _runner("no-such-command")
